@@ -1,0 +1,71 @@
+"""Typed, timestamped samples: what drivers produce and the estimator consumes.
+
+Times are integer nanoseconds on one monotonic clock; values are SI and already in the body
+(FRD) or local world (NED) frame, so nothing downstream knows about devices or units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True, slots=True)
+class ImuSample:
+    """One IMU reading in body FRD: angular rate [rad/s] and specific force [m/s^2]."""
+
+    t_ns: int
+    gyro: np.ndarray
+    accel: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class GpsFix:
+    """A position fix of the GPS antenna in local NED [m] with its 1-sigma errors [m]."""
+
+    t_ns: int
+    p_ned: np.ndarray
+    sigma_h: float
+    sigma_v: float
+
+
+@dataclass(frozen=True, slots=True)
+class CameraFrame:
+    """A grey image (uint8, rows × cols) taken at ``t_ns`` (mid-exposure, host clock)."""
+
+    t_ns: int
+    image: np.ndarray
+    seq: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class TruthSample:
+    """Reference pose for scoring. ``q`` is None when the reference has no orientation."""
+
+    t_ns: int
+    p: np.ndarray
+    q: np.ndarray | None = None
+    v: np.ndarray | None = None
+
+
+@dataclass(slots=True)
+class RejectionCounts:
+    """Per-sensor counters of what came in and what was used; reported, never dropped silently."""
+
+    received: int = 0
+    used: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    flagged: dict[str, int] = field(default_factory=dict)  # used, but worth knowing (e.g. a gap bridged)
+
+    def reject(self, reason: str, n: int = 1) -> None:
+        self.rejected[reason] = self.rejected.get(reason, 0) + n
+
+    def flag(self, reason: str, n: int = 1) -> None:
+        self.flagged[reason] = self.flagged.get(reason, 0) + n
+
+    def as_dict(self) -> dict:
+        out = {"received": self.received, "used": self.used, "rejected": dict(sorted(self.rejected.items()))}
+        if self.flagged:
+            out["flagged"] = dict(sorted(self.flagged.items()))
+        return out

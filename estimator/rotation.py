@@ -1,0 +1,166 @@
+"""Rotations: Hamilton quaternions (scalar first), rotation matrices, the SO(3) exponential map.
+
+One convention everywhere (see README, "Frames"): a unit quaternion ``q = [w, x, y, z]``
+rotates body vectors into the world, ``v_W = R(q) v_B``; composition is Hamilton's product,
+so ``q_WC = q_WB ⊗ q_BC``. Every function accepts a single quaternion/vector or a stack of
+them along the leading axes (``[..., 4]`` / ``[..., 3]``), which keeps evaluation code free of
+Python loops.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL_ANGLE = 1e-8
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix: ``skew(a) @ b == np.cross(a, b)``."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product ``p ⊗ q`` (scalar first)."""
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conj(q: np.ndarray) -> np.ndarray:
+    """Conjugate, the inverse of a unit quaternion."""
+    q = np.asarray(q, dtype=float)
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_normalize(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion with a non-negative scalar part (one representative of ±q)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    sign = np.where(q[..., :1] < 0.0, -1.0, 1.0)
+    return q * sign
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``R(q)`` with ``v_W = R v_B`` (the transpose of thesis eq. 3.31)."""
+    q = np.asarray(q, dtype=float)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = np.empty(q.shape[:-1] + (3, 3))
+    r[..., 0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    r[..., 0, 1] = 2.0 * (x * y - w * z)
+    r[..., 0, 2] = 2.0 * (x * z + w * y)
+    r[..., 1, 0] = 2.0 * (x * y + w * z)
+    r[..., 1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    r[..., 1, 2] = 2.0 * (y * z - w * x)
+    r[..., 2, 0] = 2.0 * (x * z - w * y)
+    r[..., 2, 1] = 2.0 * (y * z + w * x)
+    r[..., 2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    return r
+
+
+def rot_to_quat(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w ≥ 0) of a rotation matrix; numerically safe for every angle."""
+    r = np.asarray(r, dtype=float)
+    flat = r.reshape(-1, 3, 3)
+    out = np.empty((flat.shape[0], 4))
+    for i, m in enumerate(flat):
+        tr = m[0, 0] + m[1, 1] + m[2, 2]
+        if tr > 0.0:
+            s = 2.0 * np.sqrt(tr + 1.0)
+            out[i] = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+            out[i] = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+        elif m[1, 1] > m[2, 2]:
+            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+            out[i] = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+        else:
+            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+            out[i] = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    return quat_normalize(out).reshape(r.shape[:-2] + (4,))
+
+
+def quat_exp(rotvec: np.ndarray) -> np.ndarray:
+    """Quaternion of a rotation vector (axis × angle): ``[cos(θ/2), sin(θ/2) axis]``."""
+    rv = np.asarray(rotvec, dtype=float)
+    angle = np.linalg.norm(rv, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    # sin(θ/2)/θ, with its series near zero so tiny rotations keep full precision.
+    k = np.where(angle > _SMALL_ANGLE, np.sin(half) / np.maximum(angle, _SMALL_ANGLE), 0.5 - angle**2 / 48.0)
+    return np.concatenate([np.cos(half), k * rv], axis=-1)
+
+
+def quat_log(q: np.ndarray) -> np.ndarray:
+    """Rotation vector of a unit quaternion, angle in [0, π]."""
+    q = quat_normalize(q)
+    vec = q[..., 1:]
+    s = np.linalg.norm(vec, axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., :1])
+    k = np.where(s > _SMALL_ANGLE, angle / np.maximum(s, _SMALL_ANGLE), 2.0 / np.maximum(q[..., :1], _SMALL_ANGLE))
+    return k * vec
+
+
+def so3_exp(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (Rodrigues)."""
+    return quat_to_rot(quat_exp(rotvec))
+
+
+def so3_log(r: np.ndarray) -> np.ndarray:
+    """Rotation vector of a rotation matrix."""
+    return quat_log(rot_to_quat(r))
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Body→world quaternion from aerospace Z-Y-X Euler angles: ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    cr, sr = np.cos(0.5 * roll), np.sin(0.5 * roll)
+    cp, sp = np.cos(0.5 * pitch), np.sin(0.5 * pitch)
+    cy, sy = np.cos(0.5 * yaw), np.sin(0.5 * yaw)
+    return np.array(
+        [
+            cy * cp * cr + sy * sp * sr,
+            cy * cp * sr - sy * sp * cr,
+            cy * sp * cr + sy * cp * sr,
+            sy * cp * cr - cy * sp * sr,
+        ]
+    )
+
+
+def euler_from_quat(q: np.ndarray) -> np.ndarray:
+    """``[roll, pitch, yaw]`` (Z-Y-X) of body→world quaternions; inverse of :func:`quat_from_euler`."""
+    r = quat_to_rot(q)
+    roll = np.arctan2(r[..., 2, 1], r[..., 2, 2])
+    pitch = -np.arcsin(np.clip(r[..., 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(r[..., 1, 0], r[..., 0, 0])
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def yaw_of(q: np.ndarray) -> np.ndarray:
+    """Heading (rotation about world down) of body→NED quaternions, radians in (-π, π]."""
+    return euler_from_quat(q)[..., 2]
+
+
+def quat_slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray | float) -> np.ndarray:
+    """Spherical interpolation from ``q0`` (alpha = 0) to ``q1`` (alpha = 1) along the short arc."""
+    q0 = np.asarray(q0, dtype=float)
+    q1 = np.asarray(q1, dtype=float)
+    alpha = np.asarray(alpha, dtype=float)[..., None]
+    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
+    q1 = np.where(dot < 0.0, -q1, q1)
+    delta = quat_log(quat_mul(quat_conj(q0), q1))
+    return quat_normalize(quat_mul(q0, quat_exp(alpha * delta)))
+
+
+def rotation_angle(q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
+    """Angle in radians of the rotation between two attitudes (``R_a^T R_b``), in [0, π]."""
+    dq = quat_mul(quat_conj(q_a), q_b)
+    return 2.0 * np.arctan2(np.linalg.norm(dq[..., 1:], axis=-1), np.abs(dq[..., 0]))

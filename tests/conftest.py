@@ -1,0 +1,19 @@
+"""Shared fixtures: where the project's shared data lives, and a skip when it is absent."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED = REPO_ROOT.parent / "shared"
+EUROC_MH01 = SHARED / "data" / "euroc_mh01"
+
+
+@pytest.fixture(scope="session")
+def euroc_mh01() -> Path:
+    """The real EuRoC MH01 folder; tests that need it skip on a clone without ../shared."""
+    if not (EUROC_MH01 / "mav0" / "imu0" / "data.csv").is_file():
+        pytest.skip(f"needs the shared flight data at {EUROC_MH01} (present in CI, absent in a plain clone)")
+    return EUROC_MH01

@@ -1,0 +1,106 @@
+"""GPS measurement model and the shared EKF update."""
+
+import numpy as np
+import pytest
+
+from estimator.gps_update import GpsModel, GpsUpdater, gps_sigmas
+from estimator.kalman import chi2_gate, ekf_update
+from estimator.measurements import GpsFix
+from estimator.rotation import quat_exp, quat_from_euler, quat_mul
+from estimator.state import FilterState, StateLayout
+
+
+def make_state(variant="biases", n_landmarks=0, seed=0):
+    rng = np.random.default_rng(seed)
+    s = FilterState(StateLayout(variant))
+    s.p = rng.normal(size=3)
+    s.v = rng.normal(size=3)
+    s.q = quat_from_euler(0.2, -0.1, 0.7)
+    s.landmarks = rng.normal(size=(n_landmarks, 6))
+    n = s.robot_dim + 6 * n_landmarks
+    A = rng.normal(size=(n, n)) * 0.1
+    s.cov = A @ A.T + 0.01 * np.eye(n)
+    return s
+
+
+def test_gps_jacobian_matches_central_differences():
+    model = GpsModel(np.array([0.3, -0.2, -0.5]))
+    s = make_state()
+    H = model.jacobian(s)
+    h = 1e-6
+    numeric = np.zeros((3, 9))
+    for i in range(9):
+        for sign in (1, -1):
+            t = s.copy()
+            d = np.zeros(9)
+            d[i] = sign * h
+            t.p = t.p + d[0:3]
+            t.v = t.v + d[3:6]
+            t.q = quat_mul(quat_exp(d[6:9]), t.q)
+            numeric[:, i] += sign * model.predict(t) / (2 * h)
+    assert np.allclose(H, numeric, atol=1e-8)
+
+
+def test_chi2_gate_values():
+    assert chi2_gate(3) == pytest.approx(7.81, abs=0.01)
+    assert chi2_gate(2) == pytest.approx(5.99, abs=0.01)
+
+
+def test_vertical_sigma_defaults_to_sqrt2_horizontal():
+    fix = GpsFix(0, np.zeros(3), 0.02, float("nan"))
+    assert gps_sigmas(fix, 1e-3) == pytest.approx((0.02, 0.02 * np.sqrt(2)))
+
+
+def test_update_moves_toward_measurement_and_shrinks_covariance():
+    s = make_state(n_landmarks=2)
+    upd = GpsUpdater(np.zeros(3), gate=None)
+    target = s.p + np.array([0.1, -0.1, 0.05])
+    trace_before = np.trace(s.cov)
+    out = upd.update(s, GpsFix(0, target, 0.01, 0.014))
+    assert out.accepted
+    assert np.linalg.norm(s.p - target) < 0.02
+    assert np.trace(s.cov) < trace_before
+    assert np.allclose(s.cov, s.cov.T)
+    assert np.all(np.linalg.eigvalsh(s.cov) > 0)
+
+
+def test_update_equals_textbook_kalman_on_linear_model():
+    s = make_state("thesis")
+    P0, x0 = s.cov.copy(), s.p.copy()
+    H = np.zeros((3, 9))
+    H[:, :3] = np.eye(3)
+    R = np.diag([0.04, 0.04, 0.08])
+    z = x0 + np.array([0.2, 0.1, -0.3])
+    K = P0 @ H.T @ np.linalg.inv(H @ P0 @ H.T + R)
+    ekf_update(s, slice(0, 9), H, z - x0, R)
+    assert np.allclose(s.p, x0 + (K @ (z - x0))[:3])
+    assert np.allclose(s.cov, (np.eye(9) - K @ H) @ P0, atol=1e-12)
+
+
+def test_outlier_rejected_and_state_untouched():
+    s = make_state()
+    s.cov[:3, :3] = np.eye(3) * 1e-4
+    before = s.copy()
+    out = GpsUpdater(np.zeros(3), gate=chi2_gate(3)).update(s, GpsFix(0, s.p + [20.0, 0, 0], 0.02, 0.03))
+    assert not out.accepted and out.reason == "chi2 gate" and out.nis > 1e5
+    assert np.array_equal(s.p, before.p) and np.array_equal(s.cov, before.cov)
+
+
+def test_singular_innovation_covariance_is_reported_not_raised():
+    s = make_state()
+    s.cov[:] = 0.0
+    out = ekf_update(s, slice(0, 3), np.eye(3), np.ones(3), np.zeros((3, 3)))
+    assert not out.accepted and "singular" in out.reason
+    assert np.all(np.isfinite(s.cov))
+
+
+def test_held_states_keep_value_and_covariance():
+    s = make_state(n_landmarks=1)
+    held = np.zeros(s.dim, dtype=bool)
+    held[6:] = True
+    before = s.copy()
+    ekf_update(s, slice(0, 9), GpsModel(np.array([0.5, 0, 0])).jacobian(s), np.array([0.3, 0.2, 0.1]), np.eye(3) * 0.01, held=held)
+    assert np.allclose(s.q, before.q) and np.allclose(s.landmarks, before.landmarks)
+    assert np.allclose(s.cov[6:, 6:], before.cov[6:, 6:])
+    assert not np.allclose(s.p, before.p)
+    assert np.all(np.linalg.eigvalsh(s.cov) > 0)
