@@ -97,6 +97,7 @@ class Calibration:
     gps: GpsCalibration = field(default_factory=GpsCalibration)
     camera: CameraCalibration | None = None
     initial_heading_rad: float | None = None
+    initial_heading_sigma_rad: float | None = None  # how well that heading is known (None: config default)
     truth_point_b: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:

@@ -1,8 +1,13 @@
-"""The estimator: initialisation, IMU propagation and measurement updates, in time order.
+"""The estimator: start-up, IMU propagation and measurement updates, in time order.
 
-Feed it samples in timestamp order (``estimator.fusion`` does the ordering for late
-measurements); ask it for the pose. Bad samples are counted per sensor and reason, never
-raised: the caller gets the best estimate the good data allow.
+Feed it samples in timestamp order (late measurements are ordered by ``estimator.fusion``);
+ask it for the pose. Bad samples are counted per sensor and reason, never raised: the
+caller always gets the best estimate the good data allow.
+
+Start-up has three paths. A still IMU gives roll, pitch and gyro bias (thesis 5.2); the
+heading then comes from the dataset or operator, or stays unknown — the filter then works in
+a frame of arbitrary yaw, levelled by gravity, until the in-motion alignment places it. A
+vehicle that is moving from the start is initialised by the in-motion alignment directly.
 """
 
 from __future__ import annotations
@@ -14,13 +19,16 @@ import numpy as np
 
 from estimator.calibration import Calibration, ImuNoise
 from estimator.gps_update import GpsUpdater, gps_sigmas
-from estimator.heading import AlignOptions, HeadingAligner, HeadingSolution
-from estimator.initializer import InitOptions, StaticInitializer
-from estimator.kalman import UpdateOutcome
+from estimator.gravity_update import GravityLeveller
+from estimator.imu_delta import ImuDelta, ImuDownsampler
+from estimator.initializer import InitialAttitude, InitOptions, StaticInitializer
+from estimator.kalman import UpdateOutcome, chi2_gate, ekf_update
 from estimator.measurements import GpsFix, RejectionCounts
+from estimator.motion_alignment import MotionAligner, MotionAlignment, MotionAlignOptions
 from estimator.propagator import ImuPropagator
-from estimator.rotation import quat_exp, quat_mul
+from estimator.startup import state_from_alignment, state_from_static
 from estimator.state import FilterState, StateLayout
+from estimator.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
 
@@ -32,10 +40,16 @@ class FilterOptions:
     heading_deg: float | None = None  # an operator-entered heading overrides both
     gps_gate: float | None = 7.81  # χ², 3 dof, 95 % (spec); None disables the gate
     gps_sigma_floor_m: float = 0.005
+    gps_reset_after_s: float = 3.0  # every fix rejected for this long: the filter is lost, reset
     max_imu_gap_s: float = 0.1
+    max_filter_rate_hz: float = 100.0  # IMU samples are accumulated into steps no faster than this
+    unaligned_accel_noise: float = 3.0  # m/s²/√Hz on horizontal velocity while the heading is unknown
+    level_interval_s: float = 0.1  # gravity levelling while the heading is unknown
+    level_sigma: float = 2.0  # m/s²: the vehicle's own accelerations, averaged out over many updates
     noise: ImuNoise | None = None  # overrides the calibration's noise when given
     init: InitOptions = field(default_factory=InitOptions)
-    align: AlignOptions = field(default_factory=AlignOptions)
+    align: MotionAlignOptions = field(default_factory=MotionAlignOptions)
+    still: StillnessOptions = field(default_factory=StillnessOptions)
 
     def __post_init__(self) -> None:
         StateLayout(self.variant)  # validates the variant name
@@ -60,42 +74,52 @@ class PoseEstimate:
 
 class Estimator:
     def __init__(self, calibration: Calibration, options: FilterOptions | None = None) -> None:
-        self.options = options or FilterOptions()
+        self.options = opts = options or FilterOptions()
         self.calibration = calibration
-        self.layout = StateLayout(self.options.variant)
-        self.noise = self.options.noise or calibration.imu.noise
-        self.gps = GpsUpdater(calibration.gps.lever_arm_b, self.options.gps_gate, self.options.gps_sigma_floor_m)
-        self.counts = {"imu": RejectionCounts(), "gps": RejectionCounts()}
+        self.layout = StateLayout(opts.variant)
+        self.noise = opts.noise or calibration.imu.noise
+        self.gps = GpsUpdater(calibration.gps.lever_arm_b, opts.gps_gate, opts.gps_sigma_floor_m)
+        self.counts = {name: RejectionCounts() for name in ("imu", "gps", "still", "level")}
         self.state: FilterState | None = None
         self.propagator: ImuPropagator | None = None
         self.heading_aligned = False
-        self.heading_solution: HeadingSolution | None = None
+        self.alignment: MotionAlignment | None = None  # the in-motion alignment used, if any
         self.position_initialized = False
         self.reset_counter = 0
-        self.events: list[tuple[int, str]] = []  # (t_ns, message): initialisation, alignment, resets
-        heading = self._known_heading()
-        self._initializer = StaticInitializer(self.options.init, calibration.imu.gravity, heading or 0.0)
+        self.events: list[tuple[int, str]] = []  # (t_ns, message): start-up, alignment, resets
+        heading, self._heading_sigma = self._known_heading()
         self._heading_known = heading is not None
-        self._aligner = HeadingAligner(self.options.align)
+        self._initializer = StaticInitializer(opts.init, calibration.imu.gravity, heading or 0.0)
+        self._aligner = MotionAligner(opts.align, calibration.imu.gravity, calibration.gps.lever_arm_b)
+        self._stillness = StillnessDetector(opts.still)
+        self._leveller: GravityLeveller | None = None
+        self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, 0
+        self._fixed_bias_var = np.zeros(3)  # thesis variant: variance of its calibrated gyro bias
+        self._fixes_before_start = 0
+        self._pending_fix: GpsFix | None = None
+        self._first_rejected_fix_t: int | None = None
+        self._downsampler = ImuDownsampler(opts.max_filter_rate_hz)
         self._last_imu_t: int | None = None
         self._gyro = np.zeros(3)
-        self._accel = np.zeros(3)
-        self._pending_fix: GpsFix | None = None
 
-    # ----------------------------------------------------------------------------- status
     @property
     def initialized(self) -> bool:
         return self.state is not None
 
-    def _known_heading(self) -> float | None:
+    def _known_heading(self) -> tuple[float | None, float]:
+        """Initial heading and its sigma [rad]; (None, 0) when it must come from GPS."""
         opts = self.options
+        default_sigma = math.radians(opts.init.sigma_heading_known_deg)
         if opts.heading_deg is not None:
-            return math.radians(opts.heading_deg)
+            return math.radians(opts.heading_deg), default_sigma
         if opts.heading_source == "gps":
-            return None
-        if opts.heading_source == "dataset" and self.calibration.initial_heading_rad is None:
+            return None, 0.0
+        cal = self.calibration
+        if opts.heading_source == "dataset" and cal.initial_heading_rad is None:
             raise ValueError("heading_source 'dataset' but the dataset gives no initial heading")
-        return self.calibration.initial_heading_rad
+        if cal.initial_heading_rad is None:
+            return None, 0.0
+        return cal.initial_heading_rad, cal.initial_heading_sigma_rad or default_sigma
 
     # -------------------------------------------------------------------------------- IMU
     def process_imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> bool:
@@ -110,56 +134,80 @@ class Estimator:
             counts.reject("time_not_increasing")
             return False
         counts.used += 1
-        if self.state is None:
-            self._last_imu_t = t_ns
-            init = self._initializer.add(t_ns, gyro, accel)
-            if init is not None:
-                self._start(init)
-            self._gyro, self._accel = gyro, accel
-            return True
-        gap_s = (t_ns - self._last_imu_t) * 1e-9
-        if gap_s > self.options.max_imu_gap_s:
+        if self._last_imu_t is not None and (t_ns - self._last_imu_t) * 1e-9 > self.options.max_imu_gap_s:
             counts.flag("gap_bridged")  # still propagated, with the covariance growing over the gap
         self._last_imu_t = t_ns
-        self._propagate_to(t_ns, 0.5 * (self._gyro + gyro), 0.5 * (self._accel + accel))
-        self._gyro, self._accel = gyro, accel
+        self._gyro = gyro
+        delta = self._downsampler.add(t_ns, gyro, accel)
+        if delta is not None and not self.heading_aligned:
+            self._aligner.add_delta(delta)
+        if self.state is None:
+            # Moving from the start: with GPS the in-motion alignment will do; without it,
+            # start from the accelerometer alone after max_wait_s rather than never.
+            init = self._initializer.add(t_ns, gyro, accel, allow_moving=self._fixes_before_start == 0)
+            if init is not None:
+                self._downsampler.flush()  # the filter starts at this sample
+                self._start_still(init)
+            return True
+        if delta is not None:
+            self._propagate(delta)
+        if not self.heading_aligned:
+            self._level(t_ns, accel)
+        if self.options.still.enabled:
+            state = self.state
+            chunk = self._stillness.add(t_ns, gyro, accel, self.propagator.gravity[2], math.sqrt(float(state.v @ state.v)))
+            if chunk is not None:
+                self._apply_still(chunk)
         return True
 
-    def _propagate_to(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
-        state = self.state
-        dt = (t_ns - state.t_ns) * 1e-9
-        if dt <= 0.0:
-            return
-        extra = 0.0 if self.heading_aligned else self.options.align.unaligned_accel_noise
-        a_w = self.propagator.propagate(state, gyro, accel, dt, extra)
-        state.t_ns = t_ns
-        if not self.heading_aligned:
-            self._aligner.on_imu(dt, a_w[:2])
+    def _propagate(self, delta: ImuDelta) -> None:
+        extra = 0.0 if self.heading_aligned else self.options.unaligned_accel_noise
+        self.propagator.propagate(self.state, delta, extra)
+        self.state.t_ns = delta.t1_ns
 
-    def _start(self, init) -> None:
-        opts = self.options.init
-        state = FilterState(self.layout)
-        state.t_ns = init.t_ns
-        state.q = init.q
-        state.b_g = init.gyro_bias.copy()
-        n = self.layout.robot_dim
-        cov = np.zeros((n, n))
-        sigma_v = opts.sigma_velocity_static if init.static else opts.sigma_velocity_moving
-        cov[0:3, 0:3] = np.eye(3) * 0.01**2
-        cov[3:6, 3:6] = np.eye(3) * sigma_v**2
-        sigma_yaw = math.radians(opts.sigma_heading_known_deg) if self._heading_known else math.pi
-        cov[6:9, 6:9] = np.diag([init.sigma_roll_pitch**2, init.sigma_roll_pitch**2, sigma_yaw**2])
-        if self.layout.estimates_biases:
-            cov[9:12, 9:12] = np.eye(3) * init.sigma_gyro_bias**2
-            cov[12:15, 12:15] = np.eye(3) * opts.sigma_accel_bias**2
-        state.cov = cov
+    def _propagate_to(self, t_ns: int) -> None:
+        """Bring the state to a measurement's time: the partial step, then hold the last sample."""
+        for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
+            if delta is not None and delta.t0_ns >= self.state.t_ns:
+                self._propagate(delta)
+
+    # ---------------------------------------------------------------------------- start-up
+    def _begin(self, state: FilterState, gravity: float, message: str) -> None:
         self.state = state
-        self.propagator = ImuPropagator(self.noise, init.gravity)
+        self.propagator = ImuPropagator(self.noise, gravity)
+        self._leveller = GravityLeveller(gravity, self.options.level_sigma, chi2_gate(3, 0.999))
+        self._level_t0 = state.t_ns
+        self.events.append((state.t_ns, message))
+
+    def _start_still(self, init: InitialAttitude) -> None:
+        opts = self.options
+        state = state_from_static(self.layout, init, opts.init, self._heading_sigma)
+        self._fixed_bias_var = np.full(3, init.sigma_gyro_bias**2)
         self.heading_aligned = self._heading_known
-        how = "static" if init.static else "moving (no static window)"
-        self.events.append((init.t_ns, f"initialised attitude from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2"))
+        how = "still" if init.static else "moving, accelerometer only (no still window, no GPS)"
+        self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
+        self._aligner.set_bias_prior(init.gyro_bias, max(init.sigma_gyro_bias, 1e-3), np.zeros(3), opts.init.sigma_accel_bias)
         if self._pending_fix is not None and (init.t_ns - self._pending_fix.t_ns) < 1e9:
             self._init_position(self._pending_fix)
+        self._pending_fix = None
+
+    def _apply_alignment(self, alignment: MotionAlignment) -> None:
+        """Start (or re-place an unaligned filter) from an in-motion alignment."""
+        sd = np.degrees(np.sqrt(np.diag(alignment.cov)[6:9]))
+        message = (
+            f"aligned in motion from {alignment.n_fixes} GPS fixes over {alignment.window_s:.1f} s: attitude sigma "
+            f"{sd[0]:.2f}/{sd[1]:.2f}/{sd[2]:.2f} deg, residuals {alignment.residual_ratio:.2f}x the GPS noise"
+        )
+        state = state_from_alignment(self.layout, alignment)
+        self._fixed_bias_var = np.diag(alignment.cov)[9:12].copy()
+        if self.state is None:
+            self._begin(state, self.calibration.imu.gravity, message)
+        else:
+            self.state = state
+            self.events.append((state.t_ns, message))
+        self.alignment = alignment
+        self.heading_aligned = True
+        self.position_initialized = True
         self._pending_fix = None
 
     # -------------------------------------------------------------------------------- GPS
@@ -172,29 +220,35 @@ class Estimator:
             counts.reject("non_finite")
             return None
         state = self.state
-        if state is None:
-            counts.reject("before_initialisation")
-            self._pending_fix = fix
-            return None
-        if fix.t_ns < state.t_ns:
+        if state is not None and fix.t_ns < state.t_ns:
             counts.reject("older_than_filter")
             return None
-        self._propagate_to(fix.t_ns, self._gyro, self._accel)
+        if not self.heading_aligned:
+            sigma_h, sigma_v = gps_sigmas(fix, self.options.gps_sigma_floor_m)
+            alignment = self._aligner.add_fix(fix.t_ns, p, sigma_h, sigma_v)
+            if alignment is not None:
+                self._apply_alignment(alignment)
+                self._propagate_to(fix.t_ns)
+                counts.used += 1
+                return UpdateOutcome(True, 0.0, 3, "in-motion alignment")
+        if state is None:
+            self._fixes_before_start += 1
+            self._pending_fix = fix
+            counts.reject("before_start")
+            return None
+        self._propagate_to(fix.t_ns)
         if not self.position_initialized:
             self._init_position(fix)
             counts.used += 1
             return UpdateOutcome(True, 0.0, 3, "position initialised")
-        if self.heading_aligned:
-            outcome = self.gps.update(state, fix)
-        else:
-            outcome = self.gps.update(state, fix, held=self._held_until_aligned())
-            solution = self._aligner.add_fix(p[:2], gps_sigmas(fix, self.options.gps_sigma_floor_m)[0])
-            if solution is not None:
-                self._apply_heading(solution)
+        held = None if self.heading_aligned else self._held_until_aligned()
+        outcome = self.gps.update(state, fix, held=held)
         if outcome.accepted:
             counts.used += 1
+            self._first_rejected_fix_t = None
         else:
             counts.reject(outcome.reason.replace(" ", "_"))
+            self._check_lost(fix)
         return outcome
 
     def _held_until_aligned(self) -> np.ndarray:
@@ -212,32 +266,75 @@ class Estimator:
         self.position_initialized = True
         self.events.append((fix.t_ns, "position initialised from GPS"))
 
-    def _apply_heading(self, solution: HeadingSolution) -> None:
+    def _check_lost(self, fix: GpsFix) -> None:
+        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong."""
+        if self._first_rejected_fix_t is None:
+            self._first_rejected_fix_t = fix.t_ns
+            return
+        if (fix.t_ns - self._first_rejected_fix_t) * 1e-9 < self.options.gps_reset_after_s:
+            return
         state = self.state
-        psi = solution.yaw_correction
-        rz = np.array([[math.cos(psi), -math.sin(psi), 0.0], [math.sin(psi), math.cos(psi), 0.0], [0.0, 0.0, 1.0]])
-        state.q = quat_mul(quat_exp(np.array([0.0, 0.0, psi])), state.q)
-        state.v = np.array([solution.velocity_h[0], solution.velocity_h[1], state.v[2]])
-        cov = state.cov
-        # Rotate the attitude block into the aligned frame, then replace the heading's
-        # uncertainty by the fit's and forget its correlations (they were meaningless).
-        cov[6:9, :] = rz @ cov[6:9, :]
-        cov[:, 6:9] = cov[:, 6:9] @ rz.T
-        cov[8, :] = 0.0
-        cov[:, 8] = 0.0
-        cov[8, 8] = solution.sigma**2
-        cov[3:5, :] = 0.0
-        cov[:, 3:5] = 0.0
-        cov[3:5, 3:5] = np.eye(2) * max(solution.sigma_velocity, 0.02) ** 2
-        self.heading_aligned = True
-        self.heading_solution = solution
+        self._init_position(fix)
+        state.cov[3:6, :] = 0.0
+        state.cov[:, 3:6] = 0.0
+        state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
+        self.reset_counter += 1
+        self._first_rejected_fix_t = None
         self.events.append(
-            (
-                state.t_ns,
-                f"heading aligned from GPS: correction {math.degrees(psi):.1f} deg, "
-                f"sigma {math.degrees(solution.sigma):.2f} deg over {solution.window_s:.1f} s",
-            )
+            (fix.t_ns, f"reset #{self.reset_counter}: every GPS fix rejected for {self.options.gps_reset_after_s:g} s; "
+             "position and velocity re-initialised from GPS")
         )
+
+    # ------------------------------------------------------------------- rest and levelling
+    def _level(self, t_ns: int, accel: np.ndarray) -> None:
+        """Before the heading is known: mean specific force as a gravity reference for roll/pitch."""
+        self._level_sum += accel
+        self._level_n += 1
+        if (t_ns - self._level_t0) * 1e-9 < self.options.level_interval_s:
+            return
+        f_mean = self._level_sum / self._level_n
+        self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, t_ns
+        counts = self.counts["level"]
+        counts.received += 1
+        # Only roll, pitch and the gyro bias may move: the heading is invisible to gravity, and
+        # position and velocity must not absorb the vehicle's own accelerations.
+        held = np.ones(self.state.dim, dtype=bool)
+        held[6:8] = False
+        if self.layout.estimates_biases:
+            held[self.layout.BG] = False
+        outcome = self._leveller.update(self.state, f_mean, held)
+        if outcome.accepted:
+            counts.used += 1
+        else:
+            counts.reject(outcome.reason.replace(" ", "_"))
+
+    def _apply_still(self, chunk: StillChunk) -> None:
+        """Zero-velocity update and a gyro-bias measurement from a still chunk."""
+        counts = self.counts["still"]
+        counts.received += 1
+        state = self.state
+        held = None if self.heading_aligned else self._held_until_aligned()
+        sigma = self.options.still.zupt_sigma
+        zupt = ekf_update(state, slice(3, 6), np.eye(3), -state.v, np.eye(3) * sigma**2, chi2_gate(3, 0.999), held)
+        if not zupt.accepted:
+            counts.reject(f"zupt_{zupt.reason.replace(' ', '_')}")
+            return
+        counts.used += 1
+        # The mean rate of a still IMU is its bias; its variance is what the samples' scatter says,
+        # never less than the white-noise density allows over the chunk.
+        r = np.maximum(chunk.gyro_var_of_mean, self.noise.gyro_noise_density**2 / chunk.duration_s)
+        if self.layout.estimates_biases:
+            if held is not None:
+                held = held.copy()
+                held[self.layout.BG] = False
+            ekf_update(state, self.layout.BG, np.eye(3), chunk.gyro_mean - state.b_g, np.diag(r), None, held)
+        else:
+            # Thesis model: the bias is a calibration constant; refine it as a per-axis
+            # weighted mean, the older value aged by the bias random walk.
+            prior = self._fixed_bias_var + self.noise.gyro_random_walk**2 * chunk.duration_s
+            gain = prior / (prior + r)
+            state.b_g = state.b_g + gain * (chunk.gyro_mean - state.b_g)
+            self._fixed_bias_var = (1.0 - gain) * prior
 
     # ------------------------------------------------------------------------------ output
     def pose(self) -> PoseEstimate | None:

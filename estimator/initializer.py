@@ -23,7 +23,7 @@ class InitOptions:
     max_wait_s: float = 3.0
     gyro_std_max: float = 0.02  # rad/s, per axis, over the window
     accel_std_max: float = 0.15  # m/s^2, per axis, over the window
-    estimate_gravity: bool = True
+    estimate_gravity: bool = True  # the service resolves the config's 'auto' per variant
     sigma_attitude_static_deg: float = 0.5
     sigma_attitude_moving_deg: float = 5.0
     sigma_heading_known_deg: float = 2.0
@@ -64,7 +64,9 @@ class StaticInitializer:
         self._accel: deque[np.ndarray] = deque()
         self._first_t: int | None = None
 
-    def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> InitialAttitude | None:
+    def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, allow_moving: bool = True) -> InitialAttitude | None:
+        """Returns the initial attitude once a still window exists or, if ``allow_moving``, once
+        ``max_wait_s`` has passed without one (then from the last window, less certain)."""
         opts = self.options
         if self._first_t is None:
             self._first_t = t_ns
@@ -83,7 +85,7 @@ class StaticInitializer:
         a = np.array(self._accel)
         static = bool(np.all(g.std(axis=0) < opts.gyro_std_max) and np.all(a.std(axis=0) < opts.accel_std_max))
         timed_out = t_ns - self._first_t >= int(opts.max_wait_s * 1e9)
-        if not (static or timed_out):
+        if not (static or (timed_out and allow_moving)):
             return None
         return self._solve(t_ns, g, a, static)
 

@@ -13,7 +13,7 @@ from typing import Protocol
 import numpy as np
 from scipy.stats import chi2
 
-from estimator.rotation import quat_slerp, quat_to_rot, rotation_angle
+from estimator.rotation import quat_conj, quat_log, quat_mul, quat_slerp, quat_to_rot, rotation_angle, skew
 
 
 class Trajectory(Protocol):
@@ -168,3 +168,31 @@ def nees_summary(values: np.ndarray, dof: int, prob: float = 0.95) -> dict:
         "samples": int(values.size),
     }
 
+
+
+def pose_errors_for_nees(
+    t_ns: np.ndarray, p: np.ndarray, q: np.ndarray, pose_cov: np.ndarray, truth: Trajectory, point_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Errors and covariances of the filter's pose samples against truth, for NEES.
+
+    The filter's pose covariance is over ``[δp, δθ]`` with ``R_true = Exp(δθ) R_est``. The
+    error of the tracked point ``p + R point_b`` is ``δp − [R point_b]× δθ``; with truth
+    attitude the error is 6-dof ``[point error, Log(R_true R_estᵀ)]``, without it 3-dof.
+    Samples outside the truth's span are dropped.
+    """
+    point_b = np.asarray(point_b, dtype=float).reshape(3)
+    inside = (t_ns >= truth.t_ns[0]) & (t_ns <= truth.t_ns[-1])
+    t_ns, p, q, pose_cov = t_ns[inside], p[inside], q[inside], pose_cov[inside]
+    p_true, q_true = interpolate_poses(t_ns, truth.t_ns, truth.p, truth.q)
+    R = quat_to_rot(q)
+    lever_w = R @ point_b
+    J = np.zeros((len(t_ns), 6, 6))
+    J[:, 0:3, 0:3] = np.eye(3)
+    J[:, 0:3, 3:6] = -np.array([skew(v) for v in lever_w]) if len(t_ns) else 0.0
+    J[:, 3:6, 3:6] = np.eye(3)
+    cov = J @ pose_cov @ np.swapaxes(J, 1, 2)
+    err_p = p_true - (p + lever_w)
+    if q_true is None:
+        return err_p, cov[:, 0:3, 0:3], 3
+    err_th = quat_log(quat_mul(q_true, quat_conj(q)))
+    return np.hstack([err_p, err_th]), cov, 6

@@ -1,10 +1,16 @@
 """IMU time update (thesis eq. 4.1) on the nominal state and the error-state covariance.
 
-One step integrates the mean of two consecutive IMU samples over ``dt`` (second-order
-accurate for smooth motion), rotates the specific force with the half-step attitude, and
-propagates only the robot rows and columns of the covariance, so a step costs O(n) in the
-map size, not O(n²). The analytic Jacobian :func:`error_transition` is tested against
-central differences of :func:`integrate_nominal`.
+One step consumes an :class:`~estimator.imu_delta.ImuDelta` (delta angle and delta velocity
+over ``dt``) and corrects it for the biases to first order:
+
+    φ   = Δθ − b_g dt
+    Δv' = Δv − ½ dt (b_g × Δv)                 (the rotation within the step was slower by b_g)
+    a_W = R (Δv'/dt − b_a) + g_W
+    p'  = p + v dt + ½ a_W dt²,   v' = v + a_W dt,   q' = q ⊗ Exp(φ)
+
+Only the robot rows and columns of the covariance change, so a step costs O(n) in the map
+size, not O(n²). :func:`error_transition` is tested against central differences of
+:func:`integrate_nominal`; :class:`ImuPropagator` is the fast path, tested against both.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ import math
 import numpy as np
 
 from estimator.calibration import ImuNoise
+from estimator.imu_delta import ImuDelta
 from estimator.state import FilterState, StateLayout
 
 
@@ -21,44 +28,37 @@ def _skew(x: float, y: float, z: float) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def _rotvec_to_rot(phi: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula with a series for small angles (the common case at IMU rate)."""
-    angle2 = float(phi @ phi)
-    k = _skew(phi[0], phi[1], phi[2])
-    if angle2 < 1e-10:
-        return np.eye(3) + k + 0.5 * (k @ k)
-    angle = math.sqrt(angle2)
-    return np.eye(3) + (math.sin(angle) / angle) * k + ((1.0 - math.cos(angle)) / angle2) * (k @ k)
+def _jr(x: float, y: float, z: float) -> tuple:
+    """Right Jacobian of SO(3) at φ = (x, y, z): ``Exp(φ + δ) ≈ Exp(φ) Exp(Jr(φ) δ)``."""
+    t2 = x * x + y * y + z * z
+    if t2 < 1e-10:
+        a, b = 0.5, 1.0 / 6.0
+    else:
+        t = math.sqrt(t2)
+        a, b = (1.0 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
+    # Jr = I - a [φ]x + b [φ]x², with [φ]x² = φ φ^T - |φ|² I.
+    return (
+        (1.0 + b * (x * x - t2), a * z + b * x * y, -a * y + b * x * z),
+        (-a * z + b * x * y, 1.0 + b * (y * y - t2), a * x + b * y * z),
+        (a * y + b * x * z, -a * x + b * y * z, 1.0 + b * (z * z - t2)),
+    )
 
 
-def _right_jacobian(phi: np.ndarray) -> np.ndarray:
-    """Right Jacobian of SO(3): ``Exp(φ + δ) ≈ Exp(φ) Exp(Jr(φ) δ)``."""
-    angle2 = float(phi @ phi)
-    k = _skew(phi[0], phi[1], phi[2])
-    if angle2 < 1e-10:
-        return np.eye(3) - 0.5 * k + (1.0 / 6.0) * (k @ k)
-    angle = math.sqrt(angle2)
-    return np.eye(3) - ((1.0 - math.cos(angle)) / angle2) * k + ((angle - math.sin(angle)) / (angle2 * angle)) * (k @ k)
-
-
-def _quat_to_rot(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array(
-        [
-            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
-            [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
-            [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
-        ]
+def _rot(w: float, x: float, y: float, z: float) -> tuple:
+    return (
+        (1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
+        (2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
+        (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)),
     )
 
 
 def _quat_times_rotvec(q: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """``q ⊗ Exp(φ)`` normalised: the body-frame attitude increment."""
-    angle = math.sqrt(float(phi @ phi))
-    half = 0.5 * angle
-    s = math.sin(half) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
-    dw, dx, dy, dz = math.cos(half), s * phi[0], s * phi[1], s * phi[2]
-    w, x, y, z = q
+    """``q ⊗ Exp(φ)``, normalised: the body-frame attitude increment."""
+    px, py, pz = phi.tolist()
+    angle = math.sqrt(px * px + py * py + pz * pz)
+    s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
+    dw, dx, dy, dz = math.cos(0.5 * angle), s * px, s * py, s * pz
+    w, x, y, z = q.tolist()
     out = np.array(
         [
             w * dw - x * dx - y * dy - z * dz,
@@ -70,53 +70,51 @@ def _quat_times_rotvec(q: np.ndarray, phi: np.ndarray) -> np.ndarray:
     return out / math.sqrt(float(out @ out))
 
 
+def _corrected(b_g: np.ndarray, b_a: np.ndarray, dtheta: np.ndarray, dvel: np.ndarray, dt: float):
+    """Bias-corrected rotation vector and mean specific force (start-of-step body frame)."""
+    phi = dtheta - b_g * dt
+    dv = dvel - (0.5 * dt) * np.cross(b_g, dvel)
+    return phi, dv / dt - b_a
+
+
 def integrate_nominal(
     p: np.ndarray,
     v: np.ndarray,
     q: np.ndarray,
     b_g: np.ndarray,
     b_a: np.ndarray,
-    gyro: np.ndarray,
-    accel: np.ndarray,
+    dtheta: np.ndarray,
+    dvel: np.ndarray,
     dt: float,
     gravity: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One nominal step with mean IMU readings ``gyro``/``accel`` (body) over ``dt``.
-
-    Returns ``(p', v', q', a_W)``; ``a_W`` is the world acceleration used (gravity included).
-    """
-    phi = (gyro - b_g) * dt
-    r = _quat_to_rot(q)
-    r_half = r @ _rotvec_to_rot(0.5 * phi)
-    a_w = r_half @ (accel - b_a) + gravity
-    p_new = p + v * dt + (0.5 * dt * dt) * a_w
-    v_new = v + a_w * dt
-    return p_new, v_new, _quat_times_rotvec(q, phi), a_w
+    """One nominal step over an IMU delta. Returns ``(p', v', q', a_W)``."""
+    phi, f = _corrected(b_g, b_a, dtheta, dvel, dt)
+    a_w = np.array(_rot(*q.tolist())) @ f + gravity
+    return p + v * dt + (0.5 * dt * dt) * a_w, v + a_w * dt, _quat_times_rotvec(q, phi), a_w
 
 
 def error_transition(
-    q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, gyro: np.ndarray, accel: np.ndarray, dt: float, layout: StateLayout
+    q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, dtheta: np.ndarray, dvel: np.ndarray, dt: float, layout: StateLayout
 ) -> np.ndarray:
-    """Jacobian F of the robot error state over one step of :func:`integrate_nominal`."""
+    """Jacobian F of the robot error state (global attitude error) over one step."""
     n = layout.robot_dim
-    phi = (gyro - b_g) * dt
-    f = accel - b_a
-    r = _quat_to_rot(q)
-    r_half = r @ _rotvec_to_rot(0.5 * phi)
-    a_skew = _skew(*(r_half @ f))
+    phi, f = _corrected(b_g, b_a, dtheta, dvel, dt)
+    r = np.array(_rot(*q.tolist()))
+    a_skew = _skew(*(r @ f))
     F = np.eye(n)
     h2 = 0.5 * dt * dt
     F[0:3, 3:6] = dt * np.eye(3)
     F[0:3, 6:9] = -h2 * a_skew
     F[3:6, 6:9] = -dt * a_skew
     if layout.estimates_biases:
-        r_new = r @ _rotvec_to_rot(phi)
-        d_a_d_bg = r_half @ _skew(*f) @ _right_jacobian(0.5 * phi) * (0.5 * dt)
+        r_new = np.array(_rot(*_quat_times_rotvec(q, phi).tolist()))
+        d_a_d_bg = 0.5 * (r @ _skew(*dvel))
         F[0:3, 9:12] = h2 * d_a_d_bg
         F[3:6, 9:12] = dt * d_a_d_bg
-        F[6:9, 9:12] = -dt * (r_new @ _right_jacobian(phi))
-        F[0:3, 12:15] = -h2 * r_half
-        F[3:6, 12:15] = -dt * r_half
+        F[6:9, 9:12] = -dt * (r_new @ np.array(_jr(*phi.tolist())))
+        F[0:3, 12:15] = -h2 * r
+        F[3:6, 12:15] = -dt * r
     return F
 
 
@@ -129,7 +127,7 @@ def process_noise(
     unknown, so that the filter follows GPS instead of a mis-rotated accelerometer.
     """
     n = layout.robot_dim
-    r = _quat_to_rot(q)
+    r = np.array(_rot(*q.tolist()))
     sig_a = (r * noise.accel_noise_density**2) @ r.T
     if extra_horizontal_accel > 0.0:
         sig_a[0, 0] += extra_horizontal_accel**2
@@ -147,85 +145,90 @@ def process_noise(
 
 
 class ImuPropagator:
-    """Advances a :class:`FilterState` from one IMU sample to the next.
+    """Advances a :class:`FilterState` by one IMU delta.
 
-    This is the per-sample hot path (125–200 Hz, and replays run it 100× faster than real
-    time), so it computes the rotation quantities once with scalar arithmetic and reuses a
-    preallocated transition matrix; :func:`integrate_nominal` and :func:`error_transition`
-    are the readable references it is tested against.
+    The per-step hot path: rotation quantities are computed once with scalar arithmetic and
+    written into a preallocated transition matrix.
     """
 
     def __init__(self, noise: ImuNoise, gravity: float) -> None:
         self.noise = noise
         self.gravity = np.array([0.0, 0.0, float(gravity)])
         self._isotropic = all(
-            np.all(getattr(noise, k) == getattr(noise, k)[0])
-            for k in ("gyro_noise_density", "accel_noise_density")
+            np.all(getattr(noise, k) == getattr(noise, k)[0]) for k in ("gyro_noise_density", "accel_noise_density")
         )
         self._F: np.ndarray | None = None
-        self._q_cache: tuple[float, float, StateLayout] | None = None
-        self._Q: np.ndarray | None = None
+        self._eye3 = np.eye(3)
+        self._q_key: tuple[float, StateLayout] | None = None
+        self._q_terms: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def _noise(self, q: np.ndarray, dt: float, layout: StateLayout, extra: float) -> np.ndarray:
         if not self._isotropic:
             return process_noise(q, dt, self.noise, layout, extra)
-        # Isotropic white noise is invariant under rotation: Q depends on dt alone.
-        key = (dt, extra, layout)
-        if self._q_cache != key:
-            self._Q = process_noise(np.array([1.0, 0.0, 0.0, 0.0]), dt, self.noise, layout, extra)
-            self._q_cache = key
-        return self._Q
+        # Isotropic white noise is invariant under rotation, and each block of Q is a power of
+        # dt times a constant: keep the three constant matrices, combine them per step.
+        key = (extra, layout)
+        if self._q_key != key:
+            identity = np.array([1.0, 0.0, 0.0, 0.0])
+            q1, q2, q3 = (process_noise(identity, x, self.noise, layout, extra) for x in (1.0, 2.0, 3.0))
+            # Solve Q(dt) = A dt + B dt² + C dt³ from dt = 1, 2, 3.
+            c3 = (q3 - 3.0 * q2 + 3.0 * q1) / 6.0
+            c2 = (q2 - 2.0 * q1) / 2.0 - 3.0 * c3
+            c1 = q1 - c2 - c3
+            self._q_terms = (c1, c2, c3)
+            self._q_key = key
+        c1, c2, c3 = self._q_terms
+        return (c1 + (c2 + c3 * dt) * dt) * dt
 
-    def propagate(
-        self,
-        state: FilterState,
-        gyro: np.ndarray,
-        accel: np.ndarray,
-        dt: float,
-        extra_horizontal_accel: float = 0.0,
-    ) -> np.ndarray:
-        """Propagate nominal state and covariance by ``dt`` with mean readings; returns ``a_W``."""
+    def propagate(self, state: FilterState, delta: ImuDelta, extra_horizontal_accel: float = 0.0) -> np.ndarray:
+        """Propagate nominal state and covariance over ``delta``; returns ``a_W``."""
         lay = state.layout
         n = lay.robot_dim
+        dt = delta.dt
         Q = self._noise(state.q, dt, lay, extra_horizontal_accel)
         w, x, y, z = state.q.tolist()
-        gx, gy, gz = ((gyro - state.b_g) * dt).tolist()
-        fx, fy, fz = (accel - state.b_a).tolist()
-        angle = math.sqrt(gx * gx + gy * gy + gz * gz)
-        # Half-step and full-step attitude increments as quaternions.
-        if angle > 1e-9:
-            sh, sf = math.sin(0.25 * angle) / angle, math.sin(0.5 * angle) / angle
-        else:
-            sh, sf = 0.25, 0.5
-        ch, cf = math.cos(0.25 * angle), math.cos(0.5 * angle)
-        hw, hx, hy, hz = _qmul(w, x, y, z, ch, sh * gx, sh * gy, sh * gz)
-        nw, nx, ny, nz = _qmul(w, x, y, z, cf, sf * gx, sf * gy, sf * gz)
-        norm = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        r_half = _rot(hw, hx, hy, hz)
-        ax = r_half[0][0] * fx + r_half[0][1] * fy + r_half[0][2] * fz
-        ay = r_half[1][0] * fx + r_half[1][1] * fy + r_half[1][2] * fz
-        az = r_half[2][0] * fx + r_half[2][1] * fy + r_half[2][2] * fz
+        bgx, bgy, bgz = state.b_g.tolist()
+        px, py, pz = (delta.dtheta - state.b_g * dt).tolist()
+        vx, vy, vz = delta.dvel.tolist()
+        # Δv corrected for the slower rotation, then the mean specific force minus b_a.
+        h = 0.5 * dt
+        cx, cy, cz = bgy * vz - bgz * vy, bgz * vx - bgx * vz, bgx * vy - bgy * vx
+        bax, bay, baz = state.b_a.tolist()
+        fx, fy, fz = (vx - h * cx) / dt - bax, (vy - h * cy) / dt - bay, (vz - h * cz) / dt - baz
+        r = _rot(w, x, y, z)
+        ax = r[0][0] * fx + r[0][1] * fy + r[0][2] * fz
+        ay = r[1][0] * fx + r[1][1] * fy + r[1][2] * fz
+        az = r[2][0] * fx + r[2][1] * fy + r[2][2] * fz
         a_w = np.array([ax, ay, az + self.gravity[2]])
         state.p = state.p + state.v * dt + (0.5 * dt * dt) * a_w
         state.v = state.v + a_w * dt
-        state.q = np.array([nw * norm, nx * norm, ny * norm, nz * norm])
+        angle = math.sqrt(px * px + py * py + pz * pz)
+        s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
+        dw, dx, dy, dz = math.cos(0.5 * angle), s * px, s * py, s * pz
+        nw = w * dw - x * dx - y * dy - z * dz
+        nx = w * dx + x * dw + y * dz - z * dy
+        ny = w * dy - x * dz + y * dw + z * dx
+        nz = w * dz + x * dy - y * dx + z * dw
+        norm = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+        nw, nx, ny, nz = nw * norm, nx * norm, ny * norm, nz * norm
+        state.q = np.array([nw, nx, ny, nz])
 
         F = self._F
         if F is None or F.shape[0] != n:
             F = self._F = np.eye(n)
-        F[0:3, 3:6] = np.eye(3) * dt
+        F[0:3, 3:6] = self._eye3 * dt
         h2 = 0.5 * dt * dt
         a_skew = np.array([[0.0, -az, ay], [az, 0.0, -ax], [-ay, ax, 0.0]])
         F[0:3, 6:9] = a_skew * -h2
         F[3:6, 6:9] = a_skew * -dt
         if lay.estimates_biases:
-            rh = np.array(r_half)
-            d_a_d_bg = rh @ _skew(fx, fy, fz) @ np.array(_jr(0.5 * gx, 0.5 * gy, 0.5 * gz)) * (0.5 * dt)
+            rm = np.array(r)
+            d_a_d_bg = rm @ np.array([[0.0, -0.5 * vz, 0.5 * vy], [0.5 * vz, 0.0, -0.5 * vx], [-0.5 * vy, 0.5 * vx, 0.0]])
             F[0:3, 9:12] = d_a_d_bg * h2
             F[3:6, 9:12] = d_a_d_bg * dt
-            F[6:9, 9:12] = (np.array(_rot(nw * norm, nx * norm, ny * norm, nz * norm)) @ np.array(_jr(gx, gy, gz))) * -dt
-            F[0:3, 12:15] = rh * -h2
-            F[3:6, 12:15] = rh * -dt
+            F[6:9, 9:12] = (np.array(_rot(nw, nx, ny, nz)) @ np.array(_jr(px, py, pz))) * -dt
+            F[0:3, 12:15] = rm * -h2
+            F[3:6, 12:15] = rm * -dt
         cov = state.cov
         if cov.shape[0] == n:
             state.cov = F @ cov @ F.T + Q
@@ -235,36 +238,3 @@ class ImuPropagator:
             cov[:n, n:] = cross
             cov[n:, :n] = cross.T
         return a_w
-
-
-def _qmul(w, x, y, z, dw, dx, dy, dz):
-    return (
-        w * dw - x * dx - y * dy - z * dz,
-        w * dx + x * dw + y * dz - z * dy,
-        w * dy - x * dz + y * dw + z * dx,
-        w * dz + x * dy - y * dx + z * dw,
-    )
-
-
-def _jr(x, y, z):
-    """Right Jacobian of SO(3) at φ = (x, y, z) as nested tuples (see :func:`_right_jacobian`)."""
-    t2 = x * x + y * y + z * z
-    if t2 < 1e-10:
-        a, b = 0.5, 1.0 / 6.0
-    else:
-        t = math.sqrt(t2)
-        a, b = (1.0 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
-    # Jr = I - a [φ]x + b [φ]x², with [φ]x² = φ φ^T - |φ|² I.
-    return (
-        (1.0 + b * (x * x - t2), a * z + b * x * y, -a * y + b * x * z),
-        (-a * z + b * x * y, 1.0 + b * (y * y - t2), a * x + b * y * z),
-        (a * y + b * x * z, -a * x + b * y * z, 1.0 + b * (z * z - t2)),
-    )
-
-
-def _rot(w, x, y, z):
-    return (
-        (1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
-        (2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
-        (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)),
-    )

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from config import get
 from estimator.calibration import ImuNoise
 from estimator.filter import FilterOptions
-from estimator.heading import AlignOptions
 from estimator.initializer import InitOptions
+from estimator.motion_alignment import MotionAlignOptions
+from estimator.stillness import StillnessOptions
 
 NOISE_KEYS = ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", "accel_random_walk")
 
@@ -21,7 +24,29 @@ def imu_noise_override(cfg: dict[str, Any], fallback: ImuNoise) -> ImuNoise | No
     return ImuNoise(*(given[k] if given[k] is not None else getattr(fallback, k) for k in NOISE_KEYS))
 
 
+def init_options(cfg: dict[str, Any]) -> InitOptions:
+    values = get(cfg, "estimator.init")
+    gravity = values.pop("estimate_gravity")
+    # 'auto': the thesis model has no accelerometer bias state, so the still window's |f|
+    # (gravity plus the vertical bias) is its best g; the biases model estimates that bias.
+    values["estimate_gravity"] = cfg["estimator.variant"] == "thesis" if gravity == "auto" else gravity == "true"
+    return InitOptions(**values)
+
+
+def thesis_noise(cfg: dict[str, Any], noise: ImuNoise) -> ImuNoise:
+    """The thesis model's tuned white noise; it has no bias states, so no bias random walks."""
+    return ImuNoise(
+        gyro_noise_density=np.maximum(noise.gyro_noise_density, cfg["estimator.thesis.gyro_noise_density"]),
+        gyro_random_walk=noise.gyro_random_walk,
+        accel_noise_density=np.maximum(noise.accel_noise_density, cfg["estimator.thesis.accel_noise_density"]),
+        accel_random_walk=noise.accel_random_walk,
+    )
+
+
 def filter_options(cfg: dict[str, Any], calibration_noise: ImuNoise) -> FilterOptions:
+    noise = imu_noise_override(cfg, calibration_noise)
+    if cfg["estimator.variant"] == "thesis":
+        noise = thesis_noise(cfg, noise or calibration_noise)
     return FilterOptions(
         variant=cfg["estimator.variant"],
         heading_source=cfg["estimator.heading.source"],
@@ -29,7 +54,12 @@ def filter_options(cfg: dict[str, Any], calibration_noise: ImuNoise) -> FilterOp
         gps_gate=cfg["estimator.gps.gate_chi2"],
         gps_sigma_floor_m=cfg["estimator.gps.sigma_floor_m"],
         max_imu_gap_s=cfg["estimator.imu.max_gap_s"],
-        noise=imu_noise_override(cfg, calibration_noise),
-        init=InitOptions(**get(cfg, "estimator.init")),
-        align=AlignOptions(**get(cfg, "estimator.alignment")),
+        max_filter_rate_hz=cfg["estimator.imu.max_filter_rate_hz"],
+        noise=noise,
+        init=init_options(cfg),
+        align=MotionAlignOptions(**get(cfg, "estimator.alignment")),
+        unaligned_accel_noise=cfg["estimator.unaligned.accel_noise"],
+        level_sigma=cfg["estimator.unaligned.level_sigma"],
+        gps_reset_after_s=cfg["estimator.gps_reset_after_s"],
+        still=StillnessOptions(**get(cfg, "estimator.stillness")),
     )

@@ -1,24 +1,25 @@
-"""IMU time update: analytic Jacobian against central differences, and integration accuracy."""
+"""IMU time update: analytic Jacobian against central differences, fast path against reference."""
 
 import numpy as np
 import pytest
 
 from estimator.calibration import ImuNoise
+from estimator.imu_delta import ImuDelta, ImuDownsampler
 from estimator.propagator import ImuPropagator, error_transition, integrate_nominal, process_noise
-from estimator.rotation import quat_exp, quat_from_euler, quat_log, quat_mul, quat_conj
+from estimator.rotation import quat_conj, quat_exp, quat_from_euler, quat_log, quat_mul
 from estimator.state import FilterState, StateLayout
 
 G = np.array([0.0, 0.0, 9.81])
 rng = np.random.default_rng(3)
 
 
-def perturbed_step(x0, dx, gyro, accel, dt, layout):
+def perturbed_step(x0, dx, dtheta, dvel, dt, layout):
     p, v, q, bg, ba = x0
     q_p = quat_mul(quat_exp(dx[6:9]), q)
     bg_p, ba_p = bg, ba
     if layout.estimates_biases:
         bg_p, ba_p = bg + dx[9:12], ba + dx[12:15]
-    return integrate_nominal(p + dx[0:3], v + dx[3:6], q_p, bg_p, ba_p, gyro, accel, dt, G)[:3], (bg_p, ba_p)
+    return integrate_nominal(p + dx[0:3], v + dx[3:6], q_p, bg_p, ba_p, dtheta, dvel, dt, G)[:3], (bg_p, ba_p)
 
 
 def error_between(a, b, layout):
@@ -30,53 +31,93 @@ def error_between(a, b, layout):
     return np.concatenate(err)
 
 
+def numeric_transition(x0, dtheta, dvel, dt, layout, h=1e-6):
+    n = layout.robot_dim
+    nominal = perturbed_step(x0, np.zeros(n), dtheta, dvel, dt, layout)
+    out = np.zeros((n, n))
+    for i in range(n):
+        d = np.zeros(n)
+        d[i] = h
+        plus = error_between(perturbed_step(x0, d, dtheta, dvel, dt, layout), nominal, layout)
+        minus = error_between(perturbed_step(x0, -d, dtheta, dvel, dt, layout), nominal, layout)
+        out[:, i] = (plus - minus) / (2 * h)
+    return out
+
+
 @pytest.mark.parametrize("variant", ["thesis", "biases"])
 @pytest.mark.parametrize("dt", [0.008, 0.05])
 def test_error_transition_matches_central_differences(variant, dt):
     layout = StateLayout(variant)
-    n = layout.robot_dim
     x0 = (rng.normal(size=3), rng.normal(size=3), quat_from_euler(0.3, -0.2, 1.1), rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.2)
-    gyro = np.array([0.8, -1.5, 2.0])
-    accel = np.array([1.0, -2.0, -9.0])
-    F = error_transition(x0[2], x0[3], x0[4], gyro, accel, dt, layout)
-    nominal = perturbed_step(x0, np.zeros(n), gyro, accel, dt, layout)
-    h = 1e-6
-    numeric = np.zeros((n, n))
-    for i in range(n):
-        d = np.zeros(n)
-        d[i] = h
-        plus = error_between(perturbed_step(x0, d, gyro, accel, dt, layout), nominal, layout)
-        minus = error_between(perturbed_step(x0, -d, gyro, accel, dt, layout), nominal, layout)
-        numeric[:, i] = (plus - minus) / (2 * h)
-    assert np.allclose(F, numeric, atol=1e-7), np.abs(F - numeric).max()
+    dtheta = np.array([0.8, -1.5, 2.0]) * dt
+    dvel = np.array([1.0, -2.0, -9.0]) * dt
+    F = error_transition(x0[2], x0[3], x0[4], dtheta, dvel, dt, layout)
+    assert np.allclose(F, numeric_transition(x0, dtheta, dvel, dt, layout), atol=1e-7)
 
 
-def test_jacobian_test_would_catch_a_sign_error():
+def test_jacobian_check_catches_a_sign_error():
     layout = StateLayout("biases")
     x0 = (np.zeros(3), np.zeros(3), quat_from_euler(0.1, 0.2, 0.3), np.zeros(3), np.zeros(3))
-    F = error_transition(x0[2], x0[3], x0[4], np.array([0.1, 0.2, 0.3]), np.array([0.5, 0.1, -9.8]), 0.01, layout)
-    F_wrong = F.copy()
-    F_wrong[3:6, 6:9] *= -1
-    d = np.zeros(15)
-    d[7] = 1e-6
-    nominal = perturbed_step(x0, np.zeros(15), np.array([0.1, 0.2, 0.3]), np.array([0.5, 0.1, -9.8]), 0.01, layout)
-    num = error_between(perturbed_step(x0, d, np.array([0.1, 0.2, 0.3]), np.array([0.5, 0.1, -9.8]), 0.01, layout), nominal, layout) / 1e-6
-    assert np.allclose(F @ d / 1e-6, num, atol=1e-5)
-    assert not np.allclose(F_wrong @ d / 1e-6, num, atol=1e-5)
+    dtheta, dvel = np.array([0.1, 0.2, 0.3]) * 0.01, np.array([0.5, 0.1, -9.8]) * 0.01
+    F = error_transition(x0[2], x0[3], x0[4], dtheta, dvel, 0.01, layout)
+    wrong = F.copy()
+    wrong[3:6, 6:9] *= -1
+    numeric = numeric_transition(x0, dtheta, dvel, 0.01, layout)
+    assert np.allclose(F, numeric, atol=1e-7) and not np.allclose(wrong, numeric, atol=1e-7)
 
 
-def test_constant_rotation_and_acceleration_integrate_exactly():
-    # Spin about body z at 1 rad/s while at rest in a level attitude: gravity is balanced.
+def one_sample_deltas(rate_hz, n, gyro, accel):
+    """Deltas of a downsampler that emits at every sample."""
+    ds = ImuDownsampler(max_rate_hz=10 * rate_hz)
+    t = (np.arange(n) * 1e9 / rate_hz).astype(np.int64)
+    return [d for d in (ds.add(int(ti), gyro, accel) for ti in t) if d is not None]
+
+
+def test_constant_rotation_and_free_fall_integrate_exactly():
     p, v, q = np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0])
-    for _ in range(1000):
-        p, v, q, _ = integrate_nominal(p, v, q, np.zeros(3), np.zeros(3), np.array([0, 0, 1.0]), np.array([0, 0, -9.81]), 0.001, G)
+    for d in one_sample_deltas(1000, 1001, np.array([0, 0, 1.0]), np.array([0, 0, -9.81])):
+        p, v, q, _ = integrate_nominal(p, v, q, np.zeros(3), np.zeros(3), d.dtheta, d.dvel, d.dt, G)
     assert np.allclose(quat_log(q), [0, 0, 1.0], atol=1e-9)
     assert np.allclose(p, 0, atol=1e-12) and np.allclose(v, 0, atol=1e-12)
-    # Free fall: the accelerometer reads zero.
     p, v, q = np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0])
-    for _ in range(100):
-        p, v, q, _ = integrate_nominal(p, v, q, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), 0.01, G)
+    for d in one_sample_deltas(100, 101, np.zeros(3), np.zeros(3)):
+        p, v, q, _ = integrate_nominal(p, v, q, np.zeros(3), np.zeros(3), d.dtheta, d.dvel, d.dt, G)
     assert np.allclose(v, [0, 0, 9.81]) and np.allclose(p, [0, 0, 0.5 * 9.81])
+
+
+def test_downsampled_deltas_follow_a_rotating_accelerating_body():
+    """Deltas over 4 samples integrate the same motion as per-sample steps (within mm)."""
+    rate, n = 200.0, 2001
+    t = np.arange(n) / rate
+    gyro = np.stack([0.5 * np.sin(t), 0.3 * np.cos(2 * t), 0.8 + 0 * t], axis=1)
+    accel = np.stack([np.cos(t), 0.5 * np.sin(3 * t), -9.81 + 0.2 * np.cos(t)], axis=1)
+    results = []
+    for max_rate in (10 * rate, rate / 4):
+        ds = ImuDownsampler(max_rate)
+        p, v, q = np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0])
+        for i in range(n):
+            d = ds.add(int(round(t[i] * 1e9)), gyro[i], accel[i])
+            if d is not None:
+                p, v, q, _ = integrate_nominal(p, v, q, np.zeros(3), np.zeros(3), d.dtheta, d.dvel, d.dt, G)
+        results.append((p, v, q))
+    (p1, v1, q1), (p4, v4, q4) = results
+    assert np.linalg.norm(p1 - p4) < 2e-3 and np.linalg.norm(v1 - v4) < 1e-3
+    assert np.linalg.norm(quat_log(quat_mul(q1, quat_conj(q4)))) < 1e-6
+
+
+def test_flush_and_hold_split_a_step_at_a_measurement_time():
+    ds = ImuDownsampler(max_rate_hz=50.0)  # deltas of >= 18 ms from 5 ms samples
+    g, a = np.array([0.1, 0.0, 0.0]), np.array([0.0, 0.0, -9.8])
+    for k in range(3):
+        assert ds.add(k * 5_000_000, g, a) is None
+    partial = ds.flush()
+    assert partial.t0_ns == 0 and partial.t1_ns == 10_000_000 and partial.dt == pytest.approx(0.01)
+    held = ds.hold(12_000_000)
+    assert held.t0_ns == 10_000_000 and held.dt == pytest.approx(0.002)
+    assert np.allclose(held.dtheta, g * 0.002)
+    nxt = [ds.add(k * 5_000_000, g, a) for k in range(3, 8)]
+    first = next(d for d in nxt if d is not None)
+    assert first.t0_ns == 12_000_000  # the next delta starts where the hold ended
 
 
 def test_process_noise_matches_white_noise_densities():
@@ -85,24 +126,7 @@ def test_process_noise_matches_white_noise_densities():
     assert np.allclose(np.diag(Q)[3:6], 2e-2**2 * 0.01)  # velocity random walk
     assert np.allclose(np.diag(Q)[6:9], 1e-3**2 * 0.01)  # angle random walk
     assert np.allclose(np.diag(Q)[9:12], 1e-4**2 * 0.01)
-    assert np.allclose(Q, Q.T)
-    assert np.all(np.linalg.eigvalsh(Q) >= -1e-18)
-
-
-def test_propagate_keeps_landmark_block_and_updates_cross_terms():
-    layout = StateLayout("biases")
-    state = FilterState(layout)
-    state.landmarks = np.zeros((2, 6))
-    A = rng.normal(size=(27, 27))
-    state.cov = A @ A.T
-    mm_before = state.cov[15:, 15:].copy()
-    prop = ImuPropagator(ImuNoise.isotropic(1e-3, 1e-4, 2e-2, 1e-3), 9.81)
-    F = error_transition(state.q, state.b_g, state.b_a, np.array([0.1, 0, 0]), np.array([0, 0, -9.81]), 0.01, layout)
-    cross = F @ state.cov[:15, 15:]
-    prop.propagate(state, np.array([0.1, 0, 0]), np.array([0, 0, -9.81]), 0.01)
-    assert np.array_equal(state.cov[15:, 15:], mm_before)
-    assert np.allclose(state.cov[:15, 15:], cross)
-    assert np.allclose(state.cov, state.cov.T)
+    assert np.allclose(Q, Q.T) and np.all(np.linalg.eigvalsh(Q) >= -1e-18)
 
 
 @pytest.mark.parametrize("variant", ["thesis", "biases"])
@@ -120,13 +144,17 @@ def test_fast_propagate_equals_reference_functions(variant, isotropic):
     A = rng.normal(size=(layout.robot_dim + 6,) * 2)
     state.cov = A @ A.T
     before = state.copy()
-    gyro, accel, dt = np.array([0.5, -0.7, 1.2]), np.array([0.3, -0.2, -9.7]), 0.008
-    a_w = ImuPropagator(noise, 9.81).propagate(state, gyro, accel, dt, extra_horizontal_accel=0.5)
-    p, v, q, a_ref = integrate_nominal(before.p, before.v, before.q, before.b_g, before.b_a, gyro, accel, dt, G)
-    F = error_transition(before.q, before.b_g, before.b_a, gyro, accel, dt, layout)
-    Q = process_noise(before.q, dt, noise, layout, 0.5)
-    n = layout.robot_dim
-    assert np.allclose(state.p, p, atol=1e-14) and np.allclose(state.v, v, atol=1e-14)
-    assert np.allclose(state.q, q, atol=1e-15) and np.allclose(a_w, a_ref)
-    assert np.allclose(state.cov[:n, :n], F @ before.cov[:n, :n] @ F.T + Q, atol=1e-12)
-    assert np.allclose(state.cov[:n, n:], F @ before.cov[:n, n:], atol=1e-12)
+    prop = ImuPropagator(noise, 9.81)
+    for dt in (0.008, 0.011):  # the second step checks the dt-polynomial noise for a new dt
+        before = state.copy()
+        delta = ImuDelta(0, int(dt * 1e9), dt, np.array([0.5, -0.7, 1.2]) * dt, np.array([0.3, -0.2, -9.7]) * dt)
+        a_w = prop.propagate(state, delta, extra_horizontal_accel=0.5)
+        p, v, q, a_ref = integrate_nominal(before.p, before.v, before.q, before.b_g, before.b_a, delta.dtheta, delta.dvel, dt, G)
+        F = error_transition(before.q, before.b_g, before.b_a, delta.dtheta, delta.dvel, dt, layout)
+        Q = process_noise(before.q, dt, noise, layout, 0.5)
+        n = layout.robot_dim
+        assert np.allclose(state.p, p, atol=1e-14) and np.allclose(state.v, v, atol=1e-14)
+        assert np.allclose(state.q, q, atol=1e-15) and np.allclose(a_w, a_ref)
+        assert np.allclose(state.cov[:n, :n], F @ before.cov[:n, :n] @ F.T + Q, atol=1e-10)
+        assert np.allclose(state.cov[:n, n:], F @ before.cov[:n, n:], atol=1e-10)
+        assert np.array_equal(state.cov[n:, n:], before.cov[n:, n:])

@@ -1,0 +1,168 @@
+"""Tolerant reading and deterministic writing of timestamped numeric tables (ASL/EuRoC CSV, TUM).
+
+Real logs are messy (spreadsheets, truncated writes, trailing notes), so a bad *data* line is
+skipped and counted, with one warning per file naming the first offender; a bad *header* or a
+missing file is an error, because then nothing in the file can be trusted. Timestamps are
+integer nanoseconds but may be written in scientific notation: they are parsed exactly with
+``decimal`` (float64 is off by up to 128 ns at 1.4e18).
+"""
+
+from __future__ import annotations
+
+import logging
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+_INT64_MAX = 2**63 - 1
+NS_PER_S = 1_000_000_000
+
+
+class CsvData(NamedTuple):
+    """Rows that parsed: times (int64 ns), values (float64, rows × columns), lines skipped."""
+
+    t_ns: np.ndarray
+    values: np.ndarray
+    skipped: int
+
+
+def parse_time_ns(text: str, unit_ns: int = 1) -> int:
+    """Exact integer nanoseconds from ``text`` counted in units of ``unit_ns`` ns.
+
+    With ``unit_ns == 1`` the value must be integral (``1.40363657975856E+018`` is); in larger
+    units (seconds: ``unit_ns = 1e9``) it is rounded to the nearest nanosecond.
+    Raises ValueError on anything else.
+    """
+    text = text.strip()
+    if unit_ns == 1 and text.isdigit():
+        value = int(text)
+    else:
+        try:
+            number = Decimal(text) * unit_ns
+        except InvalidOperation:
+            raise ValueError(f"not a number: {text!r}") from None
+        if not number.is_finite():
+            raise ValueError(f"not finite: {text!r}")
+        integral = number.to_integral_value()
+        if unit_ns == 1 and number != integral:
+            raise ValueError(f"not an integer nanosecond time: {text!r}")
+        value = int(integral)
+    if abs(value) > _INT64_MAX:
+        raise ValueError(f"time out of int64 range: {text!r}")
+    return value
+
+
+def _split(line: str, delimiter: str | None) -> list[str]:
+    return line.split(delimiter) if delimiter is not None else line.split()
+
+
+def read_numeric_csv(
+    path: str | Path,
+    n_values: int,
+    *,
+    header: str = "",
+    delimiter: str | None = ",",
+    time_unit_ns: int = 1,
+    require_header: bool = True,
+) -> CsvData:
+    """Read ``time, v1..vn`` lines; malformed or out-of-order data lines are skipped and counted.
+
+    ``header`` is the expected header text, only used to make error messages concrete.
+    Lines starting with ``#`` are comments; with ``require_header`` the first line must be one
+    with ``n_values + 1`` columns (the column header). A data line is kept when it
+    has exactly ``n_values + 1`` fields, all numeric and finite, and a time later than every
+    line before it.
+    """
+    path = Path(path)
+    n_fields = n_values + 1
+    expected = f"{n_fields} columns" + (f" ({header})" if header else "")
+    try:
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: file not found (expected a table of {expected})") from None
+    lines = text.splitlines()
+
+    if require_header:
+        first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
+        if first is None or not lines[first].lstrip().startswith("#"):
+            raise ValueError(f"{path}: missing '#' header line, expected {expected}")
+        found = len(_split(lines[first].lstrip()[1:], delimiter))
+        if found != n_fields:
+            raise ValueError(f"{path}: header line {first + 1} has {found} columns, expected {expected}")
+
+    times: list[int] = []
+    rows: list[list[float]] = []
+    line_numbers: list[int] = []
+    bad: list[tuple[int, str, str]] = []  # (line number, text, reason)
+    for number, line in enumerate(lines, start=1):
+        stripped = line.strip()
+        if stripped.startswith("#"):
+            continue
+        fields = _split(stripped, delimiter)
+        if len(fields) != n_fields:
+            bad.append((number, line, f"{len(fields)} fields instead of {n_fields}"))
+            continue
+        try:
+            t = parse_time_ns(fields[0], time_unit_ns)
+            row = [float(f) for f in fields[1:]]
+        except ValueError as exc:
+            bad.append((number, line, str(exc)))
+            continue
+        times.append(t)
+        rows.append(row)
+        line_numbers.append(number)
+
+    t_ns = np.array(times, dtype=np.int64)
+    values = np.array(rows, dtype=np.float64).reshape(len(rows), n_values)
+    keep = np.all(np.isfinite(values), axis=1)
+    for i in np.flatnonzero(~keep):
+        bad.append((line_numbers[i], lines[line_numbers[i] - 1], "non-finite value"))
+    # A line must be later than every valid line before it (prefix maximum of their times).
+    if t_ns.size:
+        valid_t = np.where(keep, t_ns, np.iinfo(np.int64).min)
+        earlier_max = np.concatenate([[np.iinfo(np.int64).min], np.maximum.accumulate(valid_t)[:-1]])
+        in_order = t_ns > earlier_max
+        for i in np.flatnonzero(keep & ~in_order):
+            bad.append((line_numbers[i], lines[line_numbers[i] - 1], "time not after the previous line"))
+        keep &= in_order
+
+    if bad:
+        number, line, reason = min(bad)
+        log.warning(
+            "%s: skipped %d malformed line(s); first is line %d (%s): %r",
+            path, len(bad), number, reason, line[:120],
+        )
+    return CsvData(t_ns[keep], values[keep], len(bad))
+
+
+def format_rows(t_ns: np.ndarray, values: np.ndarray, formats: Sequence[str], delimiter: str = ",") -> list[str]:
+    """Lines ``t,v1,..,vn`` with one printf format per value column: same data, same bytes."""
+    values = np.asarray(values, dtype=np.float64).reshape(len(t_ns), len(formats))
+    if not np.all(np.isfinite(values)):
+        raise ValueError("refusing to write non-finite values")
+    row_format = delimiter.join(formats)
+    # +0.0 turns -0.0 into 0.0, so a sign bit never changes the bytes.
+    times = np.asarray(t_ns, dtype=np.int64).tolist()
+    return [f"{t}{delimiter}{row_format % tuple(row)}" for t, row in zip(times, (values + 0.0).tolist())]
+
+
+def write_numeric_csv(
+    path: str | Path, header: str, t_ns: np.ndarray, values: np.ndarray, formats: Sequence[str]
+) -> None:
+    """Write a ``#``-headed CSV of integer times and formatted values, creating the folder."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = [header, *format_rows(t_ns, values, formats)]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8", newline="\n")
+
+
+def seconds_text(t_ns: int) -> str:
+    """Exact decimal seconds with 9 decimals from integer nanoseconds (no float rounding)."""
+    sign = "-" if t_ns < 0 else ""
+    whole, frac = divmod(abs(int(t_ns)), NS_PER_S)
+    return f"{sign}{whole}.{frac:09d}"
+

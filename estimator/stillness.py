@@ -1,0 +1,98 @@
+"""Still periods: zero velocity and the gyro bias, measured whenever the vehicle rests.
+
+On the pad, on a table, or landed, the IMU says more than "no motion": its mean rate *is*
+the gyro bias. The thesis calibrates before each run (section 5.2); doing it at every rest
+keeps a fixed-bias model (``thesis``) honest over long runs and gives the ``biases`` model a
+direct bias measurement. A still chunk needs low IMU variance, a specific force of magnitude g,
+and a filter speed near zero, so a smooth, straight flight is never mistaken for rest.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(slots=True)
+class StillnessOptions:
+    enabled: bool = True
+    chunk_s: float = 1.0
+    gyro_std_max: float = 0.02  # rad/s per axis
+    accel_std_max: float = 0.15  # m/s² per axis
+    gravity_tolerance: float = 0.3  # m/s² on |mean f| - g
+    speed_max: float = 0.2  # m/s, filter estimate
+    zupt_sigma: float = 0.01  # m/s
+
+
+@dataclass(frozen=True, slots=True)
+class StillChunk:
+    """Statistics of one still chunk of IMU samples."""
+
+    gyro_mean: np.ndarray
+    gyro_var_of_mean: np.ndarray  # per axis, from the samples' own scatter
+    n: int
+    duration_s: float
+
+
+class StillnessDetector:
+    """Accumulates IMU samples in fixed chunks and reports each chunk that was still.
+
+    A chunk counts as still when its scatter is low, |f| is g, the filter is not moving, and
+    its means agree with those of the chunk before (which must have been quiet too).
+    """
+
+    def __init__(self, options: StillnessOptions) -> None:
+        self.options = options
+        self._previous: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._reset(None)
+
+    def _reset(self, t_ns: int | None) -> None:
+        self._t0 = t_ns
+        self._n = 0
+        self._g_sum = np.zeros(3)
+        self._g_sq = np.zeros(3)
+        self._a_sum = np.zeros(3)
+        self._a_sq = np.zeros(3)
+
+    def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, gravity: float, speed: float) -> StillChunk | None:
+        """Add a body-frame sample; at the end of each chunk return it if it was still."""
+        if self._t0 is None:
+            self._reset(t_ns)
+        self._n += 1
+        self._g_sum += gyro
+        self._g_sq += gyro * gyro
+        self._a_sum += accel
+        self._a_sq += accel * accel
+        duration = (t_ns - self._t0) * 1e-9
+        if duration < self.options.chunk_s:
+            return None
+        chunk = self._evaluate(duration, gravity, speed)
+        self._reset(t_ns)
+        return chunk
+
+    def _evaluate(self, duration: float, gravity: float, speed: float) -> StillChunk | None:
+        opts = self.options
+        n = self._n
+        if n < 10:
+            return None
+        g_mean = self._g_sum / n
+        a_mean = self._a_sum / n
+        g_var = np.maximum(self._g_sq / n - g_mean**2, 0.0)
+        a_var = np.maximum(self._a_sq / n - a_mean**2, 0.0)
+        quiet = (
+            np.all(g_var < opts.gyro_std_max**2)
+            and np.all(a_var < opts.accel_std_max**2)
+            and abs(math.sqrt(float(a_mean @ a_mean)) - gravity) < opts.gravity_tolerance
+            and speed < opts.speed_max
+        )
+        previous, self._previous = self._previous, (g_mean, g_var / n, a_mean, a_var / n) if quiet else None
+        if not quiet or previous is None:
+            return None
+        # A slow, smooth motion (an arm starting to move, a gentle drift) keeps the scatter low
+        # but shifts the mean: demand that this chunk's means agree with the previous chunk's.
+        pg, pg_var, pa, pa_var = previous
+        if np.any((g_mean - pg) ** 2 > 16.0 * (g_var / n + pg_var)) or np.any((a_mean - pa) ** 2 > 16.0 * (a_var / n + pa_var)):
+            return None
+        return StillChunk(g_mean, g_var / n, n, duration)

@@ -1,0 +1,93 @@
+"""Benchmarks that answer "can my helicopter computer keep up?" — figures, not asserts.
+
+Each benchmark returns rows of (name, value, unit, note). Ratios are measured against a
+baseline taken in the same run where a baseline makes sense.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+import timeit
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from config import load_config
+from drivers.dataset import Dataset
+from drivers.simulator import simulate_flight
+from drivers.simulator.export import write_flight
+from estimator.calibration import ImuNoise
+from estimator.gps_update import GpsUpdater
+from estimator.measurements import GpsFix
+from estimator.propagator import ImuPropagator
+from estimator.rotation import quat_from_euler
+from estimator.state import FilterState, StateLayout
+from service.replay import replay
+
+Row = tuple[str, float, str, str]
+
+
+def _per_call_us(fn: Callable[[], object], number: int) -> float:
+    fn()
+    best = min(timeit.repeat(fn, number=number, repeat=5))
+    return best / number * 1e6
+
+
+def bench_filter_steps() -> list[Row]:
+    """Cost of one IMU propagation and one GPS update, both state variants."""
+    rows: list[Row] = []
+    noise = ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4)
+    gyro, accel = np.array([0.01, -0.02, 0.03]), np.array([0.2, -0.1, -9.8])
+    for variant in ("thesis", "biases"):
+        layout = StateLayout(variant)
+        state = FilterState(layout)
+        state.q = quat_from_euler(0.1, 0.05, 0.3)
+        state.cov = np.eye(layout.robot_dim) * 1e-2
+        prop = ImuPropagator(noise, 9.81)
+        rows.append((f"imu propagation ({variant})", _per_call_us(lambda: prop.propagate(state, gyro, accel, 0.008), 5000), "us", ""))
+        upd = GpsUpdater(np.array([0.0, 0.0, -0.3]), gate=None)
+
+        def gps_update() -> None:
+            s = state.copy()
+            upd.update(s, GpsFix(0, s.p + 0.01, 0.02, 0.03))
+
+        rows.append((f"gps update ({variant})", _per_call_us(gps_update, 2000), "us", "includes a state copy"))
+    return rows
+
+
+def bench_replay_speed(scenarios: tuple[tuple[str, float], ...] = (("book", 120.0), ("landfill", 300.0))) -> list[Row]:
+    """IMU+GPS replay speed as a multiple of real time (target ≥ 100×)."""
+    rows: list[Row] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for scenario, duration in scenarios:
+            path = Path(tmp) / scenario
+            write_flight(simulate_flight(scenario, duration, 1), path)
+            dataset = Dataset.open(path)
+            for variant in ("thesis", "biases"):
+                cfg = load_config(None, {"estimator": {"variant": variant}})
+                result = replay(dataset, cfg, ["imu", "gps"])
+                rate = result.duration_s / result.wall_s
+                rows.append((f"replay imu,gps {scenario} {duration:g} s ({variant})", rate, "x real time", f"{result.wall_s:.2f} s wall"))
+    return rows
+
+
+BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
+    "filter-steps": bench_filter_steps,
+    "replay-speed": bench_replay_speed,
+}
+
+
+def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print) -> list[Row]:
+    rows: list[Row] = []
+    for name in names or list(BENCHMARKS):
+        if name not in BENCHMARKS:
+            raise ValueError(f"unknown benchmark {name!r}; choose from {', '.join(BENCHMARKS)}")
+        t0 = time.perf_counter()
+        got = BENCHMARKS[name]()
+        for label, value, unit, note in got:
+            echo(f"  {label:<48} {value:>10.1f} {unit:<12} {note}")
+        echo(f"  ({name}: {time.perf_counter() - t0:.1f} s)")
+        rows.extend(got)
+    return rows

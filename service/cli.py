@@ -1,0 +1,61 @@
+"""The ``vtolpose`` command line: one entry point, one subcommand per job."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from config import ConfigError
+
+# Subcommand name -> module in service.commands providing add_parser(subparsers) and run(args).
+COMMANDS = ("demo", "simulate", "import", "replay", "eval", "bench")
+
+DESCRIPTION = """\
+vtolpose: pose of a VTOL UAV from IMU, camera and GPS (EKF-SLAM), for the flight controller
+(MAVLink) and a LIDAR mapper (Zenoh).
+
+Start here:
+  vtolpose demo                      simulate a flight, replay it, print the score
+  vtolpose simulate --scenario book --duration 120 --seed 1 --out data/book
+  vtolpose replay data/book --out traj.txt --report report.json
+  vtolpose eval traj.txt --truth data/book
+  vtolpose bench                     can this computer keep up?
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vtolpose", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        module = importlib.import_module(f"service.commands.{name.replace('import', 'importer')}")
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args.run(args) or 0)
+    except ConfigError as exc:
+        print(f"vtolpose {args.command}: configuration error: {exc}", file=sys.stderr)
+        return 2
+    except (OSError, ValueError) as exc:
+        print(f"vtolpose {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"vtolpose {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,27 @@
+"""``vtolpose bench``: speed figures on this machine."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+
+from service.bench import BENCHMARKS, run_benchmarks
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "bench",
+        help="speed figures on this machine (can it keep up?)",
+        description="Measure what the estimator costs on this computer and print the figures:\n"
+        + "\n".join(f"  {name:<14} {fn.__doc__.strip().splitlines()[0]}" for name, fn in BENCHMARKS.items()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--only", action="append", choices=sorted(BENCHMARKS), help="run only these (repeatable)")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    print(f"vtolpose bench on {platform.node()}: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    run_benchmarks(args.only)
+    return 0

@@ -1,0 +1,148 @@
+"""Trajectory scores and NEES helpers: known errors give known numbers."""
+
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from estimator.metrics import chi2_band, evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary
+from estimator.rotation import quat_exp, quat_from_euler, quat_mul, rotation_angle
+
+S = 1_000_000_000
+
+
+def truth(t_ns, p, q=None):
+    return SimpleNamespace(t_ns=np.asarray(t_ns, dtype=np.int64), p=np.asarray(p, dtype=float), q=q)
+
+
+def yaw_quats(yaw: np.ndarray) -> np.ndarray:
+    return quat_exp(np.column_stack([np.zeros_like(yaw), np.zeros_like(yaw), yaw]))
+
+
+def test_constant_offset_gives_known_scores() -> None:
+    t = np.arange(11, dtype=np.int64) * S
+    p_true = np.column_stack([np.arange(11.0), np.zeros(11), np.zeros(11)])  # 10 m straight north
+    q = np.tile([1.0, 0, 0, 0], (11, 1))
+    r = evaluate(t, p_true + [0.3, 0.4, 0.0], q, truth(t, p_true, q))
+    assert r["position_rmse_m"] == pytest.approx(0.5)
+    assert r["max_position_error_m"] == pytest.approx(0.5)
+    assert r["final_drift_m"] == pytest.approx(0.5)
+    assert r["distance_travelled_m"] == pytest.approx(10.0)
+    assert r["drift_percent"] == pytest.approx(5.0)
+    assert r["position_rmse_ned_m"] == pytest.approx([0.3, 0.4, 0.0])
+    assert r["attitude_rmse_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert r["samples"] == 11 and r["duration_s"] == pytest.approx(10.0)
+
+
+def test_growing_error_rmse_and_drift() -> None:
+    t = np.arange(4, dtype=np.int64) * S
+    p_true = np.zeros((4, 3))
+    p_est = np.column_stack([[0.0, 1.0, 2.0, 3.0], np.zeros(4), np.zeros(4)])
+    r = evaluate(t, p_est, np.tile([1.0, 0, 0, 0], (4, 1)), truth(t, p_true))
+    assert r["position_rmse_m"] == pytest.approx(np.sqrt((0 + 1 + 4 + 9) / 4))
+    assert r["final_drift_m"] == pytest.approx(3.0) and r["max_position_error_m"] == pytest.approx(3.0)
+    assert r["drift_percent"] is None and r["attitude_rmse_deg"] is None
+
+
+def test_estimate_is_interpolated_linearly_and_by_slerp() -> None:
+    t_est = np.arange(0, 11, dtype=np.int64) * S
+    yaw_est = 0.3 * np.arange(11.0)
+    p_est = np.column_stack([2.0 * np.arange(11.0), np.zeros(11), -np.arange(11.0)])
+    t_true = t_est[:-1] + S // 2  # midway between estimate samples
+    p_mid, q_mid = interpolate_poses(t_true, t_est, p_est, yaw_quats(yaw_est))
+    np.testing.assert_allclose(p_mid[:, 0], 2.0 * (np.arange(10) + 0.5))
+    np.testing.assert_allclose(rotation_angle(q_mid, yaw_quats(0.3 * (np.arange(10) + 0.5))), 0.0, atol=1e-9)
+    r = evaluate(t_est, p_est, yaw_quats(yaw_est), truth(t_true, p_mid, yaw_quats(0.3 * (np.arange(10) + 0.5))))
+    assert r["position_rmse_m"] == pytest.approx(0.0, abs=1e-12)
+    assert r["attitude_rmse_deg"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_constant_attitude_error_gives_its_angle() -> None:
+    t = np.arange(5, dtype=np.int64) * S
+    q_true = yaw_quats(np.linspace(0.0, 1.0, 5))
+    q_est = quat_mul(q_true, quat_from_euler(np.radians(2.0), 0.0, 0.0))
+    r = evaluate(t, np.zeros((5, 3)), q_est, truth(t, np.zeros((5, 3)), q_true))
+    assert r["attitude_rmse_deg"] == pytest.approx(2.0)
+    assert r["max_attitude_error_deg"] == pytest.approx(2.0)
+
+
+def test_truth_point_is_reached_with_the_estimated_attitude() -> None:
+    t = np.arange(3, dtype=np.int64) * S
+    q = yaw_quats(np.full(3, np.pi / 2))  # facing east: body forward = world east
+    point_b = np.array([1.0, 0.0, 0.0])
+    p_imu = np.zeros((3, 3))
+    r = evaluate(t, p_imu, q, truth(t, np.tile([0.0, 1.0, 0.0], (3, 1))), point_b)
+    assert r["position_rmse_m"] == pytest.approx(0.0, abs=1e-12)
+    r0 = evaluate(t, p_imu, q, truth(t, np.tile([0.0, 1.0, 0.0], (3, 1))))
+    assert r0["position_rmse_m"] == pytest.approx(1.0)
+
+
+def test_only_truth_inside_the_estimate_span_counts() -> None:
+    t_est = np.array([2, 5], dtype=np.int64) * S
+    t_true = np.arange(8, dtype=np.int64) * S
+    r = evaluate(t_est, np.zeros((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)), truth(t_true, np.zeros((8, 3))))
+    assert r["samples"] == 4 and r["truth_samples_outside_estimate"] == 4
+    with pytest.raises(ValueError, match="no truth sample inside"):
+        evaluate(t_est + 100 * S, np.zeros((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)), truth(t_true, np.zeros((8, 3))))
+    with pytest.raises(ValueError, match="needs attitude"):
+        evaluate(t_est, np.zeros((2, 3)), None, truth(t_true, np.zeros((8, 3))), [0.1, 0.0, 0.0])
+
+
+def test_evaluate_is_vectorised_fast() -> None:
+    n = 200_000
+    t = np.arange(n, dtype=np.int64) * 5_000_000
+    rng = np.random.default_rng(0)
+    q = quat_exp(rng.normal(size=(n, 3)) * 0.1)
+    start = time.perf_counter()
+    evaluate(t, rng.normal(size=(n, 3)), q, truth(t[::2] + 1, rng.normal(size=(n // 2, 3)), q[::2]), [0.1, 0, 0])
+    assert time.perf_counter() - start < 1.0
+
+
+def test_nees_of_correct_gaussian_samples_is_dof() -> None:
+    rng = np.random.default_rng(7)
+    n, dof = 20_000, 6
+    a = rng.normal(size=(n, dof, dof))
+    cov = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(dof)
+    err = (np.linalg.cholesky(cov) @ rng.normal(size=(n, dof, 1)))[..., 0]
+    values = nees(err, cov)
+    assert values.shape == (n,)
+    assert values.mean() == pytest.approx(dof, abs=4 * np.sqrt(2 * dof / n))
+    # An over-confident filter (covariance 4x too small) scores ~4x dof.
+    assert nees(err, cov / 4).mean() == pytest.approx(4 * dof, rel=0.05)
+    summary = nees_summary(values, dof)
+    assert summary["mean_in_band"] and summary["fraction_in_band"] == pytest.approx(0.95, abs=0.01)
+
+
+def test_nees_single_sample() -> None:
+    assert nees(np.array([1.0, 2.0]), np.diag([1.0, 4.0])) == pytest.approx(2.0)
+
+
+def test_chi2_band_numbers() -> None:
+    assert chi2_band(1) == pytest.approx((0.000982, 5.0239), abs=1e-4)
+    assert chi2_band(3) == pytest.approx((0.2158, 9.3484), abs=1e-4)
+    assert chi2_band(6, 0.99) == pytest.approx((0.6757, 18.5476), abs=1e-4)
+    lo, hi = chi2_band(3, 0.95, n_samples=100)  # band of a 100-sample mean: much narrower
+    assert 2.5 < lo < 3.0 < hi < 3.5
+
+
+def test_gps_error_rmse_with_attitude_and_lever_arm() -> None:
+    t = np.arange(10, dtype=np.int64) * S
+    q = yaw_quats(np.full(10, np.pi / 2))
+    point_b, lever = np.array([0.0, 0.0, -0.1]), np.array([1.0, 0.0, 0.0])
+    p_truth = np.zeros((10, 3))
+    antenna = p_truth + [0.0, 1.0, 0.1]  # R(yaw 90°) (lever − point_b)
+    gps = SimpleNamespace(t_ns=t[::2], p_ned=antenna[::2] + [0.03, 0.0, -0.04])
+    r = gps_error_rmse(gps, truth(t, p_truth, q), lever, point_b)
+    assert r["rmse_m"] == pytest.approx(0.05) and r["samples"] == 5 and "note" not in r
+
+
+def test_gps_error_rmse_without_attitude_notes_point_mismatch() -> None:
+    t = np.arange(10, dtype=np.int64) * S
+    gps = SimpleNamespace(t_ns=t, p_ned=np.full((10, 3), [0.0, 0.0, 0.2]))
+    same = gps_error_rmse(gps, truth(t, np.zeros((10, 3))), [0.1, 0, 0], [0.1, 0, 0])
+    assert same["rmse_m"] == pytest.approx(0.2) and "note" not in same
+    other = gps_error_rmse(gps, truth(t, np.zeros((10, 3))), [0.5, 0, 0], [0.1, 0, 0])
+    assert "0.400 m" in other["note"]
