@@ -43,7 +43,7 @@ class FilterOptions:
     gps_reset_after_s: float = 3.0  # every fix rejected for this long: the filter is lost, reset
     max_imu_gap_s: float = 0.1
     max_filter_rate_hz: float = 100.0  # IMU samples are accumulated into steps no faster than this
-    unaligned_accel_noise: float = 3.0  # m/s²/√Hz on horizontal velocity while the heading is unknown
+    unaligned_accel_noise: float = 0.2  # m/s²/√Hz floor of the extra horizontal noise while the heading is unknown
     level_interval_s: float = 0.1  # gravity levelling while the heading is unknown
     level_sigma: float = 2.0  # m/s²: the vehicle's own accelerations, averaged out over many updates
     noise: ImuNoise | None = None  # overrides the calibration's noise when given
@@ -99,6 +99,7 @@ class Estimator:
         self._pending_fix: GpsFix | None = None
         self._first_rejected_fix_t: int | None = None
         self._downsampler = ImuDownsampler(opts.max_filter_rate_hz)
+        self._horizontal_accel = 0.0
         self._last_imu_t: int | None = None
         self._gyro = np.zeros(3)
 
@@ -139,9 +140,9 @@ class Estimator:
         self._last_imu_t = t_ns
         self._gyro = gyro
         delta = self._downsampler.add(t_ns, gyro, accel)
-        if delta is not None and not self.heading_aligned:
-            self._aligner.add_delta(delta)
         if self.state is None:
+            if delta is not None:
+                self._aligner.add_delta(delta)
             # Moving from the start: with GPS the in-motion alignment will do; without it,
             # start from the accelerometer alone after max_wait_s rather than never.
             init = self._initializer.add(t_ns, gyro, accel, allow_moving=self._fixes_before_start == 0)
@@ -161,14 +162,20 @@ class Estimator:
         return True
 
     def _propagate(self, delta: ImuDelta) -> None:
-        extra = 0.0 if self.heading_aligned else self.options.unaligned_accel_noise
-        self.propagator.propagate(self.state, delta, extra)
+        extra = 0.0
+        if not self.heading_aligned:
+            self._aligner.add_delta(delta)  # every step, so that its window has no gaps
+            # An unknown heading misplaces the horizontal acceleration by up to twice its size;
+            # at rest that is nothing, so the filter can still tell it is at rest.
+            extra = max(self.options.unaligned_accel_noise, 2.0 * self._horizontal_accel)
+        a_w = self.propagator.propagate(self.state, delta, extra)
+        self._horizontal_accel = math.hypot(a_w[0], a_w[1])
         self.state.t_ns = delta.t1_ns
 
     def _propagate_to(self, t_ns: int) -> None:
         """Bring the state to a measurement's time: the partial step, then hold the last sample."""
         for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
-            if delta is not None and delta.t0_ns >= self.state.t_ns:
+            if delta is not None:
                 self._propagate(delta)
 
     # ---------------------------------------------------------------------------- start-up

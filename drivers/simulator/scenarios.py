@@ -125,10 +125,11 @@ class LandfillScenario:
     """A helicopter surveying a landfill near Linköping (origin on the pad, on the ground)."""
 
     name: str = "landfill"
-    description: str = "helicopter: static on the pad, climb to 45 m, lawnmower survey at 8 m/s over a landfill"
+    description: str = "helicopter: static on the pad, climb out to 45 m, lawnmower survey at 8 m/s over a landfill"
     static_s: float = 10.0  # the thesis calibrates on the spot before each run (section 5.2)
     imu_height_on_ground: float = 0.8
-    climb_s: float = 15.0
+    climb_s: float = 20.0
+    climb_out_m: float = 40.0  # a helicopter climbs out along its track, not straight up
     altitude: float = 45.0
     accelerate_s: float = 8.0
     speed: float = 8.0
@@ -173,7 +174,13 @@ class LandfillScenario:
         heading = self.leg_heading_rad
         segments: list[Segment] = [
             Hold("static", self.static_s, pad, heading),
-            SmoothMove("climb", self.climb_s, pad, heading, np.array([0.0, 0.0, -self.altitude - pad[2]])),
+            SmoothMove(
+                "climb",
+                self.climb_s,
+                pad,
+                heading,
+                np.array([self.climb_out_m * np.cos(heading), self.climb_out_m * np.sin(heading), -self.altitude - pad[2]]),
+            ),
         ]
         segments.append(AlongTrack("accelerate", self.accelerate_s, *segments[-1].end(), 0.0, self.speed))
         leg_s = self.leg_length / self.speed

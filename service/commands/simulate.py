@@ -25,6 +25,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=1, help="noise seed (default 1)")
     p.add_argument("--out", required=True, metavar="DATASET", help="folder to write")
     p.add_argument("--force", action="store_true", help="replace an existing dataset in --out")
+    p.add_argument("--no-camera", action="store_true", help="IMU, GPS and truth only: no rendered camera frames")
     p.set_defaults(run=run)
 
 

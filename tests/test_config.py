@@ -1,0 +1,72 @@
+"""Configuration: defaults and schema agree; bad keys and types are refused with the key named."""
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+import config
+from config import ConfigError, load_config
+from config.schema import SCHEMA
+
+
+def test_every_default_has_a_schema_entry_and_back():
+    flat = config._flatten(config.default_config())
+    assert set(flat) == set(SCHEMA)
+
+
+def test_defaults_load_and_are_typed():
+    cfg = load_config()
+    assert cfg["estimator.variant"] == "biases"
+    assert isinstance(cfg["estimator.gps.gate_chi2"], float)
+    assert config.get(cfg, "estimator.init")["static_window_s"] == 2.0
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "cfg.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_user_file_overrides_only_its_keys(tmp_path):
+    cfg = load_config(write(tmp_path, "estimator:\n  variant: thesis\n"))
+    assert cfg["estimator.variant"] == "thesis"
+    assert cfg["estimator.gps.gate_chi2"] == pytest.approx(7.81)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("estimator:\n  varient: thesis\n", r"unknown key 'estimator\.varient' \(did you mean 'estimator\.variant'\?\)"),
+        ("estimator:\n  variant: kalman\n", r"key 'estimator\.variant': must be one of thesis, biases"),
+        ("estimator:\n  gps:\n    gate_chi2: lots\n", r"key 'estimator\.gps\.gate_chi2': expected a finite number"),
+        ("estimator:\n  gps:\n    sigma_floor_m: -1\n", r"sigma_floor_m': must be greater than 0"),
+        ("vehicle:\n  system_id: 300\n", r"system_id': must be at most 255"),
+        ("vehicle:\n  system_id: true\n", r"system_id': expected an integer"),
+        ("estimator: 5\n", r"key 'estimator': expected a section"),
+        ("estimator: [\n", r"not valid YAML \(line"),
+        ("replay:\n  sensors: [imu, lidar]\n", r"unknown item\(s\) \['lidar'\]"),
+    ],
+)
+def test_bad_files_are_refused_with_the_key_named(tmp_path, text, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(write(tmp_path, text))
+
+
+def test_missing_file_and_cross_checks(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+    with pytest.raises(ConfigError, match="min_window_s' must not exceed"):
+        load_config(write(tmp_path, "estimator:\n  alignment:\n    min_window_s: 30\n"))
+
+
+def test_null_only_where_allowed(tmp_path):
+    assert load_config(write(tmp_path, "estimator:\n  heading:\n    deg: null\n"))["estimator.heading.deg"] is None
+    with pytest.raises(ConfigError, match="must not be null"):
+        load_config(write(tmp_path, "estimator:\n  variant: null\n"))
+
+
+def test_default_yaml_is_commented_and_parseable():
+    text = (Path(config.__file__).parent / "default.yaml").read_text()
+    assert yaml.safe_load(text)
+    assert text.count("#") > 40  # every section says what it is for
