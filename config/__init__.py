@@ -14,6 +14,7 @@ from typing import Any
 
 import yaml
 
+from config.outputs import check_outputs
 from config.schema import SCHEMA, Field
 
 __all__ = ["ConfigError", "load_config", "default_config", "get", "validate"]
@@ -139,6 +140,7 @@ def _merge(base: dict, override: dict) -> dict:
 def _cross_checks(cfg: dict[str, Any], origin: str) -> None:
     if cfg["estimator.alignment.min_window_s"] > cfg["estimator.alignment.window_s"]:
         raise ConfigError(f"{origin}: key 'estimator.alignment.min_window_s' must not exceed 'estimator.alignment.window_s'")
+    check_outputs(cfg, origin)
 
 
 def load_config(path: str | Path | None = None, overrides: dict | None = None) -> dict[str, Any]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import pymap3d
@@ -18,6 +19,7 @@ import yaml
 
 from drivers.calibration_yaml import DATASET_FORMAT, CalibrationError, calibration_from_yaml, calibration_to_yaml
 from drivers.csvio import read_numeric_csv, write_numeric_csv
+from drivers.frames_csv import load_grey, read_frame_index, write_frame_index, write_png
 from drivers.series import GpsSeries, ImuSeries, TruthSeries
 from estimator.calibration import Calibration
 
@@ -34,6 +36,7 @@ GPS_SENSOR = "mav0/gps0/sensor.yaml"
 GT_CSV = "mav0/state_groundtruth_estimate0/data.csv"
 LEICA_CSV = "mav0/leica0/data.csv"
 CAM_CSV = "mav0/cam0/data.csv"
+CAM_DIR = "mav0/cam0/data"
 
 IMU_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
               "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")
@@ -86,6 +89,21 @@ class Dataset:
         if len(data.t_ns) == 0:
             raise ValueError(f"{self.root / rel}: no valid data lines")
         return data.t_ns, data.values
+
+    def camera_frames(self) -> list[tuple[int, Path]]:
+        """``(t_ns, image path)`` of every frame in ``cam0/data.csv``, in time order (bad lines counted)."""
+        if not (self.root / CAM_CSV).is_file():
+            return []
+        frames, skipped = read_frame_index(self.root / CAM_CSV, self.root / CAM_DIR)
+        self.skipped[CAM_CSV] = skipped
+        return frames
+
+    def load_frame(self, path: Path) -> np.ndarray | None:
+        """A frame as a grey uint8 array; a missing or unreadable file is a counted skip (None)."""
+        image = load_grey(path)
+        if image is None:
+            self.skipped[CAM_DIR] = self.skipped.get(CAM_DIR, 0) + 1
+        return image
 
     def imu_raw(self) -> ImuSeries:
         """IMU samples in the sensor's own axes, as recorded."""
@@ -184,6 +202,17 @@ class DatasetWriter:
         (self.root / GPS_SENSOR).write_text(
             f"# gps0/data.csv holds {'local NED positions' if frame == 'NED' else 'WGS84 lat/lon/alt'}\n"
             f"frame: {frame}\n", encoding="utf-8", newline="\n")
+
+    def write_camera_frames(self, frames: Iterable[tuple[int, np.ndarray]]) -> int:
+        """Images as ``cam0/data/<t_ns>.png`` plus their index; returns how many were written."""
+        folder = self.root / CAM_DIR
+        folder.mkdir(parents=True, exist_ok=True)
+        times = []
+        for t_ns, image in frames:
+            write_png(folder / f"{int(t_ns)}.png", image)
+            times.append(int(t_ns))
+        write_frame_index(self.root / CAM_CSV, times)
+        return len(times)
 
     def write_truth(
         self, truth: TruthSeries, biases_g: np.ndarray | None = None, biases_a: np.ndarray | None = None

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.calibration import Calibration, ImuNoise
+from estimator.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
+from estimator.features import FrameFeatures
 from estimator.gps_update import GpsUpdater, gps_sigmas
 from estimator.gravity_update import GravityLeveller
 from estimator.imu_delta import ImuDelta, ImuDownsampler
@@ -50,6 +52,7 @@ class FilterOptions:
     init: InitOptions = field(default_factory=InitOptions)
     align: MotionAlignOptions = field(default_factory=MotionAlignOptions)
     still: StillnessOptions = field(default_factory=StillnessOptions)
+    camera: CameraOptions = field(default_factory=CameraOptions)
 
     def __post_init__(self) -> None:
         StateLayout(self.variant)  # validates the variant name
@@ -102,6 +105,11 @@ class Estimator:
         self._horizontal_accel = 0.0
         self._last_imu_t: int | None = None
         self._gyro = np.zeros(3)
+        cam = calibration.camera
+        self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
+        self._camera_offset_ns = int(round(cam.time_offset_s * 1e9)) if cam is not None else 0
+        self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
+        self._camera_resets_seen = 0
 
     @property
     def initialized(self) -> bool:
@@ -291,6 +299,59 @@ class Estimator:
             (fix.t_ns, f"reset #{self.reset_counter}: every GPS fix rejected for {self.options.gps_reset_after_s:g} s; "
              "position and velocity re-initialised from GPS")
         )
+
+    # ------------------------------------------------------------------------------ camera
+    def process_features(self, features: FrameFeatures) -> FrameReport:
+        """Fuse one frame's features at its own time (EKF-SLAM, ``estimator.camera_pipeline``).
+
+        Bad frames are counted under ``camera`` by reason; landmark-level outcomes (matched,
+        rejected by gate, ratio, χ², behind the camera) under ``camera_match``.
+        """
+        counts = self.counts.setdefault("camera", RejectionCounts())
+        counts.received += 1
+        t_ns = features.t_ns + self._camera_offset_ns
+        reason = self._frame_rejection(features, t_ns)
+        self._last_frame = (t_ns, features.digest) if reason != "out_of_order" else self._last_frame
+        if reason is not None:
+            counts.reject(reason)
+            return FrameReport(t_ns, False, reason, n_features=len(features))
+        self._propagate_to(t_ns)
+        if self.reset_counter != self._camera_resets_seen:  # landmarks of the old frame are void
+            self._camera_resets_seen = self.reset_counter
+            self.camera.clear(self.state)
+        held = None if self.heading_aligned else self._held_until_aligned()
+        report = self.camera.process(self.state, features, t_ns, self.heading_aligned, self.position_initialized, held)
+        if report.accepted:
+            counts.used += 1
+        else:
+            counts.reject(report.reason)
+        matches = self.counts.setdefault("camera_match", RejectionCounts())
+        matches.received += report.candidates
+        matches.used += report.n_matches
+        for why, n in report.match_rejections.items():
+            matches.reject(why, n)
+        if report.behind_camera:
+            matches.flag("behind_camera", report.behind_camera)
+        return report
+
+    def _frame_rejection(self, features: FrameFeatures, t_ns: int) -> str | None:
+        if self.camera is None:
+            return "no_camera_calibration"
+        if features.problem is not None:
+            return features.problem
+        cam = self.calibration.camera
+        if tuple(features.image_shape) != (cam.height, cam.width):
+            return "wrong_size"
+        last = self._last_frame
+        if last is not None and t_ns <= last[0]:
+            return "out_of_order"
+        if last is not None and features.digest and features.digest == last[1]:
+            return "duplicate"
+        if self.state is None:
+            return "before_start"
+        if t_ns < self.state.t_ns:
+            return "older_than_filter"
+        return None
 
     # ------------------------------------------------------------------- rest and levelling
     def _level(self, t_ns: int, accel: np.ndarray) -> None:

@@ -20,10 +20,13 @@ from drivers.simulator import simulate_flight
 from drivers.simulator.export import write_flight
 from estimator.calibration import ImuNoise
 from estimator.gps_update import GpsUpdater
+from estimator.imu_delta import ImuDelta
 from estimator.measurements import GpsFix
 from estimator.propagator import ImuPropagator
 from estimator.rotation import quat_from_euler
 from estimator.state import FilterState, StateLayout
+from service.bench_runtime import bench_runtime_hour, bench_runtime_latency
+from service.bench_camera import bench_camera_update, bench_features, bench_replay_camera
 from service.replay import replay
 
 Row = tuple[str, float, str, str]
@@ -46,7 +49,8 @@ def bench_filter_steps() -> list[Row]:
         state.q = quat_from_euler(0.1, 0.05, 0.3)
         state.cov = np.eye(layout.robot_dim) * 1e-2
         prop = ImuPropagator(noise, 9.81)
-        rows.append((f"imu propagation ({variant})", _per_call_us(lambda: prop.propagate(state, gyro, accel, 0.008), 5000), "us", ""))
+        delta = ImuDelta(0, 10_000_000, 0.01, gyro * 0.01, accel * 0.01)
+        rows.append((f"filter step, IMU delta ({variant})", _per_call_us(lambda: prop.propagate(state, delta), 5000), "us", "one step of <= 100 Hz"))
         upd = GpsUpdater(np.array([0.0, 0.0, -0.3]), gate=None)
 
         def gps_update() -> None:
@@ -76,6 +80,11 @@ def bench_replay_speed(scenarios: tuple[tuple[str, float], ...] = (("book", 120.
 BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "filter-steps": bench_filter_steps,
     "replay-speed": bench_replay_speed,
+    "camera-update": bench_camera_update,
+    "features": bench_features,
+    "replay-camera": bench_replay_camera,
+    "runtime-latency": bench_runtime_latency,
+    "runtime-hour": bench_runtime_hour,
 }
 
 

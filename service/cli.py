@@ -10,7 +10,7 @@ import sys
 from config import ConfigError
 
 # Subcommand name -> module in service.commands providing add_parser(subparsers) and run(args).
-COMMANDS = ("demo", "simulate", "import", "replay", "eval", "bench")
+COMMANDS = ("demo", "simulate", "import", "replay", "eval", "bench", "calibrate", "probe", "run")
 
 DESCRIPTION = """\
 vtolpose: pose of a VTOL UAV from IMU, camera and GPS (EKF-SLAM), for the flight controller

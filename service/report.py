@@ -7,7 +7,8 @@ from typing import Any
 import numpy as np
 
 from drivers.dataset import Dataset
-from estimator.metrics import evaluate, gps_error_rmse, nees, nees_summary, pose_errors_for_nees
+from estimator.metrics import evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary, pose_errors_for_nees
+from estimator.rotation import quat_to_rot
 from service.replay import ReplayResult
 
 REPORT_VERSION = 1
@@ -46,12 +47,24 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         }
     if est.state is not None:
         report["final_biases"] = {"gyro_rad_s": est.state.b_g.tolist(), "accel_m_s2": est.state.b_a.tolist()}
+    camera = camera_summary(result)
+    if camera is not None:
+        report["camera"] = camera
     truth = dataset.truth()
     if truth is None or len(traj.t_ns) < 2:
         report["truth"] = None
         return report
     point_b = dataset.calibration.truth_point_b
-    scores = evaluate(traj.t_ns, traj.p, traj.q, truth, point_b)
+    offset = start_offset(result, truth, point_b)
+    if offset is not None:
+        report["position_reference"] = {
+            "kind": "start",
+            "note": "no absolute position in this sensor set: the estimate's origin is where it started, so it is "
+                    "shifted onto the truth at its first pose before scoring",
+            "offset_m": offset.tolist(),
+        }
+    shift = np.zeros(3) if offset is None else offset
+    scores = evaluate(traj.t_ns, traj.p + shift, traj.q, truth, point_b)
     report["truth"] = "full" if truth.q is not None else "position only"
     report["position_rmse_m"] = scores["position_rmse_m"]
     if truth.q is not None:
@@ -68,7 +81,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         report["position_rmse_over_gps"] = report["position_rmse_m"] / gps_scores["rmse_m"]
     cov = result.covariances
     if len(cov.t_ns):
-        err, c, dof = pose_errors_for_nees(cov.t_ns, cov.p, cov.q, cov.cov, truth, point_b)
+        err, c, dof = pose_errors_for_nees(cov.t_ns, cov.p + shift, cov.q, cov.cov, truth, point_b)
         if len(err):
             values = nees(err, c)
             summary = nees_summary(values, dof)
@@ -76,6 +89,56 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
             report["nees"] = summary
             report["nees_position_mean"] = float(np.mean(nees(err[:, :3], c[:, :3, :3])))
     return report
+
+
+def start_offset(result: ReplayResult, truth, point_b: np.ndarray) -> np.ndarray | None:
+    """Shift that puts the first estimated pose on the truth, for runs that never had an absolute position."""
+    est, traj = result.estimator, result.trajectory
+    if est.position_initialized or len(traj.t_ns) == 0:
+        return None
+    t0 = max(int(traj.t_ns[0]), int(truth.t_ns[0]))
+    k = int(np.searchsorted(traj.t_ns, t0))
+    if k >= len(traj.t_ns) or t0 > int(truth.t_ns[-1]):
+        return None
+    p_true, _ = interpolate_poses(np.array([traj.t_ns[k]]), truth.t_ns, truth.p, truth.q)
+    return p_true[0] - (traj.p[k] + quat_to_rot(traj.q[k]) @ point_b)
+
+
+def _stats(values: list[float] | np.ndarray, digits: int = 3) -> dict:
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
+        return {"mean": None, "max": None}
+    return {"mean": round(float(v.mean()), digits), "median": round(float(np.median(v)), digits),
+            "p95": round(float(np.percentile(v, 95)), digits), "max": round(float(v.max()), digits)}
+
+
+def camera_summary(result: ReplayResult) -> dict | None:
+    """Landmarks, matches and timing of the camera frames of a replay (None without frames)."""
+    frames = result.frames
+    if not frames:
+        return None
+    est = result.estimator
+    used = [f for f in frames if f.accepted]
+    sources: dict[str, int] = {}
+    for f in used:
+        if f.depth_source:
+            sources[f.depth_source] = sources.get(f.depth_source, 0) + len(f.new_ids)
+    timing = {name: _stats([f.timing_ms[name] for f in used if f.timing_ms]) for name in ("predict", "associate", "update", "map", "total")}
+    timing["extract"] = _stats(result.extract_ms)
+    matches = est.counts.get("camera_match")
+    return {
+        "detector": result.detector,
+        "frames": len(frames),
+        "frames_used": len(used),
+        "landmarks_in_map": _stats([f.n_landmarks for f in used], 1),
+        "landmarks_in_view": _stats([f.candidates for f in used], 1),
+        "matches_per_frame": _stats([f.n_matches for f in used], 1),
+        "landmarks_initialised": est.camera.initialized_total if est.camera is not None else 0,
+        "landmarks_deleted": dict(sorted(est.camera.deleted_total.items())) if est.camera is not None else {},
+        "depth_prior_sources": sources,
+        "rejected_matches": dict(sorted(matches.rejected.items())) if matches is not None else {},
+        "timing_ms": timing,
+    }
 
 
 def summary_lines(report: dict) -> list[str]:
@@ -94,6 +157,16 @@ def summary_lines(report: dict) -> list[str]:
         lo, hi = n["band_per_sample"]
         verdict = "inside" if n["mean_in_band"] else "OUTSIDE"
         lines.append(f"  NEES mean {n['nees_mean']:.2f} ({n['dof']} dof; 95% band {lo:.2f}-{hi:.2f}: {verdict}; {100 * n['fraction_in_band']:.0f}% of samples in band)")
+    if "position_reference" in report:
+        lines.append("  (no absolute position: scored with the start put on the truth)")
+    cam = report.get("camera")
+    if cam is not None:
+        t = cam["timing_ms"]
+        lines.append(
+            f"  camera ({cam['detector']}): {cam['frames_used']}/{cam['frames']} frames, {cam['matches_per_frame']['mean']} matches "
+            f"per frame, map {cam['landmarks_in_map']['mean']} landmarks (max {cam['landmarks_in_map']['max']}), "
+            f"{cam['landmarks_initialised']} initialised; extract {t['extract']['mean']} ms, filter {t['total']['mean']} ms per frame"
+        )
     lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time")
     for name, c in report["sensors"].items():
         rej = ", ".join(f"{k} {v}" for k, v in c["rejected"].items()) or "none"

@@ -7,9 +7,14 @@ from typing import Any
 import numpy as np
 
 from config import get
+from estimator.association import AssociationOptions
 from estimator.calibration import ImuNoise
+from estimator.camera_pipeline import CameraOptions
+from estimator.features import FeatureOptions
+from estimator.frame_quality import FrameQualityOptions
 from estimator.filter import FilterOptions
 from estimator.initializer import InitOptions
+from estimator.map_manager import MapOptions
 from estimator.motion_alignment import MotionAlignOptions
 from estimator.stillness import StillnessOptions
 
@@ -62,4 +67,19 @@ def filter_options(cfg: dict[str, Any], calibration_noise: ImuNoise) -> FilterOp
         level_sigma=cfg["estimator.unaligned.level_sigma"],
         gps_reset_after_s=cfg["estimator.gps_reset_after_s"],
         still=StillnessOptions(**get(cfg, "estimator.stillness")),
+        camera=camera_options(cfg),
     )
+
+
+def camera_options(cfg: dict[str, Any]) -> CameraOptions:
+    """``estimator.camera.*``: association keys to AssociationOptions, map keys to MapOptions."""
+    values = get(cfg, "estimator.camera")
+    assoc = {k: values.pop(k) for k in ("gate_px", "ratio_test", "max_descriptor_distance", "max_hamming_fraction", "chi2")}
+    pixel_sigma = values.pop("pixel_sigma")
+    return CameraOptions(pixel_sigma=pixel_sigma, association=AssociationOptions(**assoc), map=MapOptions(**values))
+
+
+def feature_options(cfg: dict[str, Any]) -> FeatureOptions:
+    values = get(cfg, "features")
+    quality = {k: values.pop(k) for k in ("black_level", "saturated_level", "saturated_fraction", "min_texture_std")}
+    return FeatureOptions(**values, quality=FrameQualityOptions(**quality))

@@ -2,21 +2,38 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from drivers.dataset import DatasetWriter
 from drivers.simulator.flight import SimulatedFlight
+from drivers.simulator.render import RenderOptions, render_frames
+from estimator.calibration import CameraCalibration
 
 
-def write_flight(flight: SimulatedFlight, out: str | Path, overwrite: bool = False) -> Path:
-    """Dataset with IMU, GPS (WGS84 when the scenario has a geodetic origin) and full truth."""
+def write_flight(
+    flight: SimulatedFlight,
+    out: str | Path,
+    overwrite: bool = False,
+    camera: CameraCalibration | None = None,
+    render_options: RenderOptions | None = None,
+) -> Path:
+    """Dataset with IMU, GPS (WGS84 when the scenario has a geodetic origin) and full truth.
+
+    With ``camera`` the frames are rendered (``drivers.simulator.render``, needs scikit-image)
+    into ``mav0/cam0`` and the camera's calibration goes into ``dataset.yaml``; IMU, GPS and
+    truth are byte for byte the same either way.
+    """
     out = Path(out)
     if (out / "dataset.yaml").exists() and not overwrite:
         raise FileExistsError(f"{out}: already holds a dataset (dataset.yaml); use --force to replace it")
     writer = DatasetWriter(out)
     name = f"{flight.scenario_name}-seed{flight.seed}"
-    writer.write_calibration(flight.calibration, name, flight.description)
+    calibration = flight.calibration if camera is None else dataclasses.replace(flight.calibration, camera=camera)
+    writer.write_calibration(calibration, name, flight.description)
     writer.write_imu(flight.imu)
     writer.write_gps(flight.gps, geodetic_origin=flight.calibration.gps.origin_lla)
     writer.write_truth(flight.truth)
+    if camera is not None:
+        writer.write_camera_frames(render_frames(flight, camera, render_options))
     return out

@@ -8,6 +8,7 @@ import logging
 from drivers.dataset import Dataset
 from drivers.tum import write_tum
 from service.commands.common import add_config_options, config_from, parse_sensors, write_json
+from service.overlay import OverlayWriter
 from service.progress import Progress
 from service.replay import replay
 from service.report import build_report, summary_lines
@@ -33,6 +34,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensors", metavar="LIST", help="comma-separated streams to use (default: replay.sensors)")
     p.add_argument("--out", metavar="TRAJ.txt", help="trajectory file (TUM format)")
     p.add_argument("--report", metavar="REPORT.json", help="JSON report")
+    p.add_argument("--overlay", metavar="DIR", help="write a PNG per camera frame into DIR: features, predicted "
+                   "landmarks with their search gate, accepted matches with landmark ids")
     p.add_argument("--no-progress", action="store_true", help="no progress display even on a terminal")
     p.set_defaults(run=run)
 
@@ -47,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
         progress.total = max(total_s, 1e-9)
         progress.update(done_s)
 
-    result = replay(dataset, cfg, sensors, on_progress=on_progress if progress.enabled else None)
+    overlay = OverlayWriter(args.overlay) if args.overlay else None
+    result = replay(dataset, cfg, sensors, on_progress=on_progress if progress.enabled else None, on_frame=overlay)
     progress.finish()
     report = build_report(result, dataset, cfg)
     if args.out:
@@ -56,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
         write_json(args.report, report)
     for line in summary_lines(report):
         print(line)
+    if overlay is not None:
+        print(f"  overlay: {overlay.written} pictures in {overlay.folder}")
     for t, message in result.estimator.events:
         log.info("t=%.3f s: %s", (t - int(result.trajectory.t_ns[0])) * 1e-9 if len(result.trajectory.t_ns) else 0.0, message)
     return 0

@@ -1,0 +1,412 @@
+"""Fusion order: a delayed fusion horizon over buffered IMU samples, and an output predictor.
+
+Measurements arrive late (a camera frame needs tens of milliseconds of feature extraction, a
+GPS fix comes through a serial link) but must be fused at their own timestamps, in time order
+with the IMU. As in PX4's EKF2, the filter runs on a *delayed* time horizon, ``delay_s`` behind
+the newest IMU sample: IMU samples wait in a short buffer, measurements wait in a heap, and
+both are handed to the estimator in time order once the horizon passes them (IMU first at
+equal times, then measurements in arrival order). A measurement older than what the filter
+has already consumed is counted as ``too_late`` and dropped.
+
+The published pose must not lag by the delay, so an *output predictor* propagates the delayed
+state's nominal values (position, velocity, attitude; biases held) through the buffered IMU
+samples to the newest one, one sample at a time. When the delayed state is corrected (a
+measurement, a levelling or stillness update, a reset) the prediction is recomputed from it;
+otherwise it simply advances with each new sample. Its covariance is the delayed covariance
+grown over the prediction interval by the IMU noise and the velocity and attitude
+uncertainty. Everything here is deterministic: the same inputs give the same outputs, so a
+replay through the runtime equals the offline replay.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections import deque
+from dataclasses import dataclass
+from itertools import chain
+from typing import Any, Callable
+
+import numpy as np
+
+from estimator.filter import Estimator
+from estimator.measurements import ImuSample, RejectionCounts
+from estimator.propagator import process_noise
+from estimator.state import StateLayout
+
+_RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (numerical drift only)
+_ROBOT9 = StateLayout("thesis")  # p, v, θ: the blocks the predictor's covariance covers
+_POSE_IX = np.ix_(np.r_[0:3, 6:9], np.r_[0:3, 6:9])
+
+Apply = Callable[[Estimator], Any]
+
+
+@dataclass(slots=True)
+class FusionOptions:
+    delay_s: float = 0.15  # the fusion horizon lags the newest IMU sample by this much
+    max_pending: int = 64  # measurements waiting for the horizon; more are refused and counted
+    max_imu_buffer: int = 4096  # IMU samples ahead of the horizon; beyond it the oldest are fused early
+
+    def __post_init__(self) -> None:
+        if not (self.delay_s >= 0.0 and math.isfinite(self.delay_s)):
+            raise ValueError(f"fusion delay must be >= 0 s, got {self.delay_s}")
+        if self.max_pending < 1 or self.max_imu_buffer < 1:
+            raise ValueError("fusion buffer limits must be at least 1")
+
+
+@dataclass(frozen=True, slots=True)
+class OutputPose:
+    """A published estimate: world NED, body→world attitude (w first), body angular rate.
+
+    ``cov9`` is the covariance of ``[δp, δv, δθ]`` with the attitude error in the world frame
+    (``R_true = Exp(δθ) R``); ``omega_var`` the variance of the body rates. ``fused_t_ns`` is the
+    time of the delayed (fused) state this pose was predicted from; equal to ``t_ns`` when the
+    pose is the fused state itself.
+    """
+
+    t_ns: int
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+    omega_b: np.ndarray
+    cov9: np.ndarray
+    pose_cov: np.ndarray  # 6 × 6 over [δp, δθ] (world-frame attitude error): cov9's position and attitude blocks
+    omega_var: np.ndarray
+    heading_aligned: bool
+    position_initialized: bool
+    reset_counter: int
+    fused_t_ns: int
+
+    @property
+    def fused(self) -> bool:
+        return self.t_ns == self.fused_t_ns
+
+
+def nominal_step(
+    p: tuple, v: tuple, q: tuple, b_g: tuple, b_a: tuple,
+    g0: tuple, a0: tuple, g1: tuple, a1: tuple, dt: float, gravity_down: float,
+) -> tuple[tuple, tuple, tuple]:
+    """One IMU sample step of the nominal state, in scalars (it runs for every sample).
+
+    The same arithmetic as a one-sample :class:`~estimator.imu_delta.ImuDelta` (trapezoid rates,
+    specific force rotated by the half-step) followed by
+    :func:`~estimator.propagator.integrate_nominal`; a test holds the two together.
+    """
+    # Raw increments over the step.
+    wx, wy, wz = 0.5 * dt * (g0[0] + g1[0]), 0.5 * dt * (g0[1] + g1[1]), 0.5 * dt * (g0[2] + g1[2])
+    fx, fy, fz = 0.5 * dt * (a0[0] + a1[0]), 0.5 * dt * (a0[1] + a1[1]), 0.5 * dt * (a0[2] + a1[2])
+    hw, hx, hy, hz = _rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz)
+    cx, cy, cz = hy * fz - hz * fy, hz * fx - hx * fz, hx * fy - hy * fx
+    dvx = fx + 2.0 * (hw * cx + hy * cz - hz * cy)
+    dvy = fy + 2.0 * (hw * cy + hz * cx - hx * cz)
+    dvz = fz + 2.0 * (hw * cz + hx * cy - hy * cx)
+    # Bias correction (first order, as in the propagator).
+    bx, by, bz = b_g
+    px, py, pz = wx - bx * dt, wy - by * dt, wz - bz * dt
+    h = 0.5 * dt
+    kx, ky, kz = by * dvz - bz * dvy, bz * dvx - bx * dvz, bx * dvy - by * dvx
+    sx, sy, sz = (dvx - h * kx) / dt - b_a[0], (dvy - h * ky) / dt - b_a[1], (dvz - h * kz) / dt - b_a[2]
+    qw, qx, qy, qz = q
+    ax = (1.0 - 2.0 * (qy * qy + qz * qz)) * sx + 2.0 * (qx * qy - qw * qz) * sy + 2.0 * (qx * qz + qw * qy) * sz
+    ay = 2.0 * (qx * qy + qw * qz) * sx + (1.0 - 2.0 * (qx * qx + qz * qz)) * sy + 2.0 * (qy * qz - qw * qx) * sz
+    az = 2.0 * (qx * qz - qw * qy) * sx + 2.0 * (qy * qz + qw * qx) * sy + (1.0 - 2.0 * (qx * qx + qy * qy)) * sz
+    az += gravity_down
+    hh = 0.5 * dt * dt
+    p_new = (p[0] + v[0] * dt + hh * ax, p[1] + v[1] * dt + hh * ay, p[2] + v[2] * dt + hh * az)
+    v_new = (v[0] + ax * dt, v[1] + ay * dt, v[2] + az * dt)
+    dw, dx, dy, dz = _rotvec_quat(px, py, pz)
+    nw = qw * dw - qx * dx - qy * dy - qz * dz
+    nx = qw * dx + qx * dw + qy * dz - qz * dy
+    ny = qw * dy - qx * dz + qy * dw + qz * dx
+    nz = qw * dz + qx * dy - qy * dx + qz * dw
+    norm = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    return p_new, v_new, (nw * norm, nx * norm, ny * norm, nz * norm)
+
+
+def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    angle = math.sqrt(x * x + y * y + z * z)
+    s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
+    return math.cos(0.5 * angle), s * x, s * y, s * z
+
+
+@dataclass(slots=True)
+class _Prediction:
+    """The nominal state propagated to ``t_ns`` (tuples of floats: it is updated every sample)."""
+
+    t_ns: int
+    p: tuple
+    v: tuple
+    q: tuple
+    gyro: np.ndarray  # the latest sample's readings (the next step's trapezoid starts from them)
+    accel: np.ndarray
+    anchor_t_ns: int
+    signature: tuple
+
+
+class FusionCore:
+    """Feeds an :class:`Estimator` in time order on a delayed horizon; predicts the present.
+
+    ``on_fused(pose)`` is called after every IMU sample the estimator consumed that advanced its
+    state (the same rule as the offline replay's recorder), with the fused pose.
+    """
+
+    def __init__(
+        self,
+        estimator: Estimator,
+        options: FusionOptions | None = None,
+        on_fused: Callable[[OutputPose], None] | None = None,
+    ) -> None:
+        self.est = estimator
+        self.options = opts = options or FusionOptions()
+        self.delay_ns = int(round(opts.delay_s * 1e9))
+        self.on_fused = on_fused
+        self.counts: dict[str, RejectionCounts] = {"imu": RejectionCounts()}
+        self._queue: deque[tuple[int, np.ndarray, np.ndarray, bool]] = deque()  # not yet fused
+        self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque()  # fused, newer than the filter state
+        self._pending: list[tuple[int, int, str, Apply]] = []
+        self._seq = 0
+        self._newest_t: int | None = None
+        self._fused_until: int | None = None
+        self._last_reported_t: int | None = None
+        self._pred: _Prediction | None = None
+        self._measured = False  # a measurement was applied since the prediction was anchored
+        self._F = np.eye(9)
+        self._eye3 = np.eye(3)
+        self._q_terms: tuple | None = None
+        self._out_cov: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # see output()
+
+    # ---------------------------------------------------------------------------- inputs
+    def add_imu(self, sample: ImuSample, fuse: bool = True) -> bool:
+        """Buffer a sample and advance the prediction to it; with ``fuse``, then :meth:`advance`.
+
+        A runtime that must publish first calls ``add_imu(s, fuse=False)``, ``output()``, publishes,
+        and only then :meth:`advance`: the delayed filter's work never delays the pose. False: refused.
+        """
+        t = sample.t_ns
+        counts = self.counts["imu"]
+        counts.received += 1
+        if self._newest_t is not None and t <= self._newest_t:
+            counts.reject("time_not_increasing")
+            return False
+        counts.used += 1
+        gyro, accel = sample.gyro, sample.accel
+        finite = math.isfinite(float(gyro @ gyro + accel @ accel))
+        self._queue.append((t, gyro, accel, finite))
+        self._newest_t = t
+        if self._pred is not None and finite:
+            self._step(self._pred, t, gyro, accel)
+        if fuse:
+            self.advance()
+        return True
+
+    def advance(self) -> None:
+        """Fuse what the horizon has passed; re-anchor the prediction if the filter was corrected."""
+        if self._newest_t is None:
+            return
+        self._advance(self._newest_t - self.delay_ns)
+        counts = self.counts["imu"]
+        while len(self._queue) > self.options.max_imu_buffer:
+            counts.flag("horizon_forced")
+            self._advance(self._queue[0][0])
+        pred = self._pred
+        if pred is None or not self._prediction_current(pred):
+            self._pred = self._repredict()
+        # The next outputs' covariance, computed now that the pose has left (off the pose path).
+        self._out_cov = self._predicted_covariance() if self._pred is not None else None
+
+    def add_measurement(self, t_ns: int, apply: Apply, kind: str) -> bool:
+        """Queue ``apply(estimator)`` to run when the horizon reaches ``t_ns``. False: refused (counted)."""
+        counts = self.counts.setdefault(kind, RejectionCounts())
+        counts.received += 1
+        if self._fused_until is not None and t_ns < self._fused_until:
+            counts.reject("too_late")
+            return False
+        if len(self._pending) >= self.options.max_pending:
+            counts.reject("buffer_full")
+            return False
+        heapq.heappush(self._pending, (int(t_ns), self._seq, kind, apply))
+        self._seq += 1
+        if self._newest_t is not None and t_ns <= self._newest_t - self.delay_ns:
+            self._advance(self._newest_t - self.delay_ns)  # already behind the horizon: fuse it now
+            self._pred = self._repredict()
+            self._out_cov = None
+        return True
+
+    def flush(self) -> None:
+        """Fuse everything buffered (end of a replay, shutdown): the filter catches up with the present."""
+        self._advance(np.iinfo(np.int64).max)
+        self._out_cov = None
+
+    # --------------------------------------------------------------------------- fusing
+    def _advance(self, horizon: int) -> None:
+        queue, pending, est = self._queue, self._pending, self.est
+        while queue or pending:
+            t_imu = queue[0][0] if queue else None
+            t_meas = pending[0][0] if pending else None
+            if t_imu is not None and (t_meas is None or t_imu <= t_meas):
+                if t_imu > horizon:
+                    return
+                t, gyro, accel, finite = queue.popleft()
+                self._fused_until = t
+                ok = est.process_imu(t, gyro, accel)
+                if finite:
+                    self._recent.append((t, gyro, accel))
+                state = est.state
+                recent = self._recent
+                if state is None:  # not started: nothing to predict from, keep only the latest reading
+                    while len(recent) > 1:
+                        recent.popleft()
+                    continue
+                while len(recent) > 1 and recent[1][0] <= state.t_ns:
+                    recent.popleft()
+                if ok and (self._last_reported_t is None or state.t_ns > self._last_reported_t):
+                    self._last_reported_t = state.t_ns
+                    if self.on_fused is not None:
+                        self.on_fused(self._fused_pose(gyro))
+            else:
+                if t_meas > horizon:
+                    return
+                t, _, kind, apply = heapq.heappop(pending)
+                self._fused_until = max(t, self._fused_until or t)
+                apply(est)
+                self.counts[kind].used += 1
+                self._measured = True
+
+    # ------------------------------------------------------------------------ prediction
+    def _signature(self) -> tuple:
+        """Changes whenever the filter state changed by more than propagation."""
+        est = self.est
+        others = sum(c.received for name, c in est.counts.items() if name != "imu")
+        return (id(est.state), est.reset_counter, len(est.events), est.heading_aligned, est.position_initialized,
+                others, est.state.n_landmarks if est.state is not None else 0)
+
+    def _prediction_current(self, pred: _Prediction) -> bool:
+        return (not self._measured and pred.signature == self._signature()
+                and self._newest_t - pred.anchor_t_ns < _RESYNC_NS)
+
+    def _step(self, pred: _Prediction, t: int, gyro: np.ndarray, accel: np.ndarray) -> None:
+        if t <= pred.t_ns:
+            return
+        s = self.est.state
+        pred.p, pred.v, pred.q = nominal_step(
+            pred.p, pred.v, pred.q, tuple(s.b_g.tolist()), tuple(s.b_a.tolist()), tuple(pred.gyro.tolist()),
+            tuple(pred.accel.tolist()), tuple(gyro.tolist()), tuple(accel.tolist()), (t - pred.t_ns) * 1e-9,
+            float(self.est.propagator.gravity[2]),
+        )
+        pred.t_ns, pred.gyro, pred.accel = t, gyro, accel
+
+    def _repredict(self) -> _Prediction | None:
+        """Propagate the delayed state through every buffered sample newer than it."""
+        s = self.est.state
+        if s is None:
+            return None
+        samples = list(chain(self._recent, ((t, g, a) for t, g, a, ok in self._queue if ok)))
+        # The readings at the state's time: the last sample at or before it (held, as the filter does).
+        anchor = next((x for x in reversed(samples) if x[0] <= s.t_ns), samples[0] if samples else None)
+        gyro, accel = (anchor[1], anchor[2]) if anchor is not None else (np.zeros(3), np.zeros(3))
+        pred = _Prediction(s.t_ns, tuple(s.p.tolist()), tuple(s.v.tolist()), tuple(s.q.tolist()), gyro, accel,
+                           self._newest_t or s.t_ns, self._signature())
+        for t, g, a in samples:
+            if t > s.t_ns:
+                self._step(pred, t, g, a)
+        self._measured = False
+        return pred
+
+    def output(self) -> OutputPose | None:
+        """The pose at the newest IMU sample (None before the filter has started).
+
+        Its covariance is the one :meth:`advance` prepared for the prediction (computed after the
+        previous pose left, so at most one sample's growth behind), or computed here if none is.
+        """
+        if self.est.state is None:
+            return None
+        pred = self._pred
+        if pred is None or self._measured or pred.signature != self._signature():
+            pred = self._pred = self._repredict()
+            self._out_cov = None
+        cov9, pose_cov, omega_var = self._out_cov or self._predicted_covariance()
+        s = self.est.state
+        return OutputPose(
+            t_ns=pred.t_ns, p=np.array(pred.p), v=np.array(pred.v), q=np.array(pred.q), omega_b=pred.gyro - s.b_g,
+            cov9=cov9, pose_cov=pose_cov, omega_var=omega_var, heading_aligned=self.est.heading_aligned,
+            position_initialized=self.est.position_initialized, reset_counter=self.est.reset_counter,
+            fused_t_ns=s.t_ns,
+        )
+
+    def _predicted_covariance(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cov9, pose_cov, omega_var) of the prediction: the delayed covariance grown to its time."""
+        s, pred = self.est.state, self._pred
+        cov9 = s.cov[:9, :9]
+        dt = (pred.t_ns - s.t_ns) * 1e-9
+        if dt > 0.0:
+            # Growth over the prediction: velocity error integrates into position, attitude error
+            # mis-rotates the specific force, and the IMU's white noise adds its own share.
+            f_w = (np.array(pred.v) - s.v) / dt - self.est.propagator.gravity
+            a = np.array([[0.0, -f_w[2], f_w[1]], [f_w[2], 0.0, -f_w[0]], [-f_w[1], f_w[0], 0.0]])
+            F = self._F
+            F[0:3, 3:6] = self._eye3 * dt
+            F[0:3, 6:9] = a * (-0.5 * dt * dt)
+            F[3:6, 6:9] = a * -dt
+            cov9 = F @ cov9 @ F.T + self._noise(np.array(pred.q), dt)
+        else:
+            cov9 = cov9.copy()
+        return cov9, cov9[_POSE_IX], self._omega_var()
+
+    def _omega_var(self) -> np.ndarray:
+        est = self.est
+        s = est.state
+        omega_var = np.broadcast_to(est.noise.gyro_noise_density**2 * est.calibration.imu.rate_hz, (3,)).copy()
+        if s.layout.estimates_biases:
+            omega_var += np.diag(s.cov[s.layout.BG, s.layout.BG])
+        return omega_var
+
+    def _noise(self, q: np.ndarray, dt: float) -> np.ndarray:
+        """IMU white noise over ``dt`` on [p, v, θ]; for isotropic noise, cached polynomials in dt."""
+        noise = self.est.noise
+        if self._q_terms is None or self._q_terms[0] is not noise:
+            isotropic = all(np.all(np.asarray(x) == np.asarray(x).flat[0])
+                            for x in (noise.gyro_noise_density, noise.accel_noise_density))
+            terms = None
+            if isotropic:
+                # Q(dt) = A dt + B dt² + C dt³ (rotation-invariant when isotropic): solve from dt = 1, 2, 3.
+                identity = np.array([1.0, 0.0, 0.0, 0.0])
+                q1, q2, q3 = (process_noise(identity, x, noise, _ROBOT9) for x in (1.0, 2.0, 3.0))
+                c3 = (q3 - 3.0 * q2 + 3.0 * q1) / 6.0
+                c2 = (q2 - 2.0 * q1) / 2.0 - 3.0 * c3
+                terms = (q1 - c2 - c3, c2, c3)
+            self._q_terms = (noise, terms)
+        terms = self._q_terms[1]
+        if terms is None:
+            return process_noise(q, dt, noise, _ROBOT9)
+        c1, c2, c3 = terms
+        return (c1 + (c2 + c3 * dt) * dt) * dt
+
+    def _fused_pose(self, gyro: np.ndarray) -> OutputPose:
+        est = self.est
+        s = est.state
+        cov9 = s.cov[:9, :9].copy()
+        return OutputPose(
+            t_ns=s.t_ns, p=s.p.copy(), v=s.v.copy(), q=s.q.copy(), omega_b=gyro - s.b_g, cov9=cov9,
+            pose_cov=cov9[_POSE_IX], omega_var=self._omega_var(), heading_aligned=est.heading_aligned,
+            position_initialized=est.position_initialized, reset_counter=est.reset_counter, fused_t_ns=s.t_ns,
+        )
+
+    # --------------------------------------------------------------------------- status
+    @property
+    def newest_imu_t_ns(self) -> int | None:
+        return self._newest_t
+
+    @property
+    def fused_until_ns(self) -> int | None:
+        return self._fused_until
+
+    @property
+    def buffered_imu(self) -> int:
+        return len(self._queue)
+
+    @property
+    def pending_measurements(self) -> int:
+        return len(self._pending)
+
+    def counts_report(self) -> dict:
+        return {name: c.as_dict() for name, c in self.counts.items()}

@@ -1,0 +1,353 @@
+"""The onboard runtime: sources → fusion → outputs on one asyncio loop, for live runs and replays alike.
+
+Timing rules (spec "Fusion order"; issue 4):
+- An IMU sample is handled the moment it arrives: it goes into the fusion core, the pose
+  predicted to it is published (ODOMETRY, Zenoh) and stored in the history. Nothing on this
+  path waits for anything else.
+- Camera work (feature extraction) runs in a thread pool off the loop; its result becomes a
+  measurement queued at the frame's own timestamp, fused when the delayed horizon reaches it.
+  One frame at most per worker is in flight: a frame arriving while all workers are busy is
+  dropped and counted, never queued without bound.
+- In lock-step mode (a replay at full speed) the loop waits for a frame's features before the
+  horizon passes the frame, so a replay gives the same result however fast the machine is.
+Shutdown (SIGINT/SIGTERM, the end of a replay, a duration): sources are stopped, camera work
+finishes, the fusion core is flushed so the trajectory file is complete, links are closed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import logging
+import os
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, AsyncIterator, Callable, Protocol, Sequence
+
+import numpy as np
+
+from drivers.csvio import seconds_text
+from drivers.tum import TUM_HEADER
+from estimator.filter import Estimator
+from estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
+from estimator.measurements import CameraFrame, GpsFix, ImuSample
+from estimator.pose_history import PoseHistory
+from service.status import LatencyProbe, StatusTracker
+
+log = logging.getLogger(__name__)
+
+# Feature extraction for one frame, run on a worker thread. Returns the measurement to fuse at
+# the frame's time (e.g. ``lambda est: est.process_features(features)``) or None.
+CameraProcessor = Callable[[CameraFrame], Apply | None]
+
+
+class PoseOutput(Protocol):
+    """An output link. ``publish`` is on the hot path and must not block."""
+
+    name: str
+    def open(self) -> None: ...
+    def publish(self, pose: OutputPose) -> Any: ...
+    def publish_status(self, status: dict[str, Any]) -> None: ...
+    async def serve(self, stop: asyncio.Event) -> None: ...
+    def close(self) -> None: ...
+
+
+def set_thread_priority(priority: int | None) -> bool:
+    """SCHED_FIFO at ``priority`` for the calling thread (threads it starts inherit it), None: normal.
+
+    A flight computer runs its estimator above everything else so that other processes cannot
+    delay a pose; it needs CAP_SYS_NICE (in Docker: --cap-add SYS_NICE --ulimit rtprio=99).
+    Refused: a warning, and the run continues at normal priority.
+    """
+    try:
+        if priority is None:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        else:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (AttributeError, OSError) as exc:
+        if priority is not None:
+            log.warning("real-time priority %d refused (%s); running at normal priority", priority, exc)
+        return False
+
+
+class TrajectoryFile:
+    """Fused poses appended as TUM lines (same format as ``drivers.tum.write_tum``), flushed each second."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = self.path.open("w", encoding="utf-8", newline="\n")
+        self._file.write(TUM_HEADER + "\n")
+        self.lines = 0
+        self.skipped = 0
+
+    def write(self, pose: OutputPose) -> None:
+        values = (*pose.p.tolist(), pose.q[1], pose.q[2], pose.q[3], pose.q[0])
+        if not all(np.isfinite(values)):
+            self.skipped += 1
+            return
+        self._file.write(f"{seconds_text(pose.t_ns)} " + " ".join("%.9f" % (v + 0.0) for v in values) + "\n")
+        self.lines += 1
+
+    def flush(self) -> None:
+        self._file.flush()
+
+    def close(self) -> None:
+        if not self._file.closed:
+            self._file.close()
+
+
+@dataclass(slots=True)
+class RuntimeOptions:
+    fusion: FusionOptions = field(default_factory=FusionOptions)
+    history_s: float = 120.0
+    camera_workers: int = 1
+    lockstep: bool = False  # replay at full speed: wait for camera work at the horizon (deterministic)
+    status_period_s: float = 1.0
+    measure_latency: bool = False
+    realtime_priority: int | None = None  # SCHED_FIFO priority for the loop and the device readers
+
+
+@dataclass
+class RunSummary:
+    imu_samples: int
+    poses_published: int
+    trajectory_lines: int
+    wall_s: float
+    data_s: float
+    stopped_by: str
+    latency_ms: dict[str, float]
+    status: dict[str, Any]
+
+
+class Runtime:
+    """Owns the fusion core, the pose history and the outputs; see the module docstring for timing."""
+
+    def __init__(
+        self,
+        estimator: Estimator,
+        options: RuntimeOptions | None = None,
+        outputs: Sequence[PoseOutput] = (),
+        camera_processor: CameraProcessor | None = None,
+        trajectory: TrajectoryFile | None = None,
+    ) -> None:
+        self.options = opts = options or RuntimeOptions()
+        self.est = estimator
+        self.fusion = FusionCore(estimator, opts.fusion, on_fused=self._on_fused)
+        self.history = PoseHistory(opts.history_s)
+        self.history_lock = threading.Lock()  # queries read the history on Zenoh's threads
+        self.outputs = list(outputs)
+        self.camera_processor = camera_processor
+        self.trajectory = trajectory
+        self.status = StatusTracker()
+        # Latency from a sample's hand-over by its source to both outputs returning, and the part of
+        # it spent in this loop's handling (the rest is waiting to be scheduled).
+        self.latency = LatencyProbe() if opts.measure_latency else None
+        self.handling = LatencyProbe() if opts.measure_latency else None
+        self.origin: Callable[[], tuple[float, float, float] | None] = lambda: None  # geodetic origin of NED
+        self.last_pose: OutputPose | None = None
+        self.poses_published = 0
+        self._executor: ThreadPoolExecutor | None = None
+        self._camera_jobs: list[tuple[int, asyncio.Future]] = []
+        self._first_t: int | None = None
+        self._sources: Sequence[AsyncIterator] = ()
+
+    # ---------------------------------------------------------------------------- samples
+    def handle(self, sample: ImuSample | GpsFix | CameraFrame, arrived_ns: int | None = None) -> None:
+        """Dispatch one sample (synchronous: called on the loop for every sample)."""
+        if isinstance(sample, ImuSample):
+            self._on_imu(sample, arrived_ns)
+        elif isinstance(sample, GpsFix):
+            self.status.saw("gps")
+            self.fusion.add_measurement(sample.t_ns, lambda est, fix=sample: est.process_gps(fix), "gps")
+        elif isinstance(sample, CameraFrame):
+            self._on_camera(sample)
+        else:
+            self.status.count("unknown_sample_type")
+
+    def _on_imu(self, sample: ImuSample, arrived_ns: int | None) -> None:
+        entered = time.perf_counter_ns()
+        self.status.saw("imu")
+        if self._first_t is None:
+            self._first_t = sample.t_ns
+        fusion = self.fusion
+        if not fusion.add_imu(sample, fuse=False):
+            return
+        pose = fusion.output()
+        if pose is not None:
+            for out in self.outputs:
+                out.publish(pose)
+            self.poses_published += 1
+            if self.latency is not None:
+                left = time.perf_counter_ns()
+                self.latency.add(left - (entered if arrived_ns is None else arrived_ns))
+                self.handling.add(left - entered)
+            self.last_pose = pose
+            row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
+            with self.history_lock:
+                self.history.add_predicted(pose.t_ns, row)
+        fusion.advance()  # the delayed filter's work, after the pose has left
+
+    def _on_fused(self, pose: OutputPose) -> None:
+        row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
+        with self.history_lock:
+            self.history.add_fused(pose.t_ns, row)
+        if self.trajectory is not None:
+            self.trajectory.write(pose)
+
+    def _on_camera(self, frame: CameraFrame) -> None:
+        self.status.saw("camera")
+        if self.camera_processor is None or self._executor is None:
+            self.status.count("camera_frames_unprocessed")
+            return
+        if len(self._camera_jobs) >= self.options.camera_workers and not self.options.lockstep:
+            self.status.count("camera_frames_dropped_busy")
+            return
+        future = asyncio.get_running_loop().run_in_executor(self._executor, self.camera_processor, frame)
+        future.add_done_callback(lambda f, t=frame.t_ns: self._camera_done(t, f))
+        self._camera_jobs.append((frame.t_ns, future))
+
+    def _camera_done(self, t_ns: int, future: asyncio.Future) -> None:
+        """On the loop, once a frame's work is finished: its measurement joins the fusion queue."""
+        self._camera_jobs = [(t, f) for t, f in self._camera_jobs if f is not future]
+        if future.cancelled():
+            return
+        exc = future.exception()
+        if exc is not None:
+            self.status.count("camera_processing_errors")
+            log.error("feature extraction failed for the frame at t_ns=%d: %s", t_ns, exc)
+            return
+        apply = future.result()
+        if apply is not None:
+            self.fusion.add_measurement(t_ns, apply, "camera")
+
+    async def _before_imu(self, t_ns: int) -> None:
+        """Lock-step: frames the horizon is about to pass must have their features queued first."""
+        due = t_ns - self.fusion.delay_ns
+        while waiting := [f for t, f in self._camera_jobs if t <= due]:
+            await asyncio.wait(waiting)
+            await asyncio.sleep(0)  # their done-callbacks queue the measurements
+
+    # ------------------------------------------------------------------------------- loop
+    async def _consume(self, source: AsyncIterator) -> None:
+        lockstep = self.options.lockstep
+        async for sample in source:
+            if lockstep and isinstance(sample, ImuSample) and self._camera_jobs:
+                await self._before_imu(sample.t_ns)
+            self.handle(sample, getattr(source, "last_arrival_ns", None) if self.latency is not None else None)
+
+    def status_document(self) -> dict[str, Any]:
+        links = {o.name: o.link_stats() if hasattr(o, "link_stats") else getattr(o, "stats", {}) for o in self.outputs}
+        with self.history_lock:
+            bounds = self.history.bounds()
+            held = len(self.history)
+        dropped = {getattr(src, "name", str(i)): src.dropped for i, src in enumerate(self._sources) if getattr(src, "dropped", 0)}
+        extra = {
+            "t_ns": self.last_pose.t_ns if self.last_pose is not None else None,
+            "source_overflows": dropped,  # samples a device thread had to drop because the loop fell behind
+            "history": {"poses": held, "from_t_ns": bounds[0] if bounds else None, "to_t_ns": bounds[1] if bounds else None},
+            "outputs": links,
+        }
+        return self.status.snapshot(self.est, self.fusion, extra)
+
+    async def _status_loop(self, stop: asyncio.Event) -> None:
+        period = self.options.status_period_s
+        while not stop.is_set():
+            try:
+                await asyncio.wait_for(stop.wait(), timeout=period)
+            except asyncio.TimeoutError:
+                pass
+            doc = self.status_document()
+            for out in self.outputs:
+                try:
+                    out.publish_status(doc)
+                except Exception:  # one output's failure must not silence the others
+                    log.exception("status to the %s output", out.name)
+            if self.trajectory is not None:
+                self.trajectory.flush()
+
+    @staticmethod
+    async def _wait(feeders: set[asyncio.Task], waiter: asyncio.Task, duration_s: float | None) -> str:
+        """Why the run ends: a stop request, the duration, or every source exhausted (a failed one raises)."""
+        deadline = None if duration_s is None else time.perf_counter() + duration_s
+        while feeders:
+            timeout = None if deadline is None else max(deadline - time.perf_counter(), 0.0)
+            done, _ = await asyncio.wait(feeders | {waiter}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+            if waiter in done:
+                return "signal"
+            if not done:
+                return "duration"
+            for task in done:
+                feeders.discard(task)
+                task.result()
+        return "end of data"
+
+    async def run(self, sources: Sequence[AsyncIterator], stop: asyncio.Event | None = None,
+                  duration_s: float | None = None) -> RunSummary:
+        """Run until ``stop`` is set, every source is exhausted, or ``duration_s`` (wall) has passed."""
+        stop = stop or asyncio.Event()
+        wall0 = time.perf_counter()
+        self._sources = sources
+        # Camera work runs at normal priority even when the loop (and so the threads it starts) is real-time.
+        self._executor = ThreadPoolExecutor(max_workers=self.options.camera_workers, thread_name_prefix="camera",
+                                            initializer=set_thread_priority, initargs=(None,))
+        opened: list[PoseOutput] = []
+        try:
+            for out in self.outputs:
+                try:
+                    out.open()
+                except Exception as exc:  # zenoh.ZError, serial and socket errors: say which output
+                    raise OSError(f"the {out.name} output could not open: {exc}") from exc
+                opened.append(out)
+            # Everything built so far lives for the whole run: keep it out of the cyclic collector's
+            # full passes, whose pauses would otherwise land on the pose path.
+            gc.collect()
+            gc.freeze()
+            if self.options.realtime_priority is not None:
+                set_thread_priority(self.options.realtime_priority)
+            background = [asyncio.create_task(o.serve(stop), name=f"serve-{o.name}") for o in self.outputs]
+            background.append(asyncio.create_task(self._status_loop(stop), name="status"))
+            feeders = [asyncio.create_task(self._consume(s), name=f"source-{i}") for i, s in enumerate(sources)]
+            waiter = asyncio.create_task(stop.wait())
+            stopped_by = await self._wait(set(feeders), waiter, duration_s)
+            stop.set()
+            for task in feeders:
+                task.cancel()
+            await asyncio.gather(*feeders, return_exceptions=True)
+            if self._camera_jobs:
+                await asyncio.wait([f for _, f in self._camera_jobs], timeout=10.0)
+                await asyncio.sleep(0)  # their done-callbacks queue the measurements
+            self.fusion.flush()
+            for task, result in zip(background, await asyncio.gather(*background, return_exceptions=True)):
+                if isinstance(result, Exception):
+                    log.error("%s stopped with an error: %r", task.get_name(), result)
+            waiter.cancel()
+        finally:
+            stop.set()
+            for out in reversed(opened):
+                try:
+                    out.close()
+                except Exception as exc:  # closing one link must not keep the others open
+                    log.error("closing %s: %s", type(out).__name__, exc)
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            gc.unfreeze()
+            if self.options.realtime_priority is not None:
+                set_thread_priority(None)
+            if self.trajectory is not None:
+                self.trajectory.close()
+        newest = self.fusion.newest_imu_t_ns
+        p50, p99, pmax = self.latency.percentiles_ms(50, 99, 100) if self.latency is not None else (float("nan"),) * 3
+        return RunSummary(
+            imu_samples=self.status.sensors["imu"].total if "imu" in self.status.sensors else 0,
+            poses_published=self.poses_published,
+            trajectory_lines=self.trajectory.lines if self.trajectory is not None else 0,
+            wall_s=time.perf_counter() - wall0,
+            data_s=(newest - self._first_t) * 1e-9 if newest is not None and self._first_t is not None else 0.0,
+            stopped_by=stopped_by,
+            latency_ms={"p50": p50, "p99": p99, "max": pmax},
+            status=self.status_document(),
+        )

@@ -1,0 +1,190 @@
+"""Fusion order: the delayed horizon fuses in time order, late measurements at their own time, the
+predictor reaches the newest sample; everything deterministic."""
+
+import numpy as np
+import pytest
+
+from config import load_config
+from drivers.simulator import simulate_flight
+from estimator.filter import Estimator
+from estimator.fusion import FusionCore, FusionOptions, nominal_step
+from estimator.imu_delta import ImuDownsampler
+from estimator.measurements import GpsFix, ImuSample
+from estimator.propagator import integrate_nominal
+from service.wiring import filter_options
+
+DELAY = 0.15
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return simulate_flight("landfill", 40.0, 5)
+
+
+@pytest.fixture(scope="module")
+def reference(flight):
+    return in_order(flight)
+
+
+def new_estimator(flight) -> Estimator:
+    cfg = load_config()
+    return Estimator(flight.calibration, filter_options(cfg, flight.calibration.imu.noise))
+
+
+def imu_samples(flight) -> list[ImuSample]:
+    imu = flight.imu
+    return [ImuSample(int(t), g, a) for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel)]
+
+
+def gps_fixes(flight) -> list[GpsFix]:
+    g = flight.gps
+    return [GpsFix(int(t), p, float(h), float(v)) for t, p, h, v in zip(g.t_ns, g.p_ned, g.sigma_h, g.sigma_v)]
+
+
+def in_order(flight):
+    """The plain offline loop: every sample in time order (IMU first at equal times), state recorded when it advanced."""
+    est = new_estimator(flight)
+    events = sorted([(s.t_ns, 0, s) for s in imu_samples(flight)] + [(f.t_ns, 1, f) for f in gps_fixes(flight)],
+                    key=lambda e: (e[0], e[1]))
+    out, last = [], None
+    for _, kind, s in events:
+        if kind == 0:
+            if est.process_imu(s.t_ns, s.gyro, s.accel) and est.state is not None and (last is None or est.state.t_ns > last):
+                last = est.state.t_ns
+                out.append((last, est.state.p.copy(), est.state.q.copy()))
+        else:
+            est.process_gps(s)
+    return est, out
+
+
+def through_core(flight, delay_s=DELAY, gps_late_s=0.0, deliver_rest=True, **options):
+    """Feed the core as a live system would: each fix arrives ``gps_late_s`` after its time."""
+    fused = []
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=delay_s, **options),
+                      on_fused=lambda pose: fused.append((pose.t_ns, pose.p.copy(), pose.q.copy())))
+    fixes = gps_fixes(flight)
+    k = 0
+    for s in imu_samples(flight):
+        while k < len(fixes) and fixes[k].t_ns + gps_late_s * 1e9 <= s.t_ns:
+            fix = fixes[k]
+            core.add_measurement(fix.t_ns, lambda est, f=fix: est.process_gps(f), "gps")
+            k += 1
+        core.add_imu(s)
+    for fix in fixes[k:] if deliver_rest else ():  # arriving after the last IMU sample
+        core.add_measurement(fix.t_ns, lambda est, f=fix: est.process_gps(f), "gps")
+    return core, fused
+
+
+def assert_same_trajectory(a, b):
+    assert [t for t, _, _ in a] == [t for t, _, _ in b]
+    assert np.array_equal(np.array([p for _, p, _ in a]), np.array([p for _, p, _ in b]))
+    assert np.array_equal(np.array([q for _, _, q in a]), np.array([q for _, _, q in b]))
+
+
+def test_delayed_fusion_gives_exactly_the_in_order_result(flight, reference):
+    est, trajectory = reference
+    core, fused = through_core(flight, gps_late_s=0.0)
+    core.flush()
+    assert_same_trajectory(fused, trajectory)
+    assert core.counts["gps"].rejected == {}
+    assert core.est.counts_report() == est.counts_report()
+
+
+def test_late_measurements_are_fused_at_their_own_time(flight, reference):
+    """Fixes arriving 100 ms late, within the 150 ms horizon, change nothing at all."""
+    core, fused = through_core(flight, gps_late_s=0.1)
+    core.flush()
+    assert_same_trajectory(fused, reference[1])
+
+
+def test_measurements_older_than_the_horizon_are_counted_not_fused(flight):
+    core, _ = through_core(flight, gps_late_s=0.3, deliver_rest=False)
+    n = len(flight.gps.t_ns)
+    arrived = sum(1 for t in flight.gps.t_ns if t + 0.3e9 <= flight.imu.t_ns[-1])
+    assert core.counts["gps"].received == arrived and arrived > n - 5
+    assert core.counts["gps"].rejected == {"too_late": arrived}
+    assert core.est.counts["gps"].received == 0
+
+
+def test_measurements_are_applied_in_time_order_at_their_time(flight):
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY))
+    samples = imu_samples(flight)
+    applied = []
+    for s in samples[:2000]:
+        core.add_imu(s)
+    t_a, t_b = samples[1995].t_ns - 40_000_000, samples[1995].t_ns - 80_000_000  # inside the horizon
+    core.add_measurement(t_a, lambda est: applied.append(("a", est.state.t_ns)), "test")
+    core.add_measurement(t_b, lambda est: applied.append(("b", est.state.t_ns)), "test")
+    for s in samples[2000:2100]:
+        core.add_imu(s)
+    assert [name for name, _ in applied] == ["b", "a"]
+    assert all(t_state <= t for (_, t_state), t in zip(applied, (t_b, t_a)))
+    assert core.counts["test"].used == 2
+
+
+def test_prediction_reaches_the_newest_sample_by_nominal_propagation(flight):
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY))
+    samples = imu_samples(flight)[:3000]
+    for s in samples:
+        core.add_imu(s)
+    pose = core.output()
+    state = core.est.state
+    assert pose.t_ns == samples[-1].t_ns and state.t_ns < pose.t_ns - 0.1e9
+    # Independent re-propagation: one-sample deltas and integrate_nominal from the delayed state.
+    later = [s for s in samples if s.t_ns > state.t_ns]
+    before = max((s for s in samples if s.t_ns <= state.t_ns), key=lambda s: s.t_ns)
+    ds = ImuDownsampler(1e12)
+    ds.add(state.t_ns, before.gyro, before.accel)
+    p, v, q = state.p, state.v, state.q
+    for s in later:
+        d = ds.add(s.t_ns, s.gyro, s.accel)
+        p, v, q, _ = integrate_nominal(p, v, q, state.b_g, state.b_a, d.dtheta, d.dvel, d.dt, core.est.propagator.gravity)
+    assert np.allclose(pose.p, p, atol=1e-9) and np.allclose(pose.v, v, atol=1e-9) and np.allclose(pose.q, q, atol=1e-12)
+    # The prediction's covariance: symmetric, positive definite, attitude grown by the gyro noise.
+    cov = pose.pose_cov
+    assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert np.all(np.diag(cov)[3:] > np.diag(state.pose_covariance())[3:])
+
+
+def test_publishing_first_fuses_nothing_until_advance(flight):
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY))
+    samples = imu_samples(flight)
+    for s in samples[:1500]:
+        core.add_imu(s)
+    fused_until = core.fused_until_ns
+    core.add_imu(samples[1500], fuse=False)
+    assert core.output().t_ns == samples[1500].t_ns and core.fused_until_ns == fused_until
+    core.advance()
+    assert core.fused_until_ns > fused_until
+
+
+def test_buffer_limits_are_counted(flight):
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=1.0, max_pending=2, max_imu_buffer=50))
+    samples = imu_samples(flight)
+    for s in samples[:200]:
+        core.add_imu(s)
+    assert core.buffered_imu == 50 and core.counts["imu"].flagged["horizon_forced"] > 0
+    t = samples[199].t_ns
+    assert [core.add_measurement(t, lambda est: None, "x") for _ in range(3)] == [True, True, False]
+    assert core.counts["x"].rejected == {"buffer_full": 1}
+    assert not core.add_imu(samples[10])  # older than the newest sample
+    assert core.counts["imu"].rejected == {"time_not_increasing": 1}
+
+
+def test_nominal_step_is_integrate_nominal_on_a_one_sample_delta():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        p, v = rng.normal(size=3), rng.normal(size=3)
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        b_g, b_a = rng.normal(scale=0.01, size=3), rng.normal(scale=0.1, size=3)
+        g0, g1, a0, a1 = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3) * 5, rng.normal(size=3) * 5
+        dt = 0.008
+        ds = ImuDownsampler(1e12)
+        ds.add(0, g0, a0)
+        d = ds.add(8_000_000, g1, a1)
+        ref = integrate_nominal(p, v, q, b_g, b_a, d.dtheta, d.dvel, d.dt, np.array([0.0, 0.0, 9.81]))
+        got = nominal_step(tuple(p), tuple(v), tuple(q), tuple(b_g), tuple(b_a), tuple(g0), tuple(a0), tuple(g1),
+                           tuple(a1), dt, 9.81)
+        for a, b in zip(got, ref[:3]):
+            assert np.allclose(a, b, atol=1e-13)

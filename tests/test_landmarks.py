@@ -1,0 +1,227 @@
+"""Inverse-depth landmarks: direction convention, measurement and initialisation Jacobians, covariance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.calibration import CameraCalibration
+from estimator.camera_model import CameraModel
+from estimator.camera_update import iterated_update, predict, predict_h, stacked_update
+from estimator.landmarks import (
+    ROBOT_POSE_COLS,
+    add_landmarks,
+    angles,
+    angles_jacobian,
+    direction,
+    initial_landmarks,
+    landmark_points,
+    point_jacobian,
+    remove_landmarks,
+)
+from estimator.rotation import quat_exp, quat_from_euler, quat_mul
+from estimator.state import FilterState, StateLayout
+
+R_BC = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+T_BC = np.array([0.05, 0.01, 0.05])
+CAMERA = CameraModel(CameraCalibration(656, 494, 570.0, 570.0, 327.5, 246.5, np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0])))
+
+
+def make_state(variant: str = "biases", n_landmarks: int = 4, seed: int = 0) -> FilterState:
+    rng = np.random.default_rng(seed)
+    s = FilterState(StateLayout(variant))
+    s.p = np.array([0.1, -0.2, -0.8])
+    s.v = rng.normal(size=3) * 0.1
+    s.q = quat_from_euler(0.1, -0.08, 0.6)
+    uv = np.column_stack([rng.uniform(50, 600, n_landmarks), rng.uniform(50, 440, n_landmarks)])
+    y, _, _ = initial_landmarks(s.p - np.array([0.05, 0.02, 0.0]), s.R, CAMERA, R_BC, T_BC, uv, rng.uniform(0.8, 2.0, n_landmarks))
+    s.landmarks = y
+    n = s.robot_dim + 6 * n_landmarks
+    A = rng.normal(size=(n, n)) * 0.02
+    s.cov = A @ A.T + 1e-4 * np.eye(n)
+    return s
+
+
+def perturbed(state: FilterState, dx: np.ndarray) -> FilterState:
+    """The state moved by an error-state vector ``[δp, δθ, δy...]`` (robot pose and landmarks only)."""
+    t = state.copy()
+    t.p = t.p + dx[0:3]
+    t.q = quat_mul(quat_exp(dx[3:6]), t.q)
+    t.landmarks = t.landmarks + dx[6:].reshape(-1, 6)
+    return t
+
+
+def test_down_is_theta_phi_zero_and_angles_invert_direction():
+    np.testing.assert_allclose(direction(0.0, 0.0), [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(direction(np.pi / 2, 0.0), [0.0, 1.0, 0.0], atol=1e-15)  # east
+    np.testing.assert_allclose(direction(0.0, -np.pi / 2), [1.0, 0.0, 0.0], atol=1e-15)  # north
+    rng = np.random.default_rng(0)
+    theta, phi = rng.uniform(-1.4, 1.4, 50), rng.uniform(-1.4, 1.4, 50)
+    t2, p2 = angles(3.0 * direction(theta, phi))
+    np.testing.assert_allclose(t2, theta)
+    np.testing.assert_allclose(p2, phi)
+    m = direction(theta, phi)
+    J = angles_jacobian(m)
+    h = 1e-7
+    for i in range(3):
+        d = np.zeros(3)
+        d[i] = h
+        num = (np.stack(angles(m + d), -1) - np.stack(angles(m - d), -1)) / (2 * h)
+        np.testing.assert_allclose(J[:, :, i], num, atol=1e-6)
+
+
+def test_landmark_point_round_trip_and_jacobian():
+    s = make_state()
+    P = landmark_points(s.landmarks)
+    # The point seen from its anchor along its ray at depth 1/ρ.
+    dist = np.linalg.norm(P - s.landmarks[:, :3], axis=1)
+    np.testing.assert_allclose(dist, 1.0 / s.landmarks[:, 5])
+    J = point_jacobian(s.landmarks)
+    h = 1e-7
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = h
+        num = (landmark_points(s.landmarks + d) - landmark_points(s.landmarks - d)) / (2 * h)
+        np.testing.assert_allclose(J[:, :, i], num, atol=1e-6)
+
+
+@pytest.mark.parametrize("variant", ["thesis", "biases"])
+def test_measurement_jacobians_match_central_differences(variant):
+    s = make_state(variant)
+    pred = predict(s, CAMERA, R_BC, T_BC, 1.0)
+    m = s.n_landmarks
+    dim = 6 + 6 * m
+    h = 1e-7
+    numeric = np.zeros((m, 2, dim))
+    for i in range(dim):
+        d = np.zeros(dim)
+        d[i] = h
+        plus = predict(perturbed(s, d), CAMERA, R_BC, T_BC, 1.0).uv
+        minus = predict(perturbed(s, -d), CAMERA, R_BC, T_BC, 1.0).uv
+        numeric[:, :, i] = (plus - minus) / (2 * h)
+    assert pred.in_image.all()
+    for j in range(m):
+        np.testing.assert_allclose(pred.H_pose[j], numeric[j, :, 0:6], rtol=1e-5, atol=1e-3)
+        np.testing.assert_allclose(pred.H_landmark[j], numeric[j, :, 6 + 6 * j : 12 + 6 * j], rtol=1e-5, atol=1e-3)
+        others = np.delete(numeric[j, :, 6:], np.s_[6 * j : 6 * j + 6], axis=1)
+        assert np.abs(others).max() < 1e-6  # a landmark's pixel depends on nothing else
+
+
+def test_prediction_at_infinity_is_the_bearing():
+    s = make_state(n_landmarks=1)
+    s.landmarks[0, 5] = 0.0  # ρ = 0: a point at infinity stays well defined
+    h_c, h_w, _, _ = predict_h(s, R_BC, T_BC)
+    np.testing.assert_allclose(h_w[0], direction(*s.landmarks[0, 3:5]))
+    assert np.isfinite(predict(s, CAMERA, R_BC, T_BC, 1.0).uv).all()
+
+
+def test_innovation_covariance_equals_full_h_p_ht():
+    s = make_state(n_landmarks=3)
+    pred = predict(s, CAMERA, R_BC, T_BC, 0.7)
+    for j in range(3):
+        H = np.zeros((2, s.dim))
+        H[:, ROBOT_POSE_COLS] = pred.H_pose[j]
+        H[:, s.landmark_slice(j)] = pred.H_landmark[j]
+        np.testing.assert_allclose(pred.S[j], H @ s.cov @ H.T + 0.49 * np.eye(2), rtol=1e-10, atol=1e-12)
+
+
+def test_initialisation_jacobians_match_central_differences():
+    s = make_state(n_landmarks=0)
+    uv = np.array([[40.0, 30.0], [327.5, 246.5], [610.0, 470.0]])
+    rho = np.array([0.5, 1.2, 3.0])
+    y, J_x, J_z = initial_landmarks(s.p, s.R, CAMERA, R_BC, T_BC, uv, rho)
+    h = 1e-6
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = h
+        sp, sm = perturbed(s, d), perturbed(s, -d)
+        yp = initial_landmarks(sp.p, sp.R, CAMERA, R_BC, T_BC, uv, rho)[0]
+        ym = initial_landmarks(sm.p, sm.R, CAMERA, R_BC, T_BC, uv, rho)[0]
+        np.testing.assert_allclose(J_x[:, :, i], (yp - ym) / (2 * h), atol=1e-7)
+    for i in range(3):
+        d = np.zeros(3)
+        d[i] = 1e-4 if i < 2 else h
+        yp = initial_landmarks(s.p, s.R, CAMERA, R_BC, T_BC, uv + d[:2], rho + d[2])[0]
+        ym = initial_landmarks(s.p, s.R, CAMERA, R_BC, T_BC, uv - d[:2], rho - d[2])[0]
+        np.testing.assert_allclose(J_z[:, :, i], (yp - ym) / (2 * d[i]), atol=1e-8)
+    # The new landmark re-projects onto the pixel it came from.
+    t = s.copy()
+    t.landmarks = y
+    t.cov = np.eye(t.robot_dim + 18) * 1e-4
+    np.testing.assert_allclose(predict(t, CAMERA, R_BC, T_BC, 1.0).uv, uv, atol=1e-8)
+
+
+def test_new_landmark_covariance_is_first_order_with_cross_covariance():
+    s = make_state(n_landmarks=2, seed=4)
+    old = s.cov.copy()
+    uv = np.array([[100.0, 100.0], [500.0, 300.0]])
+    y, J_x, J_z = initial_landmarks(s.p, s.R, CAMERA, R_BC, T_BC, uv, np.array([1.0, 1.0]))
+    R_z = np.array([np.diag([1.0, 1.0, 0.25])] * 2)
+    add_landmarks(s, y, J_x, J_z, R_z)
+    n = old.shape[0]
+    assert s.cov.shape == (n + 12, n + 12) and s.n_landmarks == 4
+    np.testing.assert_array_equal(s.cov[:n, :n], old)
+    # Full first-order propagation through x_new = [x; g(x_pose, z)].
+    G = np.zeros((n + 12, n))
+    G[:n] = np.eye(n)
+    G[n:, ROBOT_POSE_COLS] = J_x.reshape(12, 6)
+    Gz = np.zeros((n + 12, 6))
+    Gz[n : n + 6, 0:3] = J_z[0]
+    Gz[n + 6 :, 3:6] = J_z[1]
+    expected = G @ old @ G.T + Gz @ np.kron(np.eye(2), R_z[0]) @ Gz.T
+    np.testing.assert_allclose(s.cov, expected, atol=1e-14)
+    np.testing.assert_allclose(s.cov[n:, :n], J_x.reshape(12, 6) @ old[ROBOT_POSE_COLS, :], atol=1e-15)  # P_yx = J_x P_x·
+    assert np.all(np.linalg.eigvalsh(s.cov) > -1e-12)
+
+
+def test_remove_landmarks_drops_their_rows_and_columns():
+    s = make_state(n_landmarks=4, seed=5)
+    old = s.copy()
+    remove_landmarks(s, np.array([False, True, False, True]))
+    keep = np.r_[0 : s.robot_dim, old.landmark_slice(0), old.landmark_slice(2)]
+    np.testing.assert_array_equal(s.cov, old.cov[np.ix_(keep, keep)])
+    np.testing.assert_array_equal(s.landmarks, old.landmarks[[0, 2]])
+    remove_landmarks(s, np.zeros(2, dtype=bool))
+    assert s.n_landmarks == 2
+
+
+def test_stacked_update_reduces_uncertainty_and_moves_toward_measurements():
+    s = make_state(n_landmarks=4, seed=6)
+    pred = predict(s, CAMERA, R_BC, T_BC, 1.0)
+    measured = pred.uv[[0, 2]] + np.array([[1.5, -1.0], [-0.5, 2.0]])
+    before = s.cov.copy()
+    out = stacked_update(s, pred, np.array([0, 2]), measured, 1.0)
+    assert out.accepted and out.dof == 4
+    after = predict(s, CAMERA, R_BC, T_BC, 1.0).uv[[0, 2]]
+    assert np.linalg.norm(after - measured) < np.linalg.norm(pred.uv[[0, 2]] - measured)
+    assert np.trace(s.cov) < np.trace(before)
+    assert np.all(np.linalg.eigvalsh(s.cov) > -1e-12)
+
+
+def test_iterated_update_keeps_a_far_off_depth_guess_consistent():
+    """Landmarks born with ρ = 0.1 (10 m) that are really 0.75 m away, seen after a 10 cm move
+    that the filter believes was 11.5 ± 2 cm. Depth and baseline trade off (only ρ·b is seen):
+    one linearisation at the guess claims a depth it does not have; the iteration does not."""
+    s = make_state(n_landmarks=0)
+    uv0 = np.array([[300.0, 200.0], [100.0, 100.0], [500.0, 400.0], [550.0, 100.0]])
+    y, J_x, J_z = initial_landmarks(s.p, s.R, CAMERA, R_BC, T_BC, uv0, np.full(4, 0.1))
+    s.cov = np.eye(s.robot_dim) * 1e-6
+    add_landmarks(s, y, J_x, J_z, np.array([np.eye(3)] * 4))
+    truth = y.copy()
+    truth[:, 5] = 1.0 / 0.75
+    seen = s.copy()
+    seen.p, seen.landmarks = s.p + np.array([0.1, 0.0, 0.0]), truth
+    measured = predict(seen, CAMERA, R_BC, T_BC, 1.0).uv
+    s.p = seen.p + np.array([0.015, 0.0, 0.0])
+    s.cov[0:3, 0:3] += np.eye(3) * 0.02**2
+    once, iterated = s.copy(), s.copy()
+    assert stacked_update(once, predict(once, CAMERA, R_BC, T_BC, 1.0), np.arange(4), measured, 1.0).accepted
+    assert iterated_update(iterated, CAMERA, R_BC, T_BC, np.arange(4), measured, 1.0, iterations=6).accepted
+    rho = s.robot_dim + 6 * np.arange(4) + 5
+
+    def sigmas_off(state: FilterState) -> np.ndarray:
+        return np.abs(state.landmarks[:, 5] - truth[:, 5]) / np.sqrt(state.cov[rho, rho])
+
+    assert np.all(sigmas_off(once) > 3.0)  # overconfident
+    assert np.all(sigmas_off(iterated) < 3.0)
+    np.testing.assert_allclose(predict(iterated, CAMERA, R_BC, T_BC, 1.0).uv, measured, atol=0.5)

@@ -1,0 +1,79 @@
+"""``vtolpose run`` on the live path: the real drivers reading emulated devices (IMU400CC and an NMEA
+receiver on pseudo-terminals), poses and status out over Zenoh to this process."""
+
+import json
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from drivers.simulator import simulate_flight
+from drivers.simulator.export import write_flight
+from service.pose_client import PoseClient
+
+emulators = pytest.importorskip("drivers.emulators")
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_live_run_with_emulated_devices(tmp_path):
+    root = tmp_path / "flight"
+    write_flight(simulate_flight("landfill", 30.0, 3), root)
+    port = free_port()
+    with emulators.Imu400Emulator.from_dataset(root) as imu, emulators.NmeaEmulator.from_dataset(root) as gps:
+        config = tmp_path / "vehicle.yaml"
+        config.write_text(
+            f"sensors:\n  imu: {{port: {imu.port}}}\n  gps: {{type: nmea, port: {gps.port}}}\n  camera: {{type: none}}\n"
+            f"run:\n  calibration_file: {root / 'dataset.yaml'}\n"
+            f"outputs:\n  zenoh: {{enabled: true, connect: ['tcp/127.0.0.1:{port}'], multicast_scouting: false}}\n"
+        )
+        with PoseClient("vtolpose/vtol1", listen=[f"tcp/127.0.0.1:{port}"], mode="peer") as client:
+            poses, status = [], []
+            client.subscribe(poses.append)
+            client.session.declare_subscriber("vtolpose/vtol1/status",
+                                              lambda s: status.append(json.loads(s.payload.to_string())))
+            started = time.monotonic()
+            done = subprocess.run([sys.executable, "-m", "service.cli", "run", "--config", str(config), "--duration", "5"],
+                                  cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
+            assert done.returncode == 0, done.stderr
+            assert "stopped by duration" in done.stdout and time.monotonic() - started < 30
+    assert len(poses) > 150 and all(b.t_ns > a.t_ns for a, b in zip(poses, poses[1:]))
+    last = status[-1]
+    assert last["initialized"] and last["sensors"]["imu"]["rate_hz"] > 60 and last["sensors"]["gps"]["total"] > 0
+    assert last["sensors"]["imu"]["age_s"] < 0.5
+    assert last["fusion"]["lag_s"] == pytest.approx(0.15, abs=0.02)
+    assert {"landmarks", "rejected", "filter_resets", "cpu_percent", "history"} <= set(last)
+
+
+def test_autopilot_gps_on_the_output_link_feeds_the_fusion(tmp_path):
+    """``sensors.gps.type: mavlink`` on the same link as ODOMETRY: no second connection, fixes fused."""
+    from config import load_config
+    from service.daemon import build_runtime
+    from service.live import live_sources
+    from service.mavlink_out import mavutil
+
+    url = "udpout:127.0.0.1:14599"
+    cfg = load_config(None, {
+        "sensors": {"imu": {"port": str(tmp_path / "no-such-tty")}, "camera": {"type": "none"},
+                    "gps": {"type": "mavlink", "mavlink_url": url, "origin": [58.43, 15.68, 60.0]}},
+        "outputs": {"mavlink": {"enabled": True, "url": url}},
+    })
+    runtime = build_runtime(cfg, simulate_flight("landfill", 5.0, 1).calibration)
+    live = live_sources(cfg, runtime)
+    link = runtime.outputs[0]
+    assert link.name == "mavlink" and "GPS_RAW_INT" in link.handlers
+    assert len(live.sources) == 1  # the IMU only: the GPS rides on the output link
+    mav = mavutil.mavlink
+    encoder = mav.MAVLink(None, srcSystem=cfg["vehicle.system_id"], srcComponent=1)
+    raw = mav.MAVLink_gps_raw_int_message(1_000_000, 3, 584301000, 156800000, 61000, 120, 180, 0, 0, 9, 0, 800, 1200, 0, 0, 0)
+    link.handlers["GPS_RAW_INT"](encoder.decode(bytearray(raw.pack(encoder))))
+    assert runtime.status.sensors["gps"].total == 1 and runtime.fusion.counts["gps"].received == 1
+    assert live.origin() == (58.43, 15.68, 60.0)
