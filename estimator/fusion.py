@@ -37,6 +37,7 @@ from estimator.state import StateLayout
 _RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (numerical drift only)
 _ROBOT9 = StateLayout("thesis")  # p, v, θ: the blocks the predictor's covariance covers
 _POSE_IX = np.ix_(np.r_[0:3, 6:9], np.r_[0:3, 6:9])
+_BG_DIAG = np.arange(9, 12)  # indices of the gyro-bias variances on the diagonal
 
 Apply = Callable[[Estimator], Any]
 
@@ -46,6 +47,7 @@ class FusionOptions:
     delay_s: float = 0.15  # the fusion horizon lags the newest IMU sample by this much
     max_pending: int = 64  # measurements waiting for the horizon; more are refused and counted
     max_imu_buffer: int = 4096  # IMU samples ahead of the horizon; beyond it the oldest are fused early
+    predict: bool = True  # keep the output predictor; off when nobody reads the present pose (offline replay)
 
     def __post_init__(self) -> None:
         if not (self.delay_s >= 0.0 and math.isfinite(self.delay_s)):
@@ -160,6 +162,7 @@ class FusionCore:
         self.options = opts = options or FusionOptions()
         self.delay_ns = int(round(opts.delay_s * 1e9))
         self.on_fused = on_fused
+        self.predict = opts.predict  # the runtime turns it off when it has no outputs
         self.counts: dict[str, RejectionCounts] = {"imu": RejectionCounts()}
         self._queue: deque[tuple[int, np.ndarray, np.ndarray, bool]] = deque()  # not yet fused
         self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque()  # fused, newer than the filter state
@@ -193,7 +196,7 @@ class FusionCore:
         finite = math.isfinite(float(gyro @ gyro + accel @ accel))
         self._queue.append((t, gyro, accel, finite))
         self._newest_t = t
-        if self._pred is not None and finite:
+        if self._pred is not None and finite and self.predict:
             self._step(self._pred, t, gyro, accel)
         if fuse:
             self.advance()
@@ -208,6 +211,8 @@ class FusionCore:
         while len(self._queue) > self.options.max_imu_buffer:
             counts.flag("horizon_forced")
             self._advance(self._queue[0][0])
+        if not self.predict:
+            return
         pred = self._pred
         if pred is None or not self._prediction_current(pred):
             self._pred = self._repredict()
@@ -228,7 +233,7 @@ class FusionCore:
         self._seq += 1
         if self._newest_t is not None and t_ns <= self._newest_t - self.delay_ns:
             self._advance(self._newest_t - self.delay_ns)  # already behind the horizon: fuse it now
-            self._pred = self._repredict()
+            self._pred = self._repredict() if self.predict else None
             self._out_cov = None
         return True
 
@@ -353,12 +358,13 @@ class FusionCore:
         return cov9, cov9[_POSE_IX], self._omega_var()
 
     def _omega_var(self) -> np.ndarray:
+        """Variance of the bias-corrected body rate: per-sample gyro noise plus the bias's."""
         est = self.est
         s = est.state
-        omega_var = np.broadcast_to(est.noise.gyro_noise_density**2 * est.calibration.imu.rate_hz, (3,)).copy()
+        omega_var = est.noise.gyro_noise_density**2 * est.calibration.imu.rate_hz
         if s.layout.estimates_biases:
-            omega_var += np.diag(s.cov[s.layout.BG, s.layout.BG])
-        return omega_var
+            return omega_var + s.cov[_BG_DIAG, _BG_DIAG]
+        return omega_var.copy()
 
     def _noise(self, q: np.ndarray, dt: float) -> np.ndarray:
         """IMU white noise over ``dt`` on [p, v, θ]; for isotropic noise, cached polynomials in dt."""

@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
+
+# One BLAS thread: the estimator's matrices are small, and idle BLAS threads spin on the core
+# that feature extraction needs. Set before anything imports numpy.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from config import ConfigError
 

@@ -19,7 +19,7 @@ from config.outputs import zenoh_prefix
 from drivers.calibration_yaml import calibration_from_yaml
 from estimator.calibration import Calibration
 from estimator.filter import Estimator
-from estimator.fusion import FusionOptions
+from estimator.fusion import FusionOptions, OutputPose
 from service.runtime import CameraProcessor, Runtime, RuntimeOptions, RunSummary, TrajectoryFile
 from service.wiring import filter_options
 
@@ -54,6 +54,7 @@ def build_runtime(
     lockstep: bool = False,
     measure_latency: bool = False,
     live: bool = False,
+    on_fused: Callable[[OutputPose], None] | None = None,
 ) -> Runtime:
     """The estimator, fusion core, history and the outputs enabled in ``outputs.*``.
 
@@ -66,7 +67,7 @@ def build_runtime(
     )
     path = trajectory_path or cfg["run.trajectory"]
     runtime = Runtime(estimator, options, camera_processor=camera_processor,
-                      trajectory=TrajectoryFile(path) if path else None)
+                      trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused)
     runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
     if cfg["outputs.mavlink.enabled"]:
         from service.mavlink_out import MavlinkOutput, read_signing_key

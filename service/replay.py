@@ -1,9 +1,10 @@
-"""Offline replay: a dataset's streams merged in time order and fed to the estimator.
+"""Replay: a dataset fed through the onboard runtime, recorded for the report.
 
-The recorder keeps the filtered pose after every IMU step (the trajectory written in TUM
-format) and, at a lower rate, the pose covariance for the consistency (NEES) check. Camera
-frames are loaded and their features extracted when their turn comes (synchronously: the
-replay's speed figure includes the extraction), then fused by ``Estimator.process_features``.
+The same runtime as ``vtolpose run`` (fusion horizon, camera work off the loop, outputs when
+enabled), fed by the dataset instead of devices. At ``speed`` 0 (the default) it runs as fast
+as the machine allows in lock-step: camera work is awaited at the fusion horizon, so the result
+does not depend on the machine. The recorder keeps every fused pose (the TUM trajectory) and,
+at a lower rate, the pose covariance for the consistency (NEES) check.
 """
 
 from __future__ import annotations
@@ -15,20 +16,21 @@ from typing import Any, Callable
 
 import numpy as np
 
-from drivers.dataset import Dataset, GpsSeries, ImuSeries
+from drivers.dataset import Dataset
 from estimator.camera_pipeline import FrameReport
 from estimator.features import FeatureOptions, FrameFeatures, extract_features
 from estimator.filter import Estimator
-from estimator.measurements import GpsFix
+from estimator.fusion import OutputPose
+from estimator.measurements import CameraFrame
+from service.replay_runtime import run_replay
 from service.threads import limit_blas_threads
-from service.wiring import feature_options, filter_options
+from service.wiring import feature_options
 
 log = logging.getLogger(__name__)
 
 SENSOR_NAMES = ("imu", "gps", "camera")
-KIND_IMU, KIND_GPS, KIND_CAMERA = 0, 1, 2
 
-# Called after each frame with the image (None if unreadable), its features and what the filter did.
+# Called after each frame with the image, its features and what the filter did with them.
 FrameCallback = Callable[[np.ndarray | None, FrameFeatures, FrameReport], None]
 
 
@@ -51,39 +53,32 @@ class CovarianceSamples:
 
 
 class Recorder:
-    """Preallocated per-IMU-step storage: no per-sample allocations on the hot path."""
+    """Every fused pose, and its covariance at a lower rate (called on the runtime's loop)."""
 
-    def __init__(self, capacity: int, cov_period_ns: int, absolute_position: bool = True) -> None:
-        self.t = np.zeros(capacity, dtype=np.int64)
-        self.p = np.zeros((capacity, 3))
-        self.v = np.zeros((capacity, 3))
-        self.q = np.zeros((capacity, 4))
-        self.n = 0
+    def __init__(self, cov_period_ns: int, absolute_position: bool = True,
+                 on_progress: Callable[[int], None] | None = None) -> None:
+        self._rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
         self.cov_period_ns = cov_period_ns
         # Without an absolute position source the start is the origin and the covariance is
         # meaningful from the first step; with one, only once the position is initialised.
         self.absolute_position = absolute_position
+        self.on_progress = on_progress
         self._next_cov_t = 0
         self._cov: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
 
-    def record(self, est: Estimator) -> None:
-        """Keep the state if it advanced (the filter steps at its own rate, not every sample)."""
-        s = est.state
-        k = self.n
-        if k and s.t_ns <= self.t[k - 1]:
-            return
-        self.t[k] = s.t_ns
-        self.p[k] = s.p
-        self.v[k] = s.v
-        self.q[k] = s.q
-        self.n = k + 1
-        if s.t_ns >= self._next_cov_t and (est.position_initialized or not self.absolute_position):
-            self._cov.append((s.t_ns, s.p.copy(), s.q.copy(), s.pose_covariance()))
-            self._next_cov_t = s.t_ns + self.cov_period_ns
+    def record(self, pose: OutputPose) -> None:
+        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q))
+        if pose.t_ns >= self._next_cov_t and (pose.position_initialized or not self.absolute_position):
+            self._cov.append((pose.t_ns, pose.p, pose.q, pose.pose_cov))
+            self._next_cov_t = pose.t_ns + self.cov_period_ns
+        if self.on_progress is not None and len(self._rows) % 2000 == 0:
+            self.on_progress(pose.t_ns)
 
     def trajectory(self) -> Trajectory:
-        n = self.n
-        return Trajectory(self.t[:n].copy(), self.p[:n].copy(), self.v[:n].copy(), self.q[:n].copy())
+        if not self._rows:
+            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)))
+        t, p, v, q = zip(*self._rows)
+        return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q))
 
     def covariance_samples(self) -> CovarianceSamples:
         if not self._cov:
@@ -104,43 +99,36 @@ class ReplayResult:
     frames: list[FrameReport] = field(default_factory=list)  # one per camera frame fused or rejected
     extract_ms: list[float] = field(default_factory=list)  # feature extraction time per frame
     detector: str | None = None
+    fusion_counts: dict = field(default_factory=dict)  # measurements refused by the fusion horizon
 
 
-def merge_order(
-    imu_t: np.ndarray, gps_t: np.ndarray | None, camera_t: np.ndarray | None = None
-) -> tuple[list[int], list[int]]:
-    """Kinds and indices of all samples in time order; at equal times IMU, then GPS, then camera."""
-    streams = [(KIND_IMU, imu_t), (KIND_GPS, gps_t), (KIND_CAMERA, camera_t)]
-    streams = [(k, np.asarray(t, dtype=np.int64)) for k, t in streams if t is not None and len(t)]
-    if len(streams) == 1:
-        return [KIND_IMU] * len(imu_t), list(range(len(imu_t)))
-    times = np.concatenate([t for _, t in streams])
-    kinds = np.concatenate([np.full(len(t), k, np.int8) for k, t in streams])
-    index = np.concatenate([np.arange(len(t)) for _, t in streams])
-    order = np.lexsort((kinds, times))
-    return kinds[order].tolist(), index[order].tolist()
+class FrameProcessor:
+    """Camera work for the runtime: features in a worker thread, the update on the loop.
 
+    The returned closure runs in fusion order, at the frame's own time; it keeps the per-frame
+    report (and hands image, features and report to ``on_frame``, e.g. the overlay writer).
+    """
 
-class FrameSource:
-    """Frames of a dataset, loaded and reduced to features one at a time, in order."""
-
-    def __init__(self, dataset: Dataset, options: FeatureOptions) -> None:
-        self.dataset = dataset
+    def __init__(self, options: FeatureOptions, expected_shape: tuple[int, int] | None,
+                 on_frame: FrameCallback | None = None) -> None:
         self.options = options
-        self.index = dataset.camera_frames()
-        cam = dataset.calibration.camera
-        self.expected_shape = (cam.height, cam.width) if cam is not None else None
+        self.expected_shape = expected_shape
+        self.on_frame = on_frame
+        self.reports: list[FrameReport] = []
+        self.extract_ms: list[float] = []
 
-    @property
-    def times(self) -> np.ndarray:
-        return np.array([t for t, _ in self.index], dtype=np.int64)
+    def __call__(self, frame: CameraFrame) -> Callable[[Estimator], FrameReport]:
+        features = extract_features(frame.image, frame.t_ns, self.options, self.expected_shape)
 
-    def features(self, i: int) -> tuple[np.ndarray | None, FrameFeatures]:
-        t_ns, path = self.index[i]
-        image = self.dataset.load_frame(path)
-        if image is None:
-            return None, FrameFeatures.rejected(t_ns, self.expected_shape or (0, 0), "unreadable")
-        return image, extract_features(image, t_ns, self.options, self.expected_shape)
+        def fuse(est: Estimator) -> FrameReport:
+            report = est.process_features(features)
+            self.reports.append(report)
+            self.extract_ms.append(features.extract_ms)
+            if self.on_frame is not None:
+                self.on_frame(frame.image, features, report)
+            return report
+
+        return fuse
 
 
 def replay(
@@ -149,8 +137,10 @@ def replay(
     sensors: list[str] | None = None,
     on_progress: Callable[[float, float], None] | None = None,
     on_frame: FrameCallback | None = None,
+    speed: float | None = None,
+    trajectory_path: str | None = None,
 ) -> ReplayResult:
-    """Run the estimator over ``dataset`` as fast as possible; ``on_frame`` sees every camera frame."""
+    """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0)."""
     sensors = list(sensors or cfg["replay.sensors"])
     unknown = [s for s in sensors if s not in SENSOR_NAMES]
     if unknown:
@@ -158,59 +148,54 @@ def replay(
     if "imu" not in sensors:
         raise ValueError("the estimator needs the IMU: include 'imu' in the sensors")
     notes: list[str] = []
-    imu: ImuSeries = dataset.imu()
-    gps: GpsSeries | None = dataset.gps() if "gps" in sensors else None
-    if "gps" in sensors and gps is None:
+    has_gps = "gps" in sensors and dataset.gps() is not None
+    if "gps" in sensors and not has_gps:
         notes.append("no GPS stream in the dataset: position is inertial dead reckoning from the origin and will drift")
         log.warning("%s: %s", dataset.root, notes[-1])
-    frames = _frame_source(dataset, cfg, notes) if "camera" in sensors else None
-    limit_blas_threads(1)
-    if len(imu.t_ns) == 0:
-        raise ValueError(f"{dataset.root}: the IMU stream has no valid samples")
-    calibration = dataset.calibration
-    est = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
-    recorder = Recorder(len(imu.t_ns), int(1e9 / cfg["replay.nees_rate_hz"]), absolute_position=gps is not None)
-    kinds, indices = merge_order(imu.t_ns, gps.t_ns if gps is not None else None, frames.times if frames else None)
-    reports: list[FrameReport] = []
-    extract_ms: list[float] = []
-    imu_t = imu.t_ns.tolist()
-    gyro, accel = imu.gyro, imu.accel
-    t_first = imu_t[0]
-    total_s = (imu_t[-1] - t_first) * 1e-9
-    process_imu, record = est.process_imu, recorder.record
-    wall0 = time.perf_counter()
-    for n, (kind, i) in enumerate(zip(kinds, indices)):
-        if kind == KIND_IMU:
-            if process_imu(imu_t[i], gyro[i], accel[i]) and est.state is not None:
-                record(est)
-            if on_progress is not None and n % 2000 == 0:
-                on_progress((imu_t[i] - t_first) * 1e-9, total_s)
-        elif kind == KIND_GPS:
-            est.process_gps(GpsFix(int(gps.t_ns[i]), gps.p_ned[i], float(gps.sigma_h[i]), float(gps.sigma_v[i])))
+        sensors = [s for s in sensors if s != "gps"]
+    processor = None
+    if "camera" in sensors:
+        if _camera_usable(dataset, notes):
+            cam = dataset.calibration.camera
+            processor = FrameProcessor(feature_options(cfg), (cam.height, cam.width), on_frame)
+            limit_blas_threads(1)  # idle BLAS threads would spin on the core feature extraction needs
         else:
-            image, features = frames.features(i)
-            report = est.process_features(features)
-            reports.append(report)
-            extract_ms.append(features.extract_ms)
-            if on_frame is not None:
-                on_frame(image, features, report)
+            sensors = [s for s in sensors if s != "camera"]
+    recorder = Recorder(int(1e9 / cfg["replay.nees_rate_hz"]), absolute_position=has_gps)
+    total = {"t0": None, "span": 0.0}
+    if on_progress is not None:
+        def progress(t_ns: int) -> None:
+            if total["t0"] is None:
+                total["t0"] = t_ns
+            on_progress((t_ns - total["t0"]) * 1e-9, total["span"])
+        recorder.on_progress = progress
+        imu_t = dataset.imu().t_ns
+        total["span"] = (int(imu_t[-1]) - int(imu_t[0])) * 1e-9
+    wall0 = time.perf_counter()
+    summary, runtime = run_replay(
+        dataset, cfg, sensors=sensors, speed=speed, trajectory_path=trajectory_path,
+        camera_processor=processor, handle_signals=False, on_fused=recorder.record,
+    )
     wall = time.perf_counter() - wall0
     if on_progress is not None:
-        on_progress(total_s, total_s)
-    return ReplayResult(est, recorder.trajectory(), recorder.covariance_samples(), sensors, wall, total_s, notes,
-                        reports, extract_ms, frames.options.detector if frames else None)
+        on_progress(total["span"], total["span"])
+    fusion_counts = {k: v for k, v in runtime.fusion.counts_report().items() if v["rejected"]}
+    return ReplayResult(
+        runtime.est, recorder.trajectory(), recorder.covariance_samples(), sensors, wall, summary.data_s, notes,
+        processor.reports if processor else [], processor.extract_ms if processor else [],
+        processor.options.detector if processor else None, fusion_counts,
+    )
 
 
-def _frame_source(dataset: Dataset, cfg: dict[str, Any], notes: list[str]) -> FrameSource | None:
-    """The camera stream, or None with a note saying why there is none."""
+def _camera_usable(dataset: Dataset, notes: list[str]) -> bool:
+    """Whether the dataset's camera can be used; if not, a note says why."""
     if dataset.calibration.camera is None:
         notes.append("no camera calibration in dataset.yaml: camera frames are not used")
     elif not dataset.has_camera:
         notes.append("no camera stream (mav0/cam0/data.csv) in the dataset: the camera is not used")
-    else:
-        source = FrameSource(dataset, feature_options(cfg))
-        if len(source.index):
-            return source
+    elif not dataset.camera_frames():
         notes.append("the camera index lists no valid frames: the camera is not used")
+    else:
+        return True
     log.warning("%s: %s", dataset.root, notes[-1])
-    return None
+    return False

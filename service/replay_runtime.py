@@ -15,6 +15,7 @@ from typing import Any, AsyncIterator, Callable, Sequence
 
 from drivers.dataset import Dataset
 from service.daemon import build_runtime, serve
+from estimator.fusion import OutputPose
 from service.runtime import CameraProcessor, Runtime, RunSummary
 from service.sources import ReplayClock, ReplaySource
 
@@ -36,6 +37,7 @@ async def replay_async(
     measure_latency: bool = False,
     hold: bool = False,
     on_hold: Callable[[str], None] | None = None,
+    on_fused: Callable[[OutputPose], None] | None = None,
 ) -> tuple[RunSummary, Runtime]:
     """Replay ``dataset`` through a runtime built from ``cfg`` (outputs included); returns its summary.
 
@@ -57,7 +59,7 @@ async def replay_async(
     origin = source.gps.origin_lla if source.gps is not None else dataset.calibration.gps.origin_lla
     runtime = build_runtime(
         cfg, dataset.calibration, origin=lambda: origin, trajectory_path=trajectory_path,
-        camera_processor=camera_processor, lockstep=speed == 0.0, measure_latency=measure_latency,
+        camera_processor=camera_processor, lockstep=speed == 0.0, measure_latency=measure_latency, on_fused=on_fused,
     )
     feed = _then_hold(source, runtime, on_hold or log.info) if hold else source
     summary = await serve(runtime, [feed], duration_s, handle_signals)

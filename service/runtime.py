@@ -134,8 +134,10 @@ class Runtime:
         outputs: Sequence[PoseOutput] = (),
         camera_processor: CameraProcessor | None = None,
         trajectory: TrajectoryFile | None = None,
+        on_fused: Callable[[OutputPose], None] | None = None,
     ) -> None:
         self.options = opts = options or RuntimeOptions()
+        self.fused_hook = on_fused  # sees every fused pose (a replay's recorder)
         self.est = estimator
         self.fusion = FusionCore(estimator, opts.fusion, on_fused=self._on_fused)
         self.history = PoseHistory(opts.history_s)
@@ -177,7 +179,7 @@ class Runtime:
         fusion = self.fusion
         if not fusion.add_imu(sample, fuse=False):
             return
-        pose = fusion.output()
+        pose = fusion.output() if self.outputs else None
         if pose is not None:
             for out in self.outputs:
                 out.publish(pose)
@@ -198,6 +200,8 @@ class Runtime:
             self.history.add_fused(pose.t_ns, row)
         if self.trajectory is not None:
             self.trajectory.write(pose)
+        if self.fused_hook is not None:
+            self.fused_hook(pose)
 
     def _on_camera(self, frame: CameraFrame) -> None:
         self.status.saw("camera")
@@ -296,6 +300,8 @@ class Runtime:
         self._executor = ThreadPoolExecutor(max_workers=self.options.camera_workers, thread_name_prefix="camera",
                                             initializer=set_thread_priority, initargs=(None,))
         opened: list[PoseOutput] = []
+        # Without outputs nobody reads the present pose (an offline replay): no output predictor.
+        self.fusion.predict = bool(self.outputs)
         try:
             for out in self.outputs:
                 try:

@@ -39,10 +39,34 @@ def samples(flight, t_from_s: float, t_to_s: float, frames: bool = True):
     return [s for _, _, s in sorted(out, key=lambda e: (e[0], e[1]))]
 
 
+class PoseList:
+    """The simplest real output: it keeps what it is given."""
+
+    name = "list"
+
+    def __init__(self) -> None:
+        self.poses = []
+
+    def open(self) -> None:
+        pass
+
+    def publish(self, pose) -> None:
+        self.poses.append(pose)
+
+    def publish_status(self, status) -> None:
+        pass
+
+    async def serve(self, stop) -> None:
+        await stop.wait()
+
+    def close(self) -> None:
+        pass
+
+
 def make_runtime(flight, processor, lockstep=False, trajectory=None) -> Runtime:
     est = Estimator(flight.calibration, filter_options(load_config(), flight.calibration.imu.noise))
     options = RuntimeOptions(fusion=FusionOptions(delay_s=0.15), lockstep=lockstep)
-    return Runtime(est, options, camera_processor=processor, trajectory=trajectory)
+    return Runtime(est, options, outputs=[PoseList()], camera_processor=processor, trajectory=trajectory)
 
 
 async def paced(items, speed: float):

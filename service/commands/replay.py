@@ -7,7 +7,8 @@ import logging
 
 from drivers.dataset import Dataset
 from drivers.tum import write_tum
-from service.commands.common import add_config_options, config_from, parse_sensors, write_json
+from service.commands.common import add_config_options, parse_sensors, write_json
+from service.commands.run import add_runtime_options, config_for
 from service.overlay import OverlayWriter
 from service.progress import Progress
 from service.replay import replay
@@ -20,17 +21,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "replay",
         help="run the estimator over a dataset, write the trajectory and a report",
-        description="Replay a dataset through the estimator in time order, as fast as the machine allows.\n"
-        "Writes the filtered trajectory (TUM: t x y z qx qy qz qw, NED/FRD) and a JSON report with\n"
+        description="Replay a dataset through the onboard runtime (the same one `vtolpose run` uses), as\n"
+        "fast as the machine allows or paced with --speed, optionally with the MAVLink and Zenoh\n"
+        "outputs switched on. Writes the filtered trajectory (TUM: t x y z qx qy qz qw, NED/FRD) and a JSON report with\n"
         "accuracy against the dataset's truth (if any), consistency (NEES), speed and every\n"
         "fused/rejected measurement count.\n\n"
         "Sensor sets: imu,gps (thesis Test 1); imu,camera (Test 2); imu,camera,gps (Test 3).\n\n"
-        "Example:\n"
-        "  vtolpose replay data/book --sensors imu,gps --variant thesis --out traj.txt --report report.json",
+        "Examples:\n"
+        "  vtolpose replay data/book --sensors imu,gps --variant thesis --out traj.txt --report report.json\n"
+        "  vtolpose replay data/landfill --speed 1 --mavlink udpout:127.0.0.1:14540 --zenoh   (a live-like feed)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("dataset", metavar="DATASET", help="dataset folder (see README, Dataset layout)")
     add_config_options(p)
+    add_runtime_options(p)
     p.add_argument("--sensors", metavar="LIST", help="comma-separated streams to use (default: replay.sensors)")
     p.add_argument("--out", metavar="TRAJ.txt", help="trajectory file (TUM format)")
     p.add_argument("--report", metavar="REPORT.json", help="JSON report")
@@ -41,7 +45,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = config_from(args)
+    cfg = config_for(args)
     dataset = Dataset.open(args.dataset)
     sensors = parse_sensors(args.sensors)
     progress = Progress(1.0, f"replay {dataset.meta['name']}", enabled=False if args.no_progress else None)

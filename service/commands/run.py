@@ -60,6 +60,18 @@ def config_for(args: argparse.Namespace) -> dict:
     return load_config(args.config, overrides)
 
 
+def camera_processor(cfg: dict, calibration):
+    """Feature extraction for the runtime's camera workers, or None (with a warning) without intrinsics."""
+    from service.replay import FrameProcessor
+    from service.wiring import feature_options
+
+    cam = calibration.camera
+    if cam is None:
+        log.warning("no camera calibration: camera frames are not used")
+        return None
+    return FrameProcessor(feature_options(cfg), (cam.height, cam.width))
+
+
 def run(args: argparse.Namespace) -> int:
     cfg = config_for(args)
     if args.duration is not None and args.duration <= 0:
@@ -71,7 +83,9 @@ def run(args: argparse.Namespace) -> int:
         from service.replay_runtime import replay_async
 
         dataset = Dataset.open(args.replay)
-        summary, _ = asyncio.run(replay_async(dataset, cfg, parse_sensors(args.sensors), trajectory_path=args.out,
+        sensors = parse_sensors(args.sensors) or cfg["replay.sensors"]
+        processor = camera_processor(cfg, dataset.calibration) if "camera" in sensors else None
+        summary, _ = asyncio.run(replay_async(dataset, cfg, sensors, trajectory_path=args.out, camera_processor=processor,
                                               duration_s=args.duration, hold=args.hold,
                                               on_hold=lambda text: print(text, flush=True)))
     else:
@@ -89,7 +103,8 @@ async def _live(cfg: dict, args: argparse.Namespace):
         raise ConfigError("key 'run.calibration_file': a live run needs the vehicle's calibration "
                           "(a dataset.yaml-format file, e.g. from a recording made with this vehicle)")
     calibration = load_calibration_file(cfg["run.calibration_file"])
-    runtime = build_runtime(cfg, calibration, trajectory_path=args.out, live=True)
+    processor = camera_processor(cfg, calibration) if cfg["sensors.camera.type"] != "none" else None
+    runtime = build_runtime(cfg, calibration, trajectory_path=args.out, live=True, camera_processor=processor)
     live = live_sources(cfg, runtime)
     runtime.origin = live.origin
     return await serve(runtime, live.sources, args.duration)
