@@ -166,6 +166,7 @@ SCHEMA: dict[str, Field] = {
     "fusion.camera_workers": Field("int", minimum=1, maximum=16),
     "run.calibration_file": Field("str", nullable=True),
     "run.trajectory": Field("str", nullable=True),
+    "run.record_dir": Field("str", nullable=True),
     "run.realtime_priority": Field("int", nullable=True, minimum=1, maximum=99),
     "outputs.mavlink.enabled": Field("bool"),
     "outputs.mavlink.url": Field("str"),

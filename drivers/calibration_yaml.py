@@ -103,7 +103,7 @@ def calibration_from_yaml(doc: Any, source: str = "dataset.yaml") -> Calibration
         gravity=y.number(imu.get("gravity", STANDARD_GRAVITY), "imu.gravity", positive=True),
     )
 
-    gps = y.mapping(top.get("gps"), "gps", {"lever_arm_b", "origin"})
+    gps = y.mapping(top.get("gps"), "gps", {"lever_arm_b", "origin", "time_offset_s"})
     origin = None
     if gps.get("origin") is not None:
         o = y.mapping(gps["origin"], "gps.origin", {"lat", "lon", "alt"}, required=("lat", "lon", "alt"))
@@ -111,7 +111,8 @@ def calibration_from_yaml(doc: Any, source: str = "dataset.yaml") -> Calibration
         if abs(lat) > 90.0 or abs(lon) > 180.0:
             raise y.fail("gps.origin", "lat in [-90, 90] and lon in [-180, 180] degrees", o)
         origin = (lat, lon, alt)
-    gps_cal = GpsCalibration(y.vector(gps.get("lever_arm_b", [0, 0, 0]), "gps.lever_arm_b", 3), origin)
+    gps_cal = GpsCalibration(y.vector(gps.get("lever_arm_b", [0, 0, 0]), "gps.lever_arm_b", 3), origin,
+                             y.number(gps.get("time_offset_s", 0.0), "gps.time_offset_s"))
 
     truth = y.mapping(top.get("truth"), "truth", {"point_b"})
     init = y.mapping(top.get("init"), "init", {"heading_deg", "heading_sigma_deg"})
@@ -174,6 +175,7 @@ def calibration_to_yaml(cal: Calibration) -> dict:
         "gps": {
             "lever_arm_b": _floats(cal.gps.lever_arm_b),
             "origin": None if origin is None else dict(zip(("lat", "lon", "alt"), map(float, origin))),
+            **({"time_offset_s": float(cal.gps.time_offset_s)} if cal.gps.time_offset_s else {}),
         },
         "truth": {"point_b": _floats(cal.truth_point_b)},
         "init": {

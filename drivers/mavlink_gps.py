@@ -94,13 +94,13 @@ class MavlinkGps:
                 return out
             if msg is None:
                 return out
-            reading = self._convert(msg, self._clock())
+            reading = self.convert(msg, self._clock())
             if reading is not None:
                 out.append(reading)
             if left <= 0:
                 return out
 
-    def _convert(self, msg: Any, t_ns: int) -> GpsReading | None:
+    def convert(self, msg: Any, t_ns: int) -> GpsReading | None:
         if self.config.system_id is not None and msg.get_srcSystem() != self.config.system_id:
             self.counts["other_system"] += 1
             return None

@@ -54,10 +54,12 @@ class ImuCalibration:
 
 @dataclass(slots=True)
 class GpsCalibration:
-    """Antenna lever arm in body FRD, and the geodetic origin of the local NED frame (if any)."""
+    """Antenna lever arm in body FRD, the geodetic origin of the local NED frame (if any), and the
+    offset added to GPS stamps to put them on the IMU clock (a receiver latency L is −L)."""
 
     lever_arm_b: np.ndarray = field(default_factory=lambda: np.zeros(3))
     origin_lla: tuple[float, float, float] | None = None
+    time_offset_s: float = 0.0
 
     def __post_init__(self) -> None:
         self.lever_arm_b = np.asarray(self.lever_arm_b, dtype=float).reshape(3)

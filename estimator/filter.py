@@ -107,7 +107,6 @@ class Estimator:
         self._gyro = np.zeros(3)
         cam = calibration.camera
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
-        self._camera_offset_ns = int(round(cam.time_offset_s * 1e9)) if cam is not None else 0
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
         self._camera_resets_seen = 0
 
@@ -309,7 +308,7 @@ class Estimator:
         """
         counts = self.counts.setdefault("camera", RejectionCounts())
         counts.received += 1
-        t_ns = features.t_ns + self._camera_offset_ns
+        t_ns = features.t_ns  # already on the IMU clock (the runtime applies camera.time_offset_s)
         reason = self._frame_rejection(features, t_ns)
         self._last_frame = (t_ns, features.digest) if reason != "out_of_order" else self._last_frame
         if reason is not None:

@@ -21,7 +21,7 @@ from estimator.calibration import Calibration
 from estimator.filter import Estimator
 from estimator.fusion import FusionOptions, OutputPose
 from service.runtime import CameraProcessor, Runtime, RuntimeOptions, RunSummary, TrajectoryFile
-from service.wiring import filter_options
+from service.wiring import calibration_with_overrides, filter_options
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +60,7 @@ def build_runtime(
 
     ``live``: apply ``run.realtime_priority`` (never to a replay, which would hog a core at it).
     """
+    calibration = calibration_with_overrides(cfg, calibration)
     estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
     options = RuntimeOptions(
         fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"], camera_workers=cfg["fusion.camera_workers"],

@@ -38,14 +38,25 @@ def _open(name: str, driver: Any, notes: list[str]) -> None:
         log.warning(notes[-1])
 
 
-def live_sources(cfg: dict[str, Any], runtime: Runtime) -> LiveSources:
-    """Sources for the devices in ``sensors.*``; the runtime's MAVLink output may carry the GPS."""
+def live_sources(cfg: dict[str, Any], runtime: Runtime, recorder: Any | None = None) -> LiveSources:
+    """Sources for the devices in ``sensors.*``; the runtime's MAVLink output may carry the GPS.
+
+    ``recorder`` (a :class:`~service.recorder.FlightRecorder`) sees every raw reading on the
+    device threads, before the estimator: the recording replays to the same trajectory.
+    """
     from drivers.crossbow_serial import CrossbowConfig, CrossbowImu
 
     live = LiveSources()
     imu = CrossbowImu(CrossbowConfig.from_config(cfg))
     _open("IMU", imu, live.notes)
-    live.sources.append(ThreadedSource("imu", imu, lambda reading: reading.sample))
+    imu_tap = None if recorder is None else (lambda r: recorder.record_imu(r.t_ns, r.gyro, r.accel))
+    live.sources.append(ThreadedSource("imu", imu, lambda reading: reading.sample, tap=imu_tap))
+
+    def gps_tap(gps: Any) -> Callable[[Any], None] | None:
+        if recorder is None:
+            return None
+        return lambda r: recorder.record_gps(r.fix.t_ns, r.lat_deg, r.lon_deg, r.alt_m, r.fix.sigma_h, r.fix.sigma_v,
+                                             origin=gps.local.origin)
 
     gps_type = cfg["sensors.gps.type"]
     if gps_type == "nmea":
@@ -53,7 +64,7 @@ def live_sources(cfg: dict[str, Any], runtime: Runtime) -> LiveSources:
 
         gps = NmeaGps(NmeaConfig.from_config(cfg))
         _open("GPS", gps, live.notes)
-        live.sources.append(ThreadedSource("gps", gps, lambda reading: reading.fix))
+        live.sources.append(ThreadedSource("gps", gps, lambda reading: reading.fix, tap=gps_tap(gps)))
         live.origin = lambda: gps.local.origin
     elif gps_type == "mavlink":
         from drivers.mavlink_gps import MavlinkGps, MavlinkGpsConfig
@@ -62,15 +73,19 @@ def live_sources(cfg: dict[str, Any], runtime: Runtime) -> LiveSources:
         live.origin = lambda: gps.local.origin
         link = next((o for o in runtime.outputs if o.name == "mavlink"), None)
         if link is not None and link.url == cfg["sensors.gps.mavlink_url"]:
+            tap = gps_tap(gps)
+
             def on_gps_raw(msg: Any) -> None:
-                reading = gps._convert(msg, time.monotonic_ns())  # the driver's conversion, on our link
+                reading = gps.convert(msg, time.monotonic_ns())  # the driver's conversion, on our link
                 if reading is not None:
+                    if tap is not None:
+                        tap(reading)
                     runtime.handle(reading.fix)
 
             link.handlers["GPS_RAW_INT"] = on_gps_raw
         else:
             _open("GPS (MAVLink)", gps, live.notes)
-            live.sources.append(ThreadedSource("gps", gps, lambda reading: reading.fix))
+            live.sources.append(ThreadedSource("gps", gps, lambda reading: reading.fix, tap=gps_tap(gps)))
 
     if cfg["sensors.camera.type"] != "none":
         if runtime.camera_processor is None:
@@ -82,7 +97,9 @@ def live_sources(cfg: dict[str, Any], runtime: Runtime) -> LiveSources:
             camera = camera_from_config(cfg)
             try:
                 log.info("camera: %s", camera.open())
-                live.sources.append(ThreadedSource("camera", camera, lambda frame: frame, read_timeout_s=0.5))
+                camera_tap = None if recorder is None else recorder.record_camera
+                live.sources.append(ThreadedSource("camera", camera, lambda frame: frame, read_timeout_s=0.5,
+                                                   tap=camera_tap))
             except CameraUnavailable as exc:
                 if cfg["sensors.camera.required"]:
                     raise

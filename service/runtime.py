@@ -23,7 +23,7 @@ import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, AsyncIterator, Callable, Protocol, Sequence
 
@@ -138,6 +138,11 @@ class Runtime:
     ) -> None:
         self.options = opts = options or RuntimeOptions()
         self.fused_hook = on_fused  # sees every fused pose (a replay's recorder)
+        # Stamps enter on the IMU clock: each sensor's calibrated offset is added here, before the
+        # fusion horizon orders them (so a late camera is fused at the time it really saw).
+        cal = estimator.calibration
+        self._gps_offset_ns = int(round(cal.gps.time_offset_s * 1e9))
+        self._camera_offset_ns = int(round(cal.camera.time_offset_s * 1e9)) if cal.camera is not None else 0
         self.est = estimator
         self.fusion = FusionCore(estimator, opts.fusion, on_fused=self._on_fused)
         self.history = PoseHistory(opts.history_s)
@@ -152,6 +157,7 @@ class Runtime:
         self.handling = LatencyProbe() if opts.measure_latency else None
         self.origin: Callable[[], tuple[float, float, float] | None] = lambda: None  # geodetic origin of NED
         self.last_pose: OutputPose | None = None
+        self.recorder: Any | None = None  # set by `vtolpose run --record`
         self.poses_published = 0
         self._executor: ThreadPoolExecutor | None = None
         self._camera_jobs: list[tuple[int, asyncio.Future]] = []
@@ -164,6 +170,8 @@ class Runtime:
         if isinstance(sample, ImuSample):
             self._on_imu(sample, arrived_ns)
         elif isinstance(sample, GpsFix):
+            if self._gps_offset_ns:
+                sample = replace(sample, t_ns=sample.t_ns + self._gps_offset_ns)
             self.status.saw("gps")
             self.fusion.add_measurement(sample.t_ns, lambda est, fix=sample: est.process_gps(fix), "gps")
         elif isinstance(sample, CameraFrame):
@@ -204,6 +212,8 @@ class Runtime:
             self.fused_hook(pose)
 
     def _on_camera(self, frame: CameraFrame) -> None:
+        if self._camera_offset_ns:
+            frame = replace(frame, t_ns=frame.t_ns + self._camera_offset_ns)
         self.status.saw("camera")
         if self.camera_processor is None or self._executor is None:
             self.status.count("camera_frames_unprocessed")
@@ -256,6 +266,8 @@ class Runtime:
             "history": {"poses": held, "from_t_ns": bounds[0] if bounds else None, "to_t_ns": bounds[1] if bounds else None},
             "outputs": links,
         }
+        if self.recorder is not None:  # a live run's flight recording (its own status, never an error here)
+            extra["recording"] = {"status": self.recorder.status, "rows": dict(self.recorder.rows)}
         return self.status.snapshot(self.est, self.fusion, extra)
 
     async def _status_loop(self, stop: asyncio.Event) -> None:

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
+import copy
+
 import numpy as np
 
-from config import get
+from config import ConfigError, get
 from estimator.association import AssociationOptions
-from estimator.calibration import ImuNoise
+from estimator.calibration import Calibration, ImuNoise
 from estimator.camera_pipeline import CameraOptions
 from estimator.features import FeatureOptions
 from estimator.frame_quality import FrameQualityOptions
@@ -83,3 +85,39 @@ def feature_options(cfg: dict[str, Any]) -> FeatureOptions:
     values = get(cfg, "features")
     quality = {k: values.pop(k) for k in ("black_level", "saturated_level", "saturated_fraction", "min_texture_std")}
     return FeatureOptions(**values, quality=FrameQualityOptions(**quality))
+
+
+_CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy")
+_DISTORTION = ("k1", "k2", "p1", "p2", "k3")
+
+
+def calibration_with_overrides(cfg: dict[str, Any], calibration: Calibration) -> Calibration:
+    """The dataset's (or vehicle's) calibration with what ``vtolpose calibrate`` measured on top.
+
+    The config's ``calibration:`` keys that are not null replace the matching values; the camera
+    keys need the calibration to have a camera (its mounting R_BC, t_BC is not in the section).
+    """
+    cal = copy.deepcopy(calibration)
+    c = get(cfg, "calibration")
+    if c["imu.gravity"] is not None:
+        cal.imu.gravity = c["imu.gravity"]
+    if c["gps.time_offset_s"] is not None:
+        cal.gps.time_offset_s = c["gps.time_offset_s"]
+    if c["gps.lever_arm_b"] is not None:
+        cal.gps.lever_arm_b = np.asarray(c["gps.lever_arm_b"], dtype=float)
+    camera_keys = [k for k in (*_CAMERA_FIELDS, *_DISTORTION, "time_offset_s") if c[f"camera.{k}"] is not None]
+    if camera_keys:
+        if cal.camera is None:
+            raise ConfigError(
+                f"keys calibration.camera.{', calibration.camera.'.join(camera_keys)}: the calibration has no camera "
+                "block to apply them to (its mounting R_BC, t_BC comes from dataset.yaml)"
+            )
+        for k in _CAMERA_FIELDS:
+            if c[f"camera.{k}"] is not None:
+                setattr(cal.camera, k, type(getattr(cal.camera, k))(c[f"camera.{k}"]))
+        for i, k in enumerate(_DISTORTION):
+            if c[f"camera.{k}"] is not None:
+                cal.camera.distortion[i] = c[f"camera.{k}"]
+        if c["camera.time_offset_s"] is not None:
+            cal.camera.time_offset_s = c["camera.time_offset_s"]
+    return cal

@@ -70,3 +70,24 @@ def test_default_yaml_is_commented_and_parseable():
     text = (Path(config.__file__).parent / "default.yaml").read_text()
     assert yaml.safe_load(text)
     assert text.count("#") > 40  # every section says what it is for
+
+
+def test_calibration_section_overrides_the_dataset_calibration():
+    from drivers.simulator import simulate_flight
+    from drivers.simulator.render import default_camera
+    from service.wiring import calibration_with_overrides
+
+    cal = simulate_flight("book", 2.0, 0).calibration
+    cfg = load_config(None, {"calibration": {"gps": {"time_offset_s": -0.12, "lever_arm_b": [0.1, 0.0, -0.2]},
+                                             "imu": {"gravity": 9.81}}})
+    out = calibration_with_overrides(cfg, cal)
+    assert out.gps.time_offset_s == -0.12 and out.imu.gravity == 9.81
+    assert list(out.gps.lever_arm_b) == [0.1, 0.0, -0.2]
+    assert cal.gps.time_offset_s == 0.0  # the original is untouched
+    cam_cfg = load_config(None, {"calibration": {"camera": {"fx": 600.0, "k1": -0.1, "time_offset_s": 0.037}}})
+    with pytest.raises(ConfigError, match="calibration.camera.fx.*no camera block"):
+        calibration_with_overrides(cam_cfg, cal)
+    from dataclasses import replace
+
+    with_cam = calibration_with_overrides(cam_cfg, replace(cal, camera=default_camera()))
+    assert with_cam.camera.fx == 600.0 and with_cam.camera.distortion[0] == -0.1 and with_cam.camera.time_offset_s == 0.037

@@ -186,7 +186,7 @@ def test_default_mounting_file_is_the_vi_sensor() -> None:
     setup = load_mounting(default_mounting_path())
     np.testing.assert_array_equal(setup.R_BI, R_BI)
     np.testing.assert_array_equal(setup.R_WL, np.diag([1.0, -1.0, -1.0]))
-    assert setup.leica_time_offset_s == pytest.approx(-0.150)
+    assert setup.leica_time_offset_s == pytest.approx(-0.142)
     assert setup.in_flight_noise is not None
 
 
@@ -194,8 +194,8 @@ def test_leica_stamps_are_moved_onto_the_imu_clock(imported, euroc_mh01: Path) -
     out, summary, _ = imported
     truth = Dataset.open(out).truth()
     raw_first = int((euroc_mh01 / "mav0/leica0/data.csv").read_text().splitlines()[1].split(",")[0])
-    assert truth.t_ns[0] == raw_first - 150_000_000
-    assert summary["leica_time_offset_s"] == pytest.approx(-0.150)
+    assert truth.t_ns[0] == raw_first - 142_000_000
+    assert summary["leica_time_offset_s"] == pytest.approx(-0.142)
 
 
 def test_missing_source_files_are_named(tmp_path: Path) -> None:

@@ -137,11 +137,11 @@ def mh01_scan(src, out, mounting=None, centre_s: float = 0.0):
 
 
 def test_euroc_mh01_leica_clock_offset(euroc_mh01, tmp_path) -> None:
-    """The importer moves the Leica stamps by -150 ms; imported as they are, the scan finds that
-    offset, and after the importer's shift only a small remainder."""
+    """The importer moves the Leica stamps by the configured -142 ms; imported as they are, the
+    scan finds that offset, and after the importer's shift only a small remainder."""
     raw = tmp_path / "raw_mounting.yaml"
     mounting = yaml.safe_load(default_mounting_path().read_text())
     raw.write_text(yaml.safe_dump({**mounting, "leica_time_offset_s": 0.0}))
-    # Measured with the CLI defaults (7 windows, ±300 ms by 10 ms): -137.4 ± 4.9 ms raw, +12.6 ± 4.9 ms imported.
+    # Measured with the CLI defaults (7 windows, ±300 ms by 10 ms): -137.4 ± 4.9 ms raw (GPS).
     assert -0.165 < mh01_scan(euroc_mh01, tmp_path / "raw", raw, centre_s=-0.15).offset_s < -0.115
     assert abs(mh01_scan(euroc_mh01, tmp_path / "mh01").offset_s) < 0.03

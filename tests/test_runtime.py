@@ -3,6 +3,7 @@ dropped and counted; lock-step replays deterministic; the trajectory file comple
 
 import asyncio
 import threading
+from concurrent.futures import ThreadPoolExecutor
 import time
 
 import numpy as np
@@ -138,3 +139,29 @@ def test_lockstep_replay_waits_for_camera_work_and_is_deterministic(flight, tmp_
     assert trajectories[0] == trajectories[1]
     t, p, q = read_tum(tmp_path / "traj0.txt")
     assert len(t) > 80 and np.all(np.diff(t) > 0)
+
+
+def test_sensor_time_offsets_are_applied_where_samples_enter(flight):
+    """A GPS 120 ms late and a camera 37 ms late are fused at the times they really measured."""
+    from dataclasses import replace
+
+    from drivers.simulator.render import default_camera
+
+    cal = replace(flight.calibration, gps=replace(flight.calibration.gps, time_offset_s=-0.12),
+                  camera=replace(default_camera(), time_offset_s=-0.037))
+    est = Estimator(cal, filter_options(load_config(), cal.imu.noise))
+    seen = []
+    runtime = Runtime(est, RuntimeOptions(fusion=FusionOptions(delay_s=0.5)),
+                      camera_processor=lambda frame: seen.append(frame.t_ns))
+    t = int(flight.imu.t_ns[0]) + 1_000_000_000
+    runtime.handle(ImuSample(t, np.zeros(3), np.array([0.0, 0.0, -9.8])))
+    runtime.handle(GpsFix(t, np.zeros(3), 1.0, 1.4))
+    assert [entry[0] for entry in runtime.fusion._pending] == [t - 120_000_000]
+
+    async def one_frame():
+        runtime._executor = ThreadPoolExecutor(1)
+        runtime._on_camera(CameraFrame(t, np.zeros((4, 4), np.uint8)))
+        await asyncio.gather(*[f for _, f in runtime._camera_jobs])
+
+    asyncio.run(one_frame())
+    assert seen == [t - 37_000_000]

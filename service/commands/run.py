@@ -33,6 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_runtime_options(p)
     p.add_argument("--out", metavar="TRAJ.txt", help="write the fused trajectory here (TUM; run.trajectory)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time")
+    p.add_argument("--record", metavar="DIR", help="live: record every raw sample into this new dataset folder (run.record_dir)")
     p.add_argument("--hold", action="store_true",
                    help="replay: after the data, keep answering queries (pose/at, trajectory) until stopped")
     p.set_defaults(run=run)
@@ -55,6 +56,8 @@ def config_for(args: argparse.Namespace) -> dict:
         outputs.setdefault("zenoh", {})["enabled"] = True
     if args.speed is not None:
         overrides.setdefault("replay", {})["speed"] = args.speed
+    if getattr(args, "record", None):
+        overrides.setdefault("run", {})["record_dir"] = args.record
     if not outputs:
         del overrides["outputs"]
     return load_config(args.config, overrides)
@@ -103,8 +106,21 @@ async def _live(cfg: dict, args: argparse.Namespace):
         raise ConfigError("key 'run.calibration_file': a live run needs the vehicle's calibration "
                           "(a dataset.yaml-format file, e.g. from a recording made with this vehicle)")
     calibration = load_calibration_file(cfg["run.calibration_file"])
+    if cfg["sensors.gps.origin"] is None and calibration.gps.origin_lla is not None:
+        # One local frame for the whole vehicle: the calibration's origin unless the GPS section sets one.
+        cfg = {**cfg, "sensors.gps.origin": list(calibration.gps.origin_lla)}
     processor = camera_processor(cfg, calibration) if cfg["sensors.camera.type"] != "none" else None
     runtime = build_runtime(cfg, calibration, trajectory_path=args.out, live=True, camera_processor=processor)
-    live = live_sources(cfg, runtime)
+    recorder = None
+    if cfg["run.record_dir"]:
+        from service.recorder import FlightRecorder
+
+        recorder = FlightRecorder(cfg["run.record_dir"], calibration, description="recorded live by vtolpose run")
+        runtime.recorder = recorder
+    live = live_sources(cfg, runtime, recorder)
     runtime.origin = live.origin
-    return await serve(runtime, live.sources, args.duration)
+    try:
+        return await serve(runtime, live.sources, args.duration)
+    finally:
+        if recorder is not None:
+            recorder.close()
