@@ -22,6 +22,7 @@ from estimator.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
 from estimator.features import FrameFeatures
 from estimator.gps_update import GpsUpdater, gps_sigmas
 from estimator.gravity_update import GravityLeveller
+from estimator.health import GapWidener, HealthMonitor, HealthOptions
 from estimator.imu_delta import ImuDelta, ImuDownsampler
 from estimator.initializer import InitialAttitude, InitOptions, StaticInitializer
 from estimator.kalman import UpdateOutcome, chi2_gate, ekf_update
@@ -33,6 +34,7 @@ from estimator.state import FilterState, StateLayout
 from estimator.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
+LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
 
 
 @dataclass(slots=True)
@@ -53,6 +55,7 @@ class FilterOptions:
     align: MotionAlignOptions = field(default_factory=MotionAlignOptions)
     still: StillnessOptions = field(default_factory=StillnessOptions)
     camera: CameraOptions = field(default_factory=CameraOptions)
+    health: HealthOptions = field(default_factory=HealthOptions)
 
     def __post_init__(self) -> None:
         StateLayout(self.variant)  # validates the variant name
@@ -100,15 +103,17 @@ class Estimator:
         self._fixed_bias_var = np.zeros(3)  # thesis variant: variance of its calibrated gyro bias
         self._fixes_before_start = 0
         self._pending_fix: GpsFix | None = None
-        self._first_rejected_fix_t: int | None = None
+        self._last_fix: GpsFix | None = None  # the latest usable fix (a reset re-initialises from it)
+        self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
+        self._gap = GapWidener(opts.health, opts.max_imu_gap_s)
         self._downsampler = ImuDownsampler(opts.max_filter_rate_hz)
         self._horizontal_accel = 0.0
         self._last_imu_t: int | None = None
+        self._lost_before_next_s = 0.0  # refused IMU data the next sample must account for (imu_discontinuity)
         self._gyro = np.zeros(3)
         cam = calibration.camera
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
-        self._camera_resets_seen = 0
 
     @property
     def initialized(self) -> bool:
@@ -142,8 +147,8 @@ class Estimator:
             counts.reject("time_not_increasing")
             return False
         counts.used += 1
-        if self._last_imu_t is not None and (t_ns - self._last_imu_t) * 1e-9 > self.options.max_imu_gap_s:
-            counts.flag("gap_bridged")  # still propagated, with the covariance growing over the gap
+        if self.state is not None:
+            self._end_gap(t_ns)
         self._last_imu_t = t_ns
         self._gyro = gyro
         delta = self._downsampler.add(t_ns, gyro, accel)
@@ -159,6 +164,8 @@ class Estimator:
             return True
         if delta is not None:
             self._propagate(delta)
+            if self.health.check_due(t_ns):
+                self._check_state()
         if not self.heading_aligned:
             self._level(t_ns, accel)
         if self.options.still.enabled:
@@ -179,8 +186,84 @@ class Estimator:
         self._horizontal_accel = math.hypot(a_w[0], a_w[1])
         self.state.t_ns = delta.t1_ns
 
+    def imu_discontinuity(self, lost_s: float) -> None:
+        """``lost_s`` of IMU data before the next sample were refused (stamped in the past: a backward
+        clock step): the vehicle moved meanwhile, the filter's clock did not. Widened like a long gap."""
+        self._lost_before_next_s += max(float(lost_s), 0.0)
+
+    def _in_gap(self, t_ns: int) -> None:
+        """Time reaches ``t_ns`` with no IMU sample since ``_last_imu_t``: widen for it (estimator.health);
+        past ``imu_gap_reset_s`` stop extrapolating the last sample — a reset, the state held."""
+        state = self.state
+        if state is None or self._last_imu_t is None:
+            return
+        gap_s = (t_ns - self._last_imu_t) * 1e-9
+        if self._gap.widen(state, gap_s, self._gyro - state.b_g):
+            self.counts["imu"].flag("gap_reset")
+            tail = self._downsampler.flush()
+            if tail is not None:
+                self._propagate(tail)
+            self._downsampler = ImuDownsampler(self.options.max_filter_rate_hz)  # no more holding the last sample
+            self._reset(t_ns, "imu_gap", f"no IMU sample for {self.options.health.imu_gap_reset_s:g} s (samples lost "
+                        "or a clock step): the state is held, not extrapolated; covariance widened", clear_map=False)
+        if self._gap.holding:
+            state.t_ns = max(state.t_ns, t_ns)
+
+    def _end_gap(self, t_ns: int) -> None:
+        """An IMU sample at ``t_ns``: account for the gap before it (if any), then it is over."""
+        state = self.state
+        if self._lost_before_next_s:
+            lost, self._lost_before_next_s = self._lost_before_next_s, 0.0
+            if self._gap.lost(state, lost, self._gyro - state.b_g):
+                self.counts["imu"].flag("gap_reset")
+                self._reset(t_ns, "imu_gap", f"{lost:.3f} s of IMU samples stamped in the past (a clock step back): "
+                            "the state is held over them, covariance widened", clear_map=False)
+            return
+        gap_s = (t_ns - self._last_imu_t) * 1e-9 if self._last_imu_t is not None else 0.0
+        if gap_s > self.options.max_imu_gap_s:
+            self._in_gap(t_ns)
+            if not self._gap.holding:
+                self.counts["imu"].flag("gap_bridged")  # extrapolated over, widened
+            else:
+                self._downsampler = ImuDownsampler(self.options.max_filter_rate_hz)  # the next step starts here
+        self._gap.end()
+
+    def _check_state(self) -> None:
+        """Periodic: a state that is not finite or not positive definite is rebuilt from what is still sound."""
+        problem = self.health.check(self.state)
+        if problem is None:
+            return
+        state, snap, init = self.state, self.health.snapshot, self.options.init
+        nominal = (state.p, state.v, state.q, state.b_g, state.b_a)
+        if snap is not None and not all(np.all(np.isfinite(x)) for x in nominal):
+            state.p, state.v, state.q, state.b_g, state.b_a = (x.copy() for x in (snap.p, snap.v, snap.q, snap.b_g, snap.b_a))
+        if self.camera is not None:
+            self.camera.clear(state)
+        state.landmarks = state.landmarks[:0]
+        var_p = np.diagonal(state.cov)[0:3]
+        if not (np.all(np.isfinite(var_p)) and np.all(var_p > 0.0)):
+            var_p = np.full(3, LOST_POSITION_SIGMA_M**2)
+        sigmas = [init.sigma_velocity_moving] * 3 + [math.radians(init.sigma_attitude_moving_deg)] * 3
+        if self.layout.estimates_biases:
+            sigmas += [init.sigma_gyro_bias] * 3 + [init.sigma_accel_bias] * 3
+        state.cov = np.diag(np.concatenate([var_p, np.square(sigmas)]))
+        if self.position_initialized and self._last_fix is not None and self.health.fresh("gps", state.t_ns):
+            self._init_position(self._last_fix)  # the GPS is alive: position from it
+        self._reset(state.t_ns, "state_invalid",
+                    f"{problem}: nominal state from the last sound check, covariance re-initialised, map cleared")
+
+    def _reset(self, t_ns: int, kind: str, reason: str, clear_map: bool = True) -> None:
+        """Count a reset (ODOMETRY reset_counter), note it; landmarks placed by the old estimate go."""
+        if clear_map and self.camera is not None and self.state is not None:
+            self.camera.clear(self.state)
+        self.reset_counter += 1
+        self.health.record_reset(t_ns, kind, reason)
+        self.events.append((t_ns, f"reset #{self.reset_counter}: {reason}"))
+
     def _propagate_to(self, t_ns: int) -> None:
         """Bring the state to a measurement's time: the partial step, then hold the last sample."""
+        if self._last_imu_t is not None and (t_ns - self._last_imu_t) * 1e-9 > self.options.max_imu_gap_s:
+            self._in_gap(t_ns)
         for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
             if delta is not None:
                 self._propagate(delta)
@@ -232,6 +315,7 @@ class Estimator:
         p = np.asarray(fix.p_ned, dtype=float)
         if not (np.all(np.isfinite(p)) and math.isfinite(fix.sigma_h)) or fix.sigma_h <= 0.0:
             counts.reject("non_finite")
+            self.health.measured("gps", fix.t_ns, used=False)  # alive, but not usable
             return None
         state = self.state
         if state is not None and fix.t_ns < state.t_ns:
@@ -251,18 +335,20 @@ class Estimator:
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)
+        self._last_fix = fix
         if not self.position_initialized:
             self._init_position(fix)
             counts.used += 1
+            self.health.measured("gps", fix.t_ns, used=True)
             return UpdateOutcome(True, 0.0, 3, "position initialised")
         held = None if self.heading_aligned else self._held_until_aligned()
         outcome = self.gps.update(state, fix, held=held)
         if outcome.accepted:
             counts.used += 1
-            self._first_rejected_fix_t = None
         else:
             counts.reject(outcome.reason.replace(" ", "_"))
-            self._check_lost(fix)
+        if self.health.measured("gps", fix.t_ns, outcome.accepted, gated=True):
+            self._reset_from_gps(fix)
         return outcome
 
     def _held_until_aligned(self) -> np.ndarray:
@@ -280,24 +366,15 @@ class Estimator:
         self.position_initialized = True
         self.events.append((fix.t_ns, "position initialised from GPS"))
 
-    def _check_lost(self, fix: GpsFix) -> None:
+    def _reset_from_gps(self, fix: GpsFix) -> None:
         """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong."""
-        if self._first_rejected_fix_t is None:
-            self._first_rejected_fix_t = fix.t_ns
-            return
-        if (fix.t_ns - self._first_rejected_fix_t) * 1e-9 < self.options.gps_reset_after_s:
-            return
         state = self.state
         self._init_position(fix)
         state.cov[3:6, :] = 0.0
         state.cov[:, 3:6] = 0.0
         state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
-        self.reset_counter += 1
-        self._first_rejected_fix_t = None
-        self.events.append(
-            (fix.t_ns, f"reset #{self.reset_counter}: every GPS fix rejected for {self.options.gps_reset_after_s:g} s; "
-             "position and velocity re-initialised from GPS")
-        )
+        self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {self.options.gps_reset_after_s:g} s; "
+                    "position and velocity re-initialised from GPS")
 
     # ------------------------------------------------------------------------------ camera
     def process_features(self, features: FrameFeatures) -> FrameReport:
@@ -313,17 +390,16 @@ class Estimator:
         self._last_frame = (t_ns, features.digest) if reason != "out_of_order" else self._last_frame
         if reason is not None:
             counts.reject(reason)
+            self.health.measured("camera", t_ns, used=False)  # alive (frames arrive), not usable
             return FrameReport(t_ns, False, reason, n_features=len(features))
         self._propagate_to(t_ns)
-        if self.reset_counter != self._camera_resets_seen:  # landmarks of the old frame are void
-            self._camera_resets_seen = self.reset_counter
-            self.camera.clear(self.state)
         held = None if self.heading_aligned else self._held_until_aligned()
         report = self.camera.process(self.state, features, t_ns, self.heading_aligned, self.position_initialized, held)
         if report.accepted:
             counts.used += 1
         else:
             counts.reject(report.reason)
+        self.health.measured("camera", t_ns, report.accepted)
         matches = self.counts.setdefault("camera_match", RejectionCounts())
         matches.received += report.candidates
         matches.used += report.n_matches

@@ -78,6 +78,7 @@ class OutputPose:
     position_initialized: bool
     reset_counter: int
     fused_t_ns: int
+    quality_cap: int = 100  # ceiling on the published quality from the filter's health (estimator.health)
 
     @property
     def fused(self) -> bool:
@@ -169,6 +170,8 @@ class FusionCore:
         self._pending: list[tuple[int, int, str, Apply]] = []
         self._seq = 0
         self._newest_t: int | None = None
+        self._refused: tuple[int, int] | None = None  # stamps spanned by the current run of refused IMU samples
+        self._discontinuities: dict[int, float] = {}  # sample time -> seconds of data lost just before it
         self._fused_until: int | None = None
         self._last_reported_t: int | None = None
         self._pred: _Prediction | None = None
@@ -190,7 +193,14 @@ class FusionCore:
         counts.received += 1
         if self._newest_t is not None and t <= self._newest_t:
             counts.reject("time_not_increasing")
+            low, high = self._refused or (t, t)
+            self._refused = (min(low, t), max(high, t))
             return False
+        if self._refused is not None:
+            # A run of samples stamped in the past (a backward clock step): the time they span
+            # passed for the vehicle but not for the filter. The estimator widens for it at this sample.
+            self._discontinuities[t] = (self._refused[1] - self._refused[0]) * 1e-9
+            self._refused = None
         counts.used += 1
         gyro, accel = sample.gyro, sample.accel
         finite = math.isfinite(float(gyro @ gyro + accel @ accel))
@@ -253,6 +263,10 @@ class FusionCore:
                     return
                 t, gyro, accel, finite = queue.popleft()
                 self._fused_until = t
+                if self._discontinuities:
+                    lost_s = self._discontinuities.pop(t, None)
+                    if lost_s is not None:
+                        est.imu_discontinuity(lost_s)
                 ok = est.process_imu(t, gyro, accel)
                 if finite:
                     self._recent.append((t, gyro, accel))
@@ -291,6 +305,9 @@ class FusionCore:
 
     def _step(self, pred: _Prediction, t: int, gyro: np.ndarray, accel: np.ndarray) -> None:
         if t <= pred.t_ns:
+            return
+        if self.est.health.gap_needs_reset((t - pred.t_ns) * 1e-9):  # as the filter does: hold, do not fly through
+            pred.t_ns, pred.gyro, pred.accel = t, gyro, accel
             return
         s = self.est.state
         pred.p, pred.v, pred.q = nominal_step(
@@ -335,7 +352,7 @@ class FusionCore:
             t_ns=pred.t_ns, p=np.array(pred.p), v=np.array(pred.v), q=np.array(pred.q), omega_b=pred.gyro - s.b_g,
             cov9=cov9, pose_cov=pose_cov, omega_var=omega_var, heading_aligned=self.est.heading_aligned,
             position_initialized=self.est.position_initialized, reset_counter=self.est.reset_counter,
-            fused_t_ns=s.t_ns,
+            fused_t_ns=s.t_ns, quality_cap=self.est.health.quality_cap(s.t_ns),
         )
 
     def _predicted_covariance(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -395,6 +412,7 @@ class FusionCore:
             t_ns=s.t_ns, p=s.p.copy(), v=s.v.copy(), q=s.q.copy(), omega_b=gyro - s.b_g, cov9=cov9,
             pose_cov=cov9[_POSE_IX], omega_var=self._omega_var(), heading_aligned=est.heading_aligned,
             position_initialized=est.position_initialized, reset_counter=est.reset_counter, fused_t_ns=s.t_ns,
+            quality_cap=est.health.quality_cap(s.t_ns),
         )
 
     # --------------------------------------------------------------------------- status

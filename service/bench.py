@@ -25,7 +25,8 @@ from estimator.measurements import GpsFix
 from estimator.propagator import ImuPropagator
 from estimator.rotation import quat_from_euler
 from estimator.state import FilterState, StateLayout
-from service.bench_runtime import bench_runtime_hour, bench_runtime_latency
+from service.bench_faults import bench_fault_table, bench_fault_targets
+from service.bench_runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from service.bench_camera import bench_camera_update, bench_features, bench_replay_camera
 from service.replay import replay
 
@@ -85,18 +86,26 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "replay-camera": bench_replay_camera,
     "runtime-latency": bench_runtime_latency,
     "runtime-hour": bench_runtime_hour,
+    "soak-camera": bench_soak_camera,
+    "fault-targets": bench_fault_targets,
+    "fault-table": bench_fault_table,
 }
 
 
-def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print) -> list[Row]:
+# Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table")
+
+
+def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:
     rows: list[Row] = []
-    for name in names or list(BENCHMARKS):
+    default = [n for n in BENCHMARKS if include_long or n not in LONG_BENCHMARKS]
+    for name in names or default:
         if name not in BENCHMARKS:
             raise ValueError(f"unknown benchmark {name!r}; choose from {', '.join(BENCHMARKS)}")
         t0 = time.perf_counter()
         got = BENCHMARKS[name]()
         for label, value, unit, note in got:
-            echo(f"  {label:<48} {value:>10.1f} {unit:<12} {note}")
+            echo(f"  {label:<48} {value:>10.4g} {unit:<12} {note}")
         echo(f"  ({name}: {time.perf_counter() - t0:.1f} s)")
         rows.extend(got)
     return rows

@@ -15,6 +15,7 @@ must stay flat.
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import socket
 import subprocess
@@ -31,8 +32,10 @@ from config import load_config
 from drivers.dataset import Dataset
 from drivers.simulator import simulate_flight
 from drivers.simulator.export import write_flight
+from drivers.simulator.render import default_camera
 from estimator.measurements import CameraFrame, GpsFix, ImuSample
 from service.daemon import build_runtime, serve
+from service.commands.run import camera_processor
 from service.runtime import set_thread_priority
 from service.sources import ReplayClock, ReplaySource, ThreadedSource
 from service.status import LatencyProbe, resident_memory_mb
@@ -210,24 +213,42 @@ def _latency_run(duration_s: float, priority: int | None, label: str) -> list[Ro
     ]
 
 
-def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0) -> list[Row]:
+class _LogCounter(logging.Handler):
+    """Counts the warnings and errors logged during a soak (the first few kept to show)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.counts = {"WARNING": 0, "ERROR": 0, "CRITICAL": 0}
+        self.first: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.counts[record.levelname] = self.counts.get(record.levelname, 0) + 1
+        if len(self.first) < 3:
+            self.first.append(f"{record.levelname} {record.name}: {record.getMessage()[:120]}")
+
+
+def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0, camera: bool = False) -> list[Row]:
     """One hour of IMU+GPS (landfill) through the runtime at full speed: memory and buffers stay flat."""
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "hour"
-        write_flight(simulate_flight("landfill", duration_s, 1), root)
+        write_flight(simulate_flight("landfill", duration_s, 1), root, camera=default_camera() if camera else None)
         dataset = Dataset.open(root)
-        cfg = load_config(None, {"vehicle": {"name": "bench"}, "outputs": {
+        cfg = load_config(None, {"vehicle": {"name": "bench"}, "features": {"detector": "orb"}, "outputs": {
             "mavlink": {"enabled": True, "url": f"udpout:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"},
             "zenoh": {"enabled": True, "listen": [f"tcp/127.0.0.1:{free_port()}"], "multicast_scouting": False},
         }})
-        source = ReplaySource(dataset, ["imu", "gps"], ReplayClock(0.0))
-        runtime = build_runtime(cfg, dataset.calibration, lockstep=True, trajectory_path=Path(tmp) / "traj.txt")
-        samples: list[tuple[float, float, int, int, int]] = []
+        sensors = ["imu", "camera", "gps"] if camera else ["imu", "gps"]
+        source = ReplaySource(dataset, sensors, ReplayClock(0.0))
+        processor = camera_processor(cfg, dataset.calibration) if camera else None
+        runtime = build_runtime(cfg, dataset.calibration, lockstep=True, trajectory_path=Path(tmp) / "traj.txt",
+                                camera_processor=processor)
+        samples: list[tuple[float, float, int, int, int, int]] = []
         t_first = int(source.imu.t_ns[0])
 
         def sample(t_ns: int) -> None:
+            state = runtime.est.state
             samples.append(((t_ns - t_first) * 1e-9, resident_memory_mb() or float("nan"), len(runtime.history),
-                            runtime.history.capacity, runtime.fusion.buffered_imu))
+                            runtime.history.capacity, runtime.fusion.buffered_imu, state.n_landmarks if state else 0))
 
         async def sampled() -> Any:
             next_t = t_first + int(60e9)  # from the first minute on: the filter is running by then
@@ -238,15 +259,35 @@ def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0) -> li
                 yield item
             sample(item.t_ns)
 
-        summary = asyncio.run(serve(runtime, [sampled()], handle_signals=False))
+        logs = _LogCounter()
+        logging.getLogger().addHandler(logs)
+        try:
+            summary = asyncio.run(serve(runtime, [sampled()], handle_signals=False))
+        finally:
+            logging.getLogger().removeHandler(logs)
     first, last = samples[0], samples[-1]
+    what = "IMU+camera+GPS (ORB)" if camera else "IMU+GPS"
+    failures = sum(f["failures"] for f in runtime.failures.report().values())
     rows: list[Row] = [
-        (f"{duration_s / 60:.0f}-minute replay speed", summary.data_s / summary.wall_s, "x real time",
+        (f"{duration_s / 60:.0f}-minute {what} replay speed", summary.data_s / summary.wall_s, "x real time",
          f"{summary.wall_s:.1f} s wall, both outputs on"),
         (f"resident memory at {first[0] / 60:.0f} min", first[1], "MB", "the filter running, history filling"),
         (f"resident memory at {last[0] / 60:.0f} min", last[1], "MB", f"max {max(s[1] for s in samples):.1f} MB"),
         ("pose history entries at the end", float(last[2]), "poses",
          f"capacity {last[3]}, span {runtime.options.history_s:g} s"),
         ("IMU samples buffered ahead of the horizon", float(last[4]), "samples", f"delay {runtime.fusion.delay_ns * 1e-9:g} s"),
+        ("isolated failures (outputs, sources, handling)", float(failures), "", ", ".join(runtime.failures.report()) or "none"),
+        ("errors logged", float(logs.counts["ERROR"] + logs.counts["CRITICAL"]), "records",
+         f"{logs.counts['WARNING']} warnings; " + ("; ".join(logs.first) or "nothing logged")),
+        ("filter resets", float(runtime.est.reset_counter), "", ""),
     ]
-    return rows + [(f"  memory at {s[0] / 60:.0f} min", s[1], "MB", f"history {s[2]} (capacity {s[3]})") for s in samples]
+    if camera:
+        rows.append(("landmarks in the map (max over the run)", float(max(s[5] for s in samples)), "landmarks",
+                     f"cap estimator.camera.max_landmarks = {cfg['estimator.camera.max_landmarks']}"))
+    return rows + [(f"  memory at {s[0] / 60:.0f} min", s[1], "MB",
+                    f"history {s[2]} (capacity {s[3]})" + (f", landmarks {s[5]}" if camera else "")) for s in samples]
+
+
+def bench_soak_camera() -> list[Row]:
+    """One hour of IMU+camera+GPS (landfill, ORB) through the runtime: memory, landmarks, history stay bounded."""
+    return bench_runtime_hour(camera=True)

@@ -14,11 +14,12 @@ from typing import Any, AsyncIterator, Callable, Sequence
 
 import yaml
 
-from config import ConfigError
+from config import ConfigError, get
 from config.outputs import zenoh_prefix
 from drivers.calibration_yaml import calibration_from_yaml
 from estimator.calibration import Calibration
 from estimator.filter import Estimator
+from estimator.health import HealthOptions
 from estimator.fusion import FusionOptions, OutputPose
 from service.runtime import CameraProcessor, Runtime, RuntimeOptions, RunSummary, TrajectoryFile
 from service.wiring import calibration_with_overrides, filter_options
@@ -30,6 +31,11 @@ Origin = tuple[float, float, float] | None
 
 def fusion_options(cfg: dict[str, Any]) -> FusionOptions:
     return FusionOptions(cfg["fusion.delay_s"], cfg["fusion.max_pending"], cfg["fusion.max_imu_buffer"])
+
+
+def health_options(cfg: dict[str, Any]) -> HealthOptions:
+    """``estimator.health.*``: what the filter does about sensor loss, divergence and IMU gaps."""
+    return HealthOptions(**get(cfg, "estimator.health"))
 
 
 def load_calibration_file(path: str | Path) -> Calibration:
@@ -61,7 +67,9 @@ def build_runtime(
     ``live``: apply ``run.realtime_priority`` (never to a replay, which would hog a core at it).
     """
     calibration = calibration_with_overrides(cfg, calibration)
-    estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
+    filter_opts = filter_options(cfg, calibration.imu.noise)
+    filter_opts.health = health_options(cfg)
+    estimator = Estimator(calibration, filter_opts)
     options = RuntimeOptions(
         fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"], camera_workers=cfg["fusion.camera_workers"],
         lockstep=lockstep, measure_latency=measure_latency, realtime_priority=cfg["run.realtime_priority"] if live else None,
@@ -129,4 +137,13 @@ def summary_lines(summary: RunSummary) -> list[str]:
         lines.append(f"refused by the fusion order: {status['fusion']['rejected']}")
     if status.get("events"):
         lines.append(f"runtime events: {status['events']}")
+    health = status.get("health") or {}
+    if health.get("resets"):
+        last = health["last_reset"]
+        lines.append(f"filter resets: {health['resets']}; the last: {last['reason']}")
+    if health.get("degraded"):
+        lines.append(f"degraded at the end: {', '.join(health['degraded'])}")
+    if status.get("failures"):
+        lines.append("isolated failures: " + "; ".join(f"{part} x{f['failures']} ({f['last']})"
+                                                    for part, f in status["failures"].items()))
     return lines

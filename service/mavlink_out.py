@@ -29,7 +29,7 @@ if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # mavutil was imported earli
 from config.outputs import parse_mavlink_url  # noqa: E402
 from estimator.fusion import OutputPose  # noqa: E402
 from estimator.rotation import quat_to_rot  # noqa: E402
-from service.status import pose_quality  # noqa: E402
+from service.status import FailureBook, pose_quality  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -170,7 +170,8 @@ class MavlinkOutput:
         self._active = False
         self._cov_source: np.ndarray | None = None
         self._cov_fields: tuple[list[float], list[float]] | None = None
-        self.stats = {"odometry_sent": 0, "heartbeats_sent": 0, "received": 0, "bad_data": 0}
+        self.stats = {"odometry_sent": 0, "heartbeats_sent": 0, "received": 0, "bad_data": 0, "serve_errors": 0}
+        self.failures = FailureBook()
 
     def open(self) -> None:
         device, baud = parse_mavlink_url(self.url)
@@ -244,10 +245,14 @@ class MavlinkOutput:
         loop = asyncio.get_running_loop()
         next_beat = loop.time()
         while not stop.is_set():
-            if loop.time() >= next_beat:
-                self.heartbeat()
-                next_beat = max(next_beat + 1.0, loop.time())
-            self.poll()
+            try:
+                if loop.time() >= next_beat:
+                    next_beat = max(next_beat + 1.0, loop.time())
+                    self.heartbeat()
+                self.poll()
+            except Exception as exc:  # a socket error or a handler's bug: counted, the link keeps serving
+                self.stats["serve_errors"] += 1
+                self.failures.record(f"MAVLink link {self.url}", exc)
             try:
                 await asyncio.wait_for(stop.wait(), timeout=poll_s)
             except asyncio.TimeoutError:

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -22,6 +23,7 @@ from estimator.features import FeatureOptions, FrameFeatures, extract_features
 from estimator.filter import Estimator
 from estimator.fusion import OutputPose
 from estimator.measurements import CameraFrame
+from service.faults import Fault, FaultInjector
 from service.replay_runtime import run_replay
 from service.threads import limit_blas_threads
 from service.wiring import feature_options
@@ -100,6 +102,9 @@ class ReplayResult:
     extract_ms: list[float] = field(default_factory=list)  # feature extraction time per frame
     detector: str | None = None
     fusion_counts: dict = field(default_factory=dict)  # measurements refused by the fusion horizon
+    faults: FaultInjector | None = None  # the faults played on the stream, with what each did
+    health: dict = field(default_factory=dict)  # the estimator's health at the end (estimator.health)
+    failures: dict = field(default_factory=dict)  # isolated failures of outputs and the trajectory file
 
 
 class FrameProcessor:
@@ -107,15 +112,17 @@ class FrameProcessor:
 
     The returned closure runs in fusion order, at the frame's own time; it keeps the per-frame
     report (and hands image, features and report to ``on_frame``, e.g. the overlay writer).
+    ``keep``: how many recent reports to keep (None: all, for a replay's report; a live service
+    flying for hours keeps a bounded window).
     """
 
     def __init__(self, options: FeatureOptions, expected_shape: tuple[int, int] | None,
-                 on_frame: FrameCallback | None = None) -> None:
+                 on_frame: FrameCallback | None = None, keep: int | None = None) -> None:
         self.options = options
         self.expected_shape = expected_shape
         self.on_frame = on_frame
-        self.reports: list[FrameReport] = []
-        self.extract_ms: list[float] = []
+        self.reports: deque[FrameReport] = deque(maxlen=keep)
+        self.extract_ms: deque[float] = deque(maxlen=keep)
 
     def __call__(self, frame: CameraFrame) -> Callable[[Estimator], FrameReport]:
         features = extract_features(frame.image, frame.t_ns, self.options, self.expected_shape)
@@ -139,8 +146,11 @@ def replay(
     on_frame: FrameCallback | None = None,
     speed: float | None = None,
     trajectory_path: str | None = None,
+    faults: Sequence[Fault] = (),
+    fault_seed: int = 0,
+    on_fused: Callable[[OutputPose], None] | None = None,
 ) -> ReplayResult:
-    """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0)."""
+    """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0), ``faults`` played on its stream."""
     sensors = list(sensors or cfg["replay.sensors"])
     unknown = [s for s in sensors if s not in SENSOR_NAMES]
     if unknown:
@@ -171,19 +181,25 @@ def replay(
         recorder.on_progress = progress
         imu_t = dataset.imu().t_ns
         total["span"] = (int(imu_t[-1]) - int(imu_t[0])) * 1e-9
+    injector = FaultInjector(faults, fault_seed) if faults else None
     wall0 = time.perf_counter()
     summary, runtime = run_replay(
         dataset, cfg, sensors=sensors, speed=speed, trajectory_path=trajectory_path,
-        camera_processor=processor, handle_signals=False, on_fused=recorder.record,
+        camera_processor=processor, handle_signals=False, faults=injector,
+        on_fused=recorder.record if on_fused is None else lambda pose: (recorder.record(pose), on_fused(pose)),
     )
     wall = time.perf_counter() - wall0
+    bug = runtime.failures.first("handling")
+    if bug is not None:  # the live service carries on past it; an offline replay is a test and says so
+        raise bug
     if on_progress is not None:
         on_progress(total["span"], total["span"])
     fusion_counts = {k: v for k, v in runtime.fusion.counts_report().items() if v["rejected"]}
     return ReplayResult(
         runtime.est, recorder.trajectory(), recorder.covariance_samples(), sensors, wall, summary.data_s, notes,
-        processor.reports if processor else [], processor.extract_ms if processor else [],
-        processor.options.detector if processor else None, fusion_counts,
+        list(processor.reports) if processor else [], list(processor.extract_ms) if processor else [],
+        processor.options.detector if processor else None, fusion_counts, injector, summary.status.get("health", {}),
+        summary.status.get("failures", {}),
     )
 
 

@@ -16,6 +16,7 @@ from typing import Any, AsyncIterator, Callable, Sequence
 from drivers.dataset import Dataset
 from service.daemon import build_runtime, serve
 from estimator.fusion import OutputPose
+from service.faults import FaultInjector, inject
 from service.runtime import CameraProcessor, Runtime, RunSummary
 from service.sources import ReplayClock, ReplaySource
 
@@ -38,10 +39,12 @@ async def replay_async(
     hold: bool = False,
     on_hold: Callable[[str], None] | None = None,
     on_fused: Callable[[OutputPose], None] | None = None,
+    faults: FaultInjector | None = None,
 ) -> tuple[RunSummary, Runtime]:
     """Replay ``dataset`` through a runtime built from ``cfg`` (outputs included); returns its summary.
 
     ``hold``: after the data, keep the outputs up (queries answered from the history) until stopped.
+    ``faults``: played on the stream between the dataset and the runtime (``service.faults``).
     """
     sensors = list(sensors or cfg["replay.sensors"])
     unknown = [s for s in sensors if s not in RUNTIME_SENSORS]
@@ -61,12 +64,13 @@ async def replay_async(
         cfg, dataset.calibration, origin=lambda: origin, trajectory_path=trajectory_path,
         camera_processor=camera_processor, lockstep=speed == 0.0, measure_latency=measure_latency, on_fused=on_fused,
     )
-    feed = _then_hold(source, runtime, on_hold or log.info) if hold else source
+    stream = inject(source, faults) if faults is not None and faults.faults else source
+    feed = _then_hold(stream, runtime, on_hold or log.info) if hold else stream
     summary = await serve(runtime, [feed], duration_s, handle_signals)
     return summary, runtime
 
 
-async def _then_hold(source: ReplaySource, runtime: Runtime, announce: Callable[[str], None]) -> AsyncIterator:
+async def _then_hold(source: AsyncIterator, runtime: Runtime, announce: Callable[[str], None]) -> AsyncIterator:
     """The replay, then the estimate made final and kept on offer (queries) until the run is stopped."""
     async for sample in source:
         yield sample

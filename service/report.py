@@ -36,6 +36,12 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         "events": [{"t_s": round((t - int(traj.t_ns[0])) * 1e-9, 3) if len(traj.t_ns) else None, "message": m} for t, m in est.events],
         "notes": list(result.notes),
     }
+    if result.faults is not None:
+        report["faults"] = result.faults.report()
+    if result.health:
+        report["health"] = result.health
+    if result.failures:
+        report["failures"] = result.failures
     if est.alignment is not None:
         a = est.alignment
         report["alignment"] = {
@@ -64,7 +70,8 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
             "offset_m": offset.tolist(),
         }
     shift = np.zeros(3) if offset is None else offset
-    scores = evaluate(traj.t_ns, traj.p + shift, traj.q, truth, point_b)
+    t_data = scoring_times(result, traj.t_ns)
+    scores = evaluate(t_data, traj.p + shift, traj.q, truth, point_b)
     report["truth"] = "full" if truth.q is not None else "position only"
     report["position_rmse_m"] = scores["position_rmse_m"]
     if truth.q is not None:
@@ -81,7 +88,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         report["position_rmse_over_gps"] = report["position_rmse_m"] / gps_scores["rmse_m"]
     cov = result.covariances
     if len(cov.t_ns):
-        err, c, dof = pose_errors_for_nees(cov.t_ns, cov.p + shift, cov.q, cov.cov, truth, point_b)
+        err, c, dof = pose_errors_for_nees(scoring_times(result, cov.t_ns), cov.p + shift, cov.q, cov.cov, truth, point_b)
         if len(err):
             values = nees(err, c)
             summary = nees_summary(values, dof)
@@ -89,6 +96,11 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
             report["nees"] = summary
             report["nees_position_mean"] = float(np.mean(nees(err[:, :3], c[:, :3, :3])))
     return report
+
+
+def scoring_times(result: ReplayResult, t_ns: np.ndarray) -> np.ndarray:
+    """The estimates' stamps on the truth's clock: an injected clock step is undone before scoring."""
+    return result.faults.source_time_ns(t_ns) if result.faults is not None else t_ns
 
 
 def start_offset(result: ReplayResult, truth, point_b: np.ndarray) -> np.ndarray | None:
@@ -170,5 +182,11 @@ def summary_lines(report: dict) -> list[str]:
     lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time")
     for name, c in report["sensors"].items():
         rej = ", ".join(f"{k} {v}" for k, v in c["rejected"].items()) or "none"
-        lines.append(f"  {name}: {c['used']} used of {c['received']}; rejected: {rej}")
+        flagged = ", ".join(f"{k} {v}" for k, v in c.get("flagged", {}).items())
+        lines.append(f"  {name}: {c['used']} used of {c['received']}; rejected: {rej}" + (f"; flagged: {flagged}" if flagged else ""))
+    for fault in report.get("faults", []):
+        lines.append(f"  fault {fault['spec']}: {fault['samples_affected']} samples dropped or changed")
+    health = report.get("health") or {}
+    if health.get("resets"):
+        lines.append(f"  filter resets: {', '.join(f'{k} {v}' for k, v in health['resets'].items())} (see the events)")
     return lines

@@ -35,7 +35,7 @@ from estimator.filter import Estimator
 from estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
 from estimator.measurements import CameraFrame, GpsFix, ImuSample
 from estimator.pose_history import PoseHistory
-from service.status import LatencyProbe, StatusTracker
+from service.status import FailureBook, LatencyProbe, StatusTracker, pose_quality
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +151,7 @@ class Runtime:
         self.camera_processor = camera_processor
         self.trajectory = trajectory
         self.status = StatusTracker()
+        self.failures = FailureBook()  # outputs, sources, the trajectory file: isolated, counted, reported
         # Latency from a sample's hand-over by its source to both outputs returning, and the part of
         # it spent in this loop's handling (the rest is waiting to be scheduled).
         self.latency = LatencyProbe() if opts.measure_latency else None
@@ -190,7 +191,10 @@ class Runtime:
         pose = fusion.output() if self.outputs else None
         if pose is not None:
             for out in self.outputs:
-                out.publish(pose)
+                try:
+                    out.publish(pose)
+                except Exception as exc:  # a dead link degrades the service, never stops the others
+                    self.failures.record(f"output {out.name}", exc)
             self.poses_published += 1
             if self.latency is not None:
                 left = time.perf_counter_ns()
@@ -207,7 +211,10 @@ class Runtime:
         with self.history_lock:
             self.history.add_fused(pose.t_ns, row)
         if self.trajectory is not None:
-            self.trajectory.write(pose)
+            try:
+                self.trajectory.write(pose)
+            except Exception as exc:  # a full disk must not stop the pose going out
+                self.failures.record("trajectory file", exc)
         if self.fused_hook is not None:
             self.fused_hook(pose)
 
@@ -247,12 +254,25 @@ class Runtime:
             await asyncio.sleep(0)  # their done-callbacks queue the measurements
 
     # ------------------------------------------------------------------------------- loop
-    async def _consume(self, source: AsyncIterator) -> None:
+    async def _consume(self, source: AsyncIterator, name: str) -> None:
+        """Feed one source's samples; a source that fails is reported and ends, the others go on.
+
+        A sample whose handling raises is counted (``handling <kind>``) and skipped: the filter's
+        health check (estimator.health) catches a state such a failure left unsound.
+        """
         lockstep = self.options.lockstep
-        async for sample in source:
-            if lockstep and isinstance(sample, ImuSample) and self._camera_jobs:
-                await self._before_imu(sample.t_ns)
-            self.handle(sample, getattr(source, "last_arrival_ns", None) if self.latency is not None else None)
+        try:
+            async for sample in source:
+                if lockstep and isinstance(sample, ImuSample) and self._camera_jobs:
+                    await self._before_imu(sample.t_ns)
+                try:
+                    self.handle(sample, getattr(source, "last_arrival_ns", None) if self.latency is not None else None)
+                except Exception as exc:
+                    self.failures.record(f"handling {type(sample).__name__}", exc)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # a dead sensor degrades the estimate and is reported
+            self.failures.record(f"source {name}", exc)
 
     def status_document(self) -> dict[str, Any]:
         links = {o.name: o.link_stats() if hasattr(o, "link_stats") else getattr(o, "stats", {}) for o in self.outputs}
@@ -265,6 +285,8 @@ class Runtime:
             "source_overflows": dropped,  # samples a device thread had to drop because the loop fell behind
             "history": {"poses": held, "from_t_ns": bounds[0] if bounds else None, "to_t_ns": bounds[1] if bounds else None},
             "outputs": links,
+            "quality": pose_quality(self.last_pose) if self.last_pose is not None else 0,
+            "failures": self.failures.report(),  # isolated failures of outputs, sources, the trajectory file
         }
         if self.recorder is not None:  # a live run's flight recording (its own status, never an error here)
             extra["recording"] = {"status": self.recorder.status, "rows": dict(self.recorder.rows)}
@@ -277,14 +299,21 @@ class Runtime:
                 await asyncio.wait_for(stop.wait(), timeout=period)
             except asyncio.TimeoutError:
                 pass
-            doc = self.status_document()
+            try:
+                doc = self.status_document()
+            except Exception as exc:  # the status is a report: a bug in it must not stop the run
+                self.failures.record("status document", exc)
+                continue
             for out in self.outputs:
                 try:
                     out.publish_status(doc)
-                except Exception:  # one output's failure must not silence the others
-                    log.exception("status to the %s output", out.name)
+                except Exception as exc:  # one output's failure must not silence the others
+                    self.failures.record(f"output {out.name} status", exc)
             if self.trajectory is not None:
-                self.trajectory.flush()
+                try:
+                    self.trajectory.flush()
+                except Exception as exc:
+                    self.failures.record("trajectory file", exc)
 
     @staticmethod
     async def _wait(feeders: set[asyncio.Task], waiter: asyncio.Task, duration_s: float | None) -> str:
@@ -329,7 +358,8 @@ class Runtime:
                 set_thread_priority(self.options.realtime_priority)
             background = [asyncio.create_task(o.serve(stop), name=f"serve-{o.name}") for o in self.outputs]
             background.append(asyncio.create_task(self._status_loop(stop), name="status"))
-            feeders = [asyncio.create_task(self._consume(s), name=f"source-{i}") for i, s in enumerate(sources)]
+            feeders = [asyncio.create_task(self._consume(s, getattr(s, "name", str(i))), name=f"source-{i}")
+                       for i, s in enumerate(sources)]
             waiter = asyncio.create_task(stop.wait())
             stopped_by = await self._wait(set(feeders), waiter, duration_s)
             stop.set()

@@ -6,6 +6,7 @@ as a growing age even while the others keep the estimator running.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
@@ -18,13 +19,16 @@ from estimator.filter import Estimator
 from estimator.fusion import FusionCore, OutputPose
 
 
+log = logging.getLogger(__name__)
+
 # Quality: 100 at or below the "good" sigma, falling on a log scale to 1 at the "poor" one.
 _POS_SIGMA_GOOD_M, _POS_SIGMA_POOR_M = 0.1, 10.0
 _ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD = math.radians(0.5), math.radians(20.0)
 
 
 def pose_quality(pose: OutputPose) -> int:
-    """0 = invalid (no heading, no position, non-finite); else 1–100 from the largest position and attitude sigmas."""
+    """0 = invalid (no heading, no position, non-finite); else 1–100 from the largest position and attitude
+    sigmas, never above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
     if not (pose.heading_aligned and pose.position_initialized):
         return 0
     d = pose.cov9.diagonal().tolist()
@@ -37,7 +41,7 @@ def pose_quality(pose: OutputPose) -> int:
 
     q = min(score(math.sqrt(var_p), _POS_SIGMA_GOOD_M, _POS_SIGMA_POOR_M),
             score(math.sqrt(var_a), _ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD))
-    return max(1, int(round(100.0 * q)))
+    return min(max(1, int(round(100.0 * q))), pose.quality_cap)
 
 
 def resident_memory_mb() -> float | None:
@@ -48,6 +52,52 @@ def resident_memory_mb() -> float | None:
     except (OSError, ValueError, IndexError):
         return None
     return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+@dataclass
+class _Failures:
+    count: int = 0
+    last: str = ""
+    first: BaseException | None = None
+    logged_at: float | None = None
+    since_logged: int = 0
+
+
+class FailureBook:
+    """Failures of the parts around the estimator (an output, a source, the trajectory file), isolated.
+
+    A failing part must degrade the service, never stop it: each failure is counted under its
+    part's name; the first is logged with its traceback, later ones as one summary line per
+    ``period_s`` at most, so a link that fails 200 times a second cannot flood the log.
+    """
+
+    def __init__(self, period_s: float = 10.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.period_s = period_s
+        self.clock = clock
+        self.parts: dict[str, _Failures] = {}
+
+    def record(self, part: str, exc: BaseException) -> None:
+        f = self.parts.get(part)
+        if f is None:
+            f = self.parts[part] = _Failures(first=exc)
+        f.count += 1
+        f.last = f"{type(exc).__name__}: {exc}"
+        now = self.clock()
+        if f.logged_at is None:
+            log.error("%s failed; it is isolated and counted, the service continues", part, exc_info=exc)
+            f.logged_at = now
+        elif now - f.logged_at >= self.period_s:
+            log.error("%s: %d more failure(s) in the last %.0f s, latest %s", part, f.since_logged + 1, now - f.logged_at, f.last)
+            f.logged_at, f.since_logged = now, 0
+        else:
+            f.since_logged += 1
+
+    def first(self, prefix: str = "") -> BaseException | None:
+        """The first exception of any part whose name starts with ``prefix``."""
+        return next((f.first for name, f in self.parts.items() if name.startswith(prefix)), None)
+
+    def report(self) -> dict[str, dict[str, Any]]:
+        return {name: {"failures": f.count, "last": f.last} for name, f in sorted(self.parts.items())}
 
 
 @dataclass
@@ -94,6 +144,7 @@ class StatusTracker:
             }
             s.since_report = 0
         state = est.state
+        health = est.health.report(state.t_ns if state is not None else None)
         rejected = {name: c["rejected"] for name, c in est.counts_report().items() if c["rejected"]}
         late = {name: c["rejected"] for name, c in fusion.counts_report().items() if c["rejected"]}
         doc = {
@@ -110,6 +161,7 @@ class StatusTracker:
                 else round((fusion.newest_imu_t_ns - fusion.fused_until_ns) * 1e-9, 4),
             },
             "filter_resets": est.reset_counter,
+            "health": health,
             "events": dict(self.events),
             "cpu_percent": round(cpu_percent, 1),
             "load_average": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,

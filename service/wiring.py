@@ -101,6 +101,12 @@ def calibration_with_overrides(cfg: dict[str, Any], calibration: Calibration) ->
     c = get(cfg, "calibration")
     if c["imu.gravity"] is not None:
         cal.imu.gravity = c["imu.gravity"]
+    # The Allan figures become the sensor's noise model (``estimator.imu.noise.*``, when set, still
+    # overrides them: in-flight vibration is not in a bench recording). The gyro bias and the attitude
+    # at rest are a record of the calibration run only: the filter measures both again at every start.
+    for key in ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", "accel_random_walk"):
+        if c[f"imu.{key}"] is not None:
+            setattr(cal.imu.noise, key, np.asarray(c[f"imu.{key}"], dtype=float))
     if c["gps.time_offset_s"] is not None:
         cal.gps.time_offset_s = c["gps.time_offset_s"]
     if c["gps.lever_arm_b"] is not None:

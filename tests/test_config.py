@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -79,9 +80,11 @@ def test_calibration_section_overrides_the_dataset_calibration():
 
     cal = simulate_flight("book", 2.0, 0).calibration
     cfg = load_config(None, {"calibration": {"gps": {"time_offset_s": -0.12, "lever_arm_b": [0.1, 0.0, -0.2]},
-                                             "imu": {"gravity": 9.81}}})
+                                             "imu": {"gravity": 9.81, "gyro_noise_density": [1e-3, 2e-3, 3e-3]}}})
     out = calibration_with_overrides(cfg, cal)
     assert out.gps.time_offset_s == -0.12 and out.imu.gravity == 9.81
+    assert list(out.imu.noise.gyro_noise_density) == [1e-3, 2e-3, 3e-3]  # the Allan figure is the noise model
+    assert np.array_equal(out.imu.noise.accel_noise_density, cal.imu.noise.accel_noise_density)  # null: kept
     assert list(out.gps.lever_arm_b) == [0.1, 0.0, -0.2]
     assert cal.gps.time_offset_s == 0.0  # the original is untouched
     cam_cfg = load_config(None, {"calibration": {"camera": {"fx": 600.0, "k1": -0.1, "time_offset_s": 0.037}}})

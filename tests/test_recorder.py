@@ -181,3 +181,13 @@ def test_full_disk_stops_recording_loudly_but_never_raises(tmp_path, caplog):
     assert any("RECORDING STOPPED" in r.message for r in caplog.records)
     data = Dataset.open(tmp_path / "full").imu_raw()  # what made it to disk is still a valid dataset
     assert 0 < len(data.t_ns) < 400 and len(data.t_ns) % 50 == 0  # whole batches, no torn line
+
+
+def test_record_dir_start_placeholder_gives_each_start_its_own_folder():
+    import datetime
+
+    from service.commands.run import recording_folder
+
+    start = datetime.datetime(2026, 11, 22, 10, 31, 5, tzinfo=datetime.timezone.utc)
+    assert recording_folder("/data/flights/{start}", start) == "/data/flights/20261122T103105Z"
+    assert recording_folder("/data/flight-7", start) == "/data/flight-7"

@@ -6,7 +6,7 @@ import argparse
 import os
 import platform
 
-from service.bench import BENCHMARKS, run_benchmarks
+from service.bench import BENCHMARKS, LONG_BENCHMARKS, run_benchmarks
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -14,14 +14,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "bench",
         help="speed figures on this machine (can it keep up?)",
         description="Measure what the estimator costs on this computer and print the figures:\n"
-        + "\n".join(f"  {name:<14} {fn.__doc__.strip().splitlines()[0]}" for name, fn in BENCHMARKS.items()),
+        + "\n".join(f"  {name:<15} {fn.__doc__.strip().splitlines()[0]}" for name, fn in BENCHMARKS.items())
+        + f"\n\nWithout --only every benchmark runs except the long ones ({', '.join(LONG_BENCHMARKS)}; "
+        "minutes to a quarter of an hour each): name them with --only, or pass --all.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--only", action="append", choices=sorted(BENCHMARKS), help="run only these (repeatable)")
+    p.add_argument("--all", action="store_true", help="also run the long benchmarks")
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     print(f"vtolpose bench on {platform.node()}: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
-    run_benchmarks(args.only)
+    run_benchmarks(args.only, include_long=args.all)
     return 0

@@ -9,6 +9,7 @@ from drivers.dataset import Dataset
 from drivers.tum import write_tum
 from service.commands.common import add_config_options, parse_sensors, write_json
 from service.commands.run import add_runtime_options, config_for
+from service.faults import add_fault_options, parse_faults
 from service.overlay import OverlayWriter
 from service.progress import Progress
 from service.replay import replay
@@ -29,12 +30,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "Sensor sets: imu,gps (thesis Test 1); imu,camera (Test 2); imu,camera,gps (Test 3).\n\n"
         "Examples:\n"
         "  vtolpose replay data/book --sensors imu,gps --variant thesis --out traj.txt --report report.json\n"
-        "  vtolpose replay data/landfill --speed 1 --mavlink udpout:127.0.0.1:14540 --zenoh   (a live-like feed)",
+        "  vtolpose replay data/landfill --speed 1 --mavlink udpout:127.0.0.1:14540 --zenoh   (a live-like feed)\n"
+        "  vtolpose replay data/landfill --sensors imu,camera,gps --fault gps-off:60:30 --report r.json",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("dataset", metavar="DATASET", help="dataset folder (see README, Dataset layout)")
     add_config_options(p)
     add_runtime_options(p)
+    add_fault_options(p)
     p.add_argument("--sensors", metavar="LIST", help="comma-separated streams to use (default: replay.sensors)")
     p.add_argument("--out", metavar="TRAJ.txt", help="trajectory file (TUM format)")
     p.add_argument("--report", metavar="REPORT.json", help="JSON report")
@@ -46,6 +49,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = config_for(args)
+    faults = parse_faults(args.fault)
     dataset = Dataset.open(args.dataset)
     sensors = parse_sensors(args.sensors)
     progress = Progress(1.0, f"replay {dataset.meta['name']}", enabled=False if args.no_progress else None)
@@ -55,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
         progress.update(done_s)
 
     overlay = OverlayWriter(args.overlay) if args.overlay else None
-    result = replay(dataset, cfg, sensors, on_progress=on_progress if progress.enabled else None, on_frame=overlay)
+    result = replay(dataset, cfg, sensors, on_progress=on_progress if progress.enabled else None, on_frame=overlay,
+                    faults=faults, fault_seed=args.fault_seed)
     progress.finish()
     report = build_report(result, dataset, cfg)
     if args.out:

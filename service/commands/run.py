@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import datetime
 import logging
 
 from config import ConfigError, load_config
 from service.commands.common import add_config_options, overrides_from, parse_sensors
+from service.faults import add_fault_options, injector_from
 
 log = logging.getLogger(__name__)
+LIVE_FRAME_REPORTS = 1000  # recent per-frame reports a long run keeps (memory stays flat)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -31,9 +34,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--replay", metavar="DATASET", help="replay this dataset instead of reading the sensors")
     p.add_argument("--sensors", metavar="LIST", help="replay: streams to use, e.g. imu,gps (replay.sensors)")
     add_runtime_options(p)
+    add_fault_options(p)  # replay only: faults played on the replayed stream (service.faults)
     p.add_argument("--out", metavar="TRAJ.txt", help="write the fused trajectory here (TUM; run.trajectory)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time")
-    p.add_argument("--record", metavar="DIR", help="live: record every raw sample into this new dataset folder (run.record_dir)")
+    p.add_argument("--record", metavar="DIR", help="live: record every raw sample into this new dataset folder; {start} in it becomes the UTC start "
+                   "time, e.g. /data/flights/{start} (run.record_dir)")
     p.add_argument("--hold", action="store_true",
                    help="replay: after the data, keep answering queries (pose/at, trajectory) until stopped")
     p.set_defaults(run=run)
@@ -63,6 +68,13 @@ def config_for(args: argparse.Namespace) -> dict:
     return load_config(args.config, overrides)
 
 
+def recording_folder(template: str, now: datetime.datetime | None = None) -> str:
+    """``run.record_dir`` with ``{start}`` replaced by the UTC start time (e.g. 20261122T103105Z), so a
+    service that restarts records each flight into its own new folder instead of refusing to start."""
+    now = now or datetime.datetime.now(datetime.timezone.utc)
+    return template.replace("{start}", now.strftime("%Y%m%dT%H%M%SZ"))
+
+
 def camera_processor(cfg: dict, calibration):
     """Feature extraction for the runtime's camera workers, or None (with a warning) without intrinsics."""
     from service.replay import FrameProcessor
@@ -72,7 +84,7 @@ def camera_processor(cfg: dict, calibration):
     if cam is None:
         log.warning("no camera calibration: camera frames are not used")
         return None
-    return FrameProcessor(feature_options(cfg), (cam.height, cam.width))
+    return FrameProcessor(feature_options(cfg), (cam.height, cam.width), keep=LIVE_FRAME_REPORTS)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -88,10 +100,15 @@ def run(args: argparse.Namespace) -> int:
         dataset = Dataset.open(args.replay)
         sensors = parse_sensors(args.sensors) or cfg["replay.sensors"]
         processor = camera_processor(cfg, dataset.calibration) if "camera" in sensors else None
+        injector = injector_from(args)
         summary, _ = asyncio.run(replay_async(dataset, cfg, sensors, trajectory_path=args.out, camera_processor=processor,
-                                              duration_s=args.duration, hold=args.hold,
+                                              faults=injector, duration_s=args.duration, hold=args.hold,
                                               on_hold=lambda text: print(text, flush=True)))
+        for fault in injector.report() if injector is not None else ():
+            print(f"fault {fault['spec']}: {fault['samples_affected']} samples dropped or changed", flush=True)
     else:
+        if args.fault:
+            raise ConfigError("--fault plays faults on a replayed stream: use it with --replay")
         summary = asyncio.run(_live(cfg, args))
     for line in summary_lines(summary):
         print(line, flush=True)
@@ -115,7 +132,8 @@ async def _live(cfg: dict, args: argparse.Namespace):
     if cfg["run.record_dir"]:
         from service.recorder import FlightRecorder
 
-        recorder = FlightRecorder(cfg["run.record_dir"], calibration, description="recorded live by vtolpose run")
+        recorder = FlightRecorder(recording_folder(cfg["run.record_dir"]), calibration,
+                                  description="recorded live by vtolpose run")
         runtime.recorder = recorder
     live = live_sources(cfg, runtime, recorder)
     runtime.origin = live.origin

@@ -1,0 +1,278 @@
+"""Filter health: which sensors are alive, whether the filter is still sound, when it must reset.
+
+The estimator (``estimator.filter``) asks short questions at the points where it can act:
+
+- A sensor goes quiet or every measurement of it is refused: after ``gps_stale_s`` /
+  ``camera_stale_s`` without a *used* measurement it is reported stale and the published
+  quality is capped. Nothing is reset: the covariance grows on its own, honestly.
+- A sensor's innovations stay beyond its gate (every GPS fix rejected for
+  ``gps_reset_after_s``): the estimate, not the sensor, is wrong — the filter re-initialises
+  position and velocity from that sensor (:meth:`HealthMonitor.measured` says when).
+- The filter itself breaks: a nominal state or covariance that is not finite, or a covariance
+  that is not positive definite (:func:`state_problem`, every ``check_period_s``). The filter
+  goes back to the last nominal state that passed the check, re-initialises its covariance
+  from the sensors still alive and clears the map.
+- The IMU stream has a hole longer than ``imu_gap_reset_s``: samples were lost, or every
+  stamp stepped (a clock step) — the IMU alone cannot tell which. Rather than one giant
+  propagation step, the filter restarts at the new sample with the nominal state held and the
+  covariance widened to cover both readings (:func:`widen_for_gap`); GPS and camera then pull
+  it back. Shorter gaps are propagated over, widened only by the unmodelled acceleration.
+
+Every reset is counted (the ODOMETRY ``reset_counter``) and, for ``reset_hold_s`` after it,
+caps the published quality. Pure computation: no I/O, no clocks.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.state import FilterState
+
+RESET_KINDS = ("gps_rejected", "imu_gap", "state_invalid")
+
+
+@dataclass(frozen=True, slots=True)
+class HealthOptions:
+    imu_gap_reset_s: float = 1.0  # longer IMU gaps (or forward clock steps) are not propagated over
+    gap_accel_sigma: float = 2.0  # m/s²: acceleration the vehicle may have had in a gap beyond the held sample
+    gap_rate_sigma_deg: float = 3.0  # deg/s: turn rate it may have had beyond the held sample
+    check_period_s: float = 1.0  # full covariance check (finite, positive definite) this often
+    gps_stale_s: float = 1.0  # no fix used for this long: GPS stale
+    camera_stale_s: float = 1.0  # no frame used for this long: camera stale
+    stale_quality_cap: int = 50  # quality ceiling while a sensor that was in use is stale
+    reset_quality_cap: int = 20  # quality ceiling for reset_hold_s after a reset
+    reset_hold_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in ("imu_gap_reset_s", "check_period_s", "gps_stale_s", "camera_stale_s"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"health {name} must be positive, got {getattr(self, name)}")
+        if not (self.gap_accel_sigma >= 0.0 and self.gap_rate_sigma_deg >= 0.0 and self.reset_hold_s >= 0.0):
+            raise ValueError("health gap sigmas and reset_hold_s must be >= 0")
+        if not (0 <= self.reset_quality_cap <= 100 and 0 <= self.stale_quality_cap <= 100):
+            raise ValueError("health quality caps must be within 0..100")
+
+
+@dataclass(slots=True)
+class SensorHealth:
+    """Filter-time bookkeeping of one measurement stream."""
+
+    last_t_ns: int | None = None  # last measurement that reached the filter
+    last_used_t_ns: int | None = None  # last one it fused
+    rejected_since_ns: int | None = None  # start of the current run of gate rejections
+    used: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class Reset:
+    t_ns: int
+    kind: str  # one of RESET_KINDS
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """A nominal state that passed the health check (what a broken filter goes back to)."""
+
+    t_ns: int
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+    b_g: np.ndarray
+    b_a: np.ndarray
+
+
+def state_problem(state: FilterState) -> str | None:
+    """Why ``state`` cannot be trusted, or None. Positive definiteness is tested on the correlation
+    matrix (scale-free: a landmark metres away and a bias of 1e-4 weigh alike) with a tiny jitter."""
+    for name in ("p", "v", "q", "b_g", "b_a", "landmarks"):
+        if not np.all(np.isfinite(getattr(state, name))):
+            return f"nominal {name} not finite"
+    cov = state.cov
+    if not np.all(np.isfinite(cov)):
+        return "covariance not finite"
+    d = np.diagonal(cov)
+    if np.any(d <= 0.0):
+        return f"covariance has a non-positive variance (index {int(np.argmin(d))})"
+    s = 1.0 / np.sqrt(d)
+    corr = (cov + cov.T) * 0.5 * s[:, None] * s[None, :]
+    corr[np.diag_indices_from(corr)] += 1e-9
+    try:
+        np.linalg.cholesky(corr)
+    except np.linalg.LinAlgError:
+        return "covariance not positive definite"
+    return None
+
+
+def gap_variances(gap_s: float, speed: float, rate: float, options: HealthOptions, extrapolated: bool) -> np.ndarray:
+    """Variances added to [δp, δv, δθ] (per axis) by an IMU gap that has lasted ``gap_s``.
+
+    Extrapolated over (a short gap: the last sample is held): its error, an unmodelled
+    acceleration ``a`` and turn rate ``w``: velocity ``a·dt``, position ``½a·dt²``, attitude
+    ``w·dt``. Held (a long gap or a clock step: the nominal state stops): also the motion the
+    held state leaves out, the distance flown ``|v|·dt`` and the turn ``|ω|·dt`` — because the
+    gap may have been real time or no time at all.
+    """
+    dt = float(gap_s)
+    a, w = options.gap_accel_sigma, math.radians(options.gap_rate_sigma_deg)
+    var_p, var_v, var_th = (0.5 * a * dt * dt) ** 2, (a * dt) ** 2, (w * dt) ** 2
+    if not extrapolated:
+        var_p += (speed * dt) ** 2
+        var_th += (rate * dt) ** 2
+    return np.array([var_p, var_v, var_th])
+
+
+class GapWidener:
+    """The current hole in the IMU stream, widened as time passes without a sample.
+
+    The filter calls :meth:`widen` whenever time moves on without IMU (a measurement's time, or
+    the next sample's): the covariance grows by what the gap adds since the last call. Up to
+    ``imu_gap_reset_s`` the last sample is extrapolated (measurements in the gap propagate the
+    state holding it); beyond it the state is held instead (:attr:`holding`).
+    """
+
+    def __init__(self, options: HealthOptions, bridge_s: float) -> None:
+        self.options = options
+        self.bridge_s = bridge_s
+        self.covered_s = 0.0  # the part of the current gap already in the covariance
+        self.holding = False
+
+    def widen(self, state: FilterState, gap_s: float, omega_b: np.ndarray) -> bool:
+        """Account for a gap of ``gap_s`` so far. True when it has just passed the reset limit."""
+        if gap_s <= self.bridge_s or gap_s <= self.covered_s:
+            return False
+        crossed = not self.holding and gap_s > self.options.imu_gap_reset_s
+        self.holding = self.holding or crossed
+        self._add(state, gap_s, omega_b)
+        return crossed
+
+    def lost(self, state: FilterState, lost_s: float, omega_b: np.ndarray) -> bool:
+        """``lost_s`` of data vanished without time passing (a backward clock step). True: beyond the limit."""
+        self.holding, self.covered_s = True, 0.0
+        self._add(state, lost_s, omega_b)
+        self.end()
+        return lost_s > self.options.imu_gap_reset_s
+
+    def end(self) -> None:
+        """A sample arrived: the gap is over."""
+        self.covered_s, self.holding = 0.0, False
+
+    def _add(self, state: FilterState, gap_s: float, omega_b: np.ndarray) -> None:
+        speed, rate = math.sqrt(float(state.v @ state.v)), math.sqrt(float(omega_b @ omega_b))
+        extrapolated = not self.holding
+        added = gap_variances(gap_s, speed, rate, self.options, extrapolated)
+        added -= gap_variances(self.covered_s, speed, rate, self.options, extrapolated)
+        idx = np.arange(9)
+        state.cov[idx, idx] += np.repeat(np.maximum(added, 0.0), 3)
+        self.covered_s = gap_s
+
+
+class HealthMonitor:
+    """Sensor ages, gate-failure runs, periodic state checks, resets; see the module docstring."""
+
+    def __init__(self, options: HealthOptions, gps_reset_after_s: float, history: int = 16) -> None:
+        self.options = options
+        self.reject_limit_ns = {"gps": int(round(gps_reset_after_s * 1e9))}
+        self.stale_ns = {"gps": int(round(options.gps_stale_s * 1e9)), "camera": int(round(options.camera_stale_s * 1e9))}
+        self.sensors: dict[str, SensorHealth] = {}
+        self.resets: deque[Reset] = deque(maxlen=history)  # the most recent, for the status
+        self.reset_counts: dict[str, int] = {}
+        self.snapshot: Snapshot | None = None
+        self._next_check_ns: int | None = None
+        self._hold_ns = int(round(options.reset_hold_s * 1e9))
+        self._period_ns = int(round(options.check_period_s * 1e9))
+
+    # ------------------------------------------------------------------------ measurements
+    def measured(self, sensor: str, t_ns: int, used: bool, gated: bool = False) -> bool:
+        """Record a measurement's fate. True: ``sensor``'s innovations have been beyond its gate
+        for too long (``gated`` rejections only) — the caller re-initialises from it."""
+        s = self.sensors.get(sensor)
+        if s is None:
+            s = self.sensors[sensor] = SensorHealth()
+        s.last_t_ns = t_ns if s.last_t_ns is None else max(s.last_t_ns, t_ns)
+        if used:
+            s.last_used_t_ns, s.rejected_since_ns = t_ns, None
+            s.used += 1
+            return False
+        limit = self.reject_limit_ns.get(sensor)
+        if not gated or limit is None:
+            return False
+        if s.rejected_since_ns is None:
+            s.rejected_since_ns = t_ns
+            return False
+        return t_ns - s.rejected_since_ns >= limit
+
+    def gap_needs_reset(self, gap_s: float) -> bool:
+        return gap_s > self.options.imu_gap_reset_s
+
+    # --------------------------------------------------------------------------- checks
+    def check_due(self, t_ns: int) -> bool:
+        if self._next_check_ns is None or t_ns >= self._next_check_ns:
+            self._next_check_ns = t_ns + self._period_ns
+            return True
+        return False
+
+    def check(self, state: FilterState) -> str | None:
+        """The state's problem, or None — then it becomes the snapshot to fall back on."""
+        problem = state_problem(state)
+        if problem is None:
+            self.snapshot = Snapshot(state.t_ns, state.p.copy(), state.v.copy(), state.q.copy(),
+                                     state.b_g.copy(), state.b_a.copy())
+        return problem
+
+    # --------------------------------------------------------------------------- resets
+    def record_reset(self, t_ns: int, kind: str, reason: str) -> None:
+        self.resets.append(Reset(t_ns, kind, reason))
+        self.reset_counts[kind] = self.reset_counts.get(kind, 0) + 1
+        for s in self.sensors.values():
+            s.rejected_since_ns = None
+
+    def fresh(self, sensor: str, t_ns: int) -> bool:
+        """Whether ``sensor`` had a measurement used within its stale limit before ``t_ns``."""
+        s = self.sensors.get(sensor)
+        return s is not None and s.last_used_t_ns is not None and t_ns - s.last_used_t_ns <= self.stale_ns.get(sensor, 0)
+
+    # --------------------------------------------------------------------------- report
+    def stale(self, t_ns: int) -> list[str]:
+        """Sensors that were in use and have had nothing used for longer than their limit."""
+        return [name for name, s in self.sensors.items()
+                if s.last_used_t_ns is not None and name in self.stale_ns and t_ns - s.last_used_t_ns > self.stale_ns[name]]
+
+    def quality_cap(self, t_ns: int) -> int:
+        """Ceiling on the published quality: 100 when healthy (per-call cost: a few comparisons)."""
+        cap = 100
+        if self.resets and t_ns - self.resets[-1].t_ns < self._hold_ns:
+            cap = self.options.reset_quality_cap
+        for name, s in self.sensors.items():
+            limit = self.stale_ns.get(name)
+            if limit is not None and s.last_used_t_ns is not None and t_ns - s.last_used_t_ns > limit:
+                cap = min(cap, self.options.stale_quality_cap)
+        return cap
+
+    def report(self, t_ns: int | None) -> dict:
+        """For the status document: per-sensor ages in filter time, resets, degraded flags."""
+        sensors = {}
+        for name, s in sorted(self.sensors.items()):
+            sensors[name] = {
+                "age_s": None if t_ns is None or s.last_t_ns is None else round((t_ns - s.last_t_ns) * 1e-9, 3),
+                "used_age_s": None if t_ns is None or s.last_used_t_ns is None else round((t_ns - s.last_used_t_ns) * 1e-9, 3),
+                "used": s.used,
+            }
+        stale = self.stale(t_ns) if t_ns is not None else []
+        for name in stale:
+            sensors[name]["stale"] = True
+        last = self.resets[-1] if self.resets else None
+        degraded = [f"{name}_stale" for name in sorted(stale)]
+        if last is not None and t_ns is not None and t_ns - last.t_ns < self._hold_ns:
+            degraded.append(f"recent_reset_{last.kind}")
+        return {
+            "sensors": sensors,
+            "resets": dict(sorted(self.reset_counts.items())),
+            "last_reset": None if last is None else {"t_ns": last.t_ns, "kind": last.kind, "reason": last.reason},
+            "degraded": degraded,
+            "quality_cap": self.quality_cap(t_ns) if t_ns is not None else 0,
+        }

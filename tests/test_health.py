@@ -1,0 +1,246 @@
+"""Filter health (estimator.health) and the isolation of everything around the estimator: a broken
+state is caught and rebuilt, stale sensors cap the published quality, and an output, a source or
+a sample that raises is counted and logged once — the service carries on."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+
+from config import load_config
+from drivers.simulator import simulate_flight
+from estimator.filter import Estimator
+from estimator.fusion import FusionOptions
+from estimator.health import GapWidener, HealthMonitor, HealthOptions, gap_variances, state_problem
+from estimator.measurements import GpsFix, ImuSample
+from estimator.state import FilterState, StateLayout
+from service.runtime import Runtime, RuntimeOptions
+from service.status import FailureBook, pose_quality
+from service.wiring import filter_options
+
+S = 1_000_000_000
+
+
+def sound_state() -> FilterState:
+    state = FilterState(StateLayout("biases"))
+    state.cov = np.diag(np.linspace(1e-6, 1.0, state.dim))
+    return state
+
+
+def test_state_problem_finds_what_makes_a_state_untrustworthy():
+    assert state_problem(sound_state()) is None
+    state = sound_state()
+    state.p[1] = np.nan
+    assert state_problem(state) == "nominal p not finite"
+    state = sound_state()
+    state.cov[4, 4] = -1e-3
+    assert "non-positive variance (index 4)" in state_problem(state)
+    state = sound_state()
+    state.cov[0, 1] = state.cov[1, 0] = 2.0 * np.sqrt(state.cov[0, 0] * state.cov[1, 1])  # correlation 2
+    assert state_problem(state) == "covariance not positive definite"
+    state = sound_state()
+    state.cov[2, 3] = np.inf
+    assert state_problem(state) == "covariance not finite"
+
+
+def test_gap_variance_grows_with_the_gap_and_more_when_the_state_is_held():
+    opts = HealthOptions()
+    short, longer = (gap_variances(dt, 8.0, 0.1, opts, extrapolated=True) for dt in (0.5, 1.0))
+    assert np.all(longer > short) and longer[0] == pytest.approx((0.5 * 2.0 * 1.0) ** 2)
+    held = gap_variances(1.0, 8.0, 0.1, opts, extrapolated=False)
+    assert held[0] == pytest.approx(longer[0] + 8.0**2) and held[1] == longer[1] and held[2] > longer[2]
+
+
+def test_gap_widener_adds_each_part_of_a_gap_once_and_says_when_to_reset():
+    opts = HealthOptions(imu_gap_reset_s=1.0)
+    state = sound_state()
+    before = state.cov.diagonal().copy()
+    widener = GapWidener(opts, bridge_s=0.05)
+    assert not widener.widen(state, 0.04, np.zeros(3))  # within the bridge: nothing
+    assert not widener.widen(state, 0.6, np.zeros(3))
+    once = state.cov.diagonal().copy()
+    assert not widener.widen(state, 0.6, np.zeros(3))  # the same instant again: nothing more
+    assert np.array_equal(state.cov.diagonal(), once)
+    assert widener.widen(state, 1.5, np.zeros(3)) and widener.holding  # past the limit: reset, hold
+    assert not widener.widen(state, 2.0, np.zeros(3))  # reported once per gap
+    grown = state.cov.diagonal() - before
+    assert grown[0] == pytest.approx((0.5 * 2.0 * 1.5**2) ** 2 + (0.5 * 2.0 * 2.0**2) ** 2 - (0.5 * 2.0 * 1.5**2) ** 2)
+    assert np.all(grown[9:] == 0.0)  # biases are not touched by a gap
+    widener.end()
+    assert not widener.holding and widener.covered_s == 0.0
+
+
+def test_monitor_stale_sensors_and_resets_cap_the_quality():
+    opts = HealthOptions(gps_stale_s=1.0, stale_quality_cap=50, reset_quality_cap=20, reset_hold_s=5.0)
+    mon = HealthMonitor(opts, gps_reset_after_s=5.0)
+    assert mon.quality_cap(0) == 100  # nothing seen, nothing stale
+    assert not mon.measured("gps", 1 * S, used=True)
+    assert mon.quality_cap(int(1.9 * S)) == 100 and mon.fresh("gps", int(1.9 * S))
+    assert mon.quality_cap(int(2.1 * S)) == 50 and mon.stale(int(2.1 * S)) == ["gps"]
+    for k in range(2, 8):  # gate rejections for 5 s: the estimate is wrong, reset
+        reset = mon.measured("gps", k * S, used=False, gated=True)
+        assert reset == (k == 7)
+    mon.record_reset(7 * S, "gps_rejected", "test")
+    assert mon.quality_cap(8 * S) == 20 and mon.quality_cap(13 * S) == 50
+    report = mon.report(8 * S)
+    assert report["resets"] == {"gps_rejected": 1} and report["degraded"] == ["gps_stale", "recent_reset_gps_rejected"]
+    assert report["sensors"]["gps"]["stale"] and report["sensors"]["gps"]["age_s"] == 1.0
+    assert not mon.measured("gps", 8 * S, used=False, gated=False)  # non-finite fixes never reset
+
+
+def test_health_options_are_checked():
+    with pytest.raises(ValueError, match="imu_gap_reset_s"):
+        HealthOptions(imu_gap_reset_s=0.0)
+    with pytest.raises(ValueError, match="quality caps"):
+        HealthOptions(stale_quality_cap=101)
+
+
+# ------------------------------------------------------------------------ the filter
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return simulate_flight("landfill", 40.0, 5)
+
+
+def feed(est: Estimator, flight, t_from_s: float, t_to_s: float) -> None:
+    imu, gps = flight.imu, flight.gps
+    t0 = int(imu.t_ns[0])
+    items = [(int(t), 0, ImuSample(int(t), g, a)) for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel)]
+    items += [(int(t), 1, GpsFix(int(t), p, float(h), float(v))) for t, p, h, v in zip(gps.t_ns, gps.p_ned, gps.sigma_h, gps.sigma_v)]
+    for t, kind, sample in sorted(items, key=lambda e: (e[0], e[1])):
+        if t0 + t_from_s * S <= t < t0 + t_to_s * S:
+            (est.process_imu(t, sample.gyro, sample.accel) if kind == 0 else est.process_gps(sample))
+
+
+def estimator(flight) -> Estimator:
+    return Estimator(flight.calibration, filter_options(load_config(), flight.calibration.imu.noise))
+
+
+@pytest.mark.parametrize("breakage", ["covariance", "nominal"])
+def test_a_broken_filter_state_is_rebuilt_and_counted(flight, breakage):
+    est = estimator(flight)
+    feed(est, flight, 0.0, 30.0)
+    assert est.reset_counter == 0 and est.health.snapshot is not None
+    good_p = est.health.snapshot.p.copy()
+    if breakage == "covariance":
+        est.state.cov[0, 0] = -1.0
+    else:
+        est.state.p[:] = np.nan
+        est.state.cov[:] = np.nan
+    feed(est, flight, 30.0, 40.0)
+    assert est.reset_counter == 1 and est.health.reset_counts == {"state_invalid": 1}
+    assert state_problem(est.state) is None and est.state.is_finite()
+    assert "reset #1" in est.events[-1][1] or any("reset #1" in m for _, m in est.events)
+    truth_p = flight.truth.p[-1]
+    assert np.linalg.norm(est.state.p - truth_p) < 5.0  # back on the GPS
+    if breakage == "nominal":
+        assert np.linalg.norm(good_p - truth_p) > 1.0  # (it started from the snapshot, then GPS pulled it)
+
+
+# ------------------------------------------------------------------------ isolation
+
+
+class Collect:
+    name = "collect"
+
+    def __init__(self) -> None:
+        self.poses = []
+
+    def open(self) -> None: ...
+    def publish(self, pose) -> None: self.poses.append(pose)
+    def publish_status(self, status) -> None: ...
+    async def serve(self, stop) -> None: await stop.wait()
+    def close(self) -> None: ...
+
+
+class Broken(Collect):
+    """An output whose link has died: every publish raises."""
+
+    name = "broken"
+
+    def publish(self, pose) -> None:
+        raise ConnectionResetError("link down")
+
+
+def samples(flight, t_to_s: float):
+    imu, gps = flight.imu, flight.gps
+    t0 = int(imu.t_ns[0])
+    items = [(int(t), 0, ImuSample(int(t), g, a)) for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel) if t < t0 + t_to_s * S]
+    items += [(int(t), 1, GpsFix(int(t), p, float(h), float(v)))
+              for t, p, h, v in zip(gps.t_ns, gps.p_ned, gps.sigma_h, gps.sigma_v) if t < t0 + t_to_s * S]
+    return [s for _, _, s in sorted(items, key=lambda e: (e[0], e[1]))]
+
+
+async def from_list(items, fail_after: int | None = None):
+    for k, item in enumerate(items):
+        if fail_after is not None and k == fail_after:
+            raise OSError("device unplugged")
+        yield item
+        await asyncio.sleep(0)
+
+
+def test_a_failing_output_is_isolated_counted_and_logged_once(flight, caplog):
+    good, broken = Collect(), Broken()
+    runtime = Runtime(estimator(flight), RuntimeOptions(fusion=FusionOptions(delay_s=0.1)), outputs=[broken, good])
+    with caplog.at_level(logging.ERROR):
+        summary = asyncio.run(runtime.run([from_list(samples(flight, 12.0))]))
+    assert summary.poses_published > 1000 and len(good.poses) == summary.poses_published
+    report = summary.status["failures"]
+    assert report["output broken"]["failures"] == summary.poses_published
+    assert report["output broken"]["last"] == "ConnectionResetError: link down"
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and errors[0].exc_info is not None  # the first with its traceback, no flood
+
+
+def test_a_failing_source_ends_alone_and_the_others_go_on(flight):
+    items = samples(flight, 12.0)
+    imu = [s for s in items if isinstance(s, ImuSample)]
+    gps = [s for s in items if isinstance(s, GpsFix)]
+    out = Collect()
+    runtime = Runtime(estimator(flight), RuntimeOptions(fusion=FusionOptions(delay_s=0.1), lockstep=True), outputs=[out])
+    summary = asyncio.run(runtime.run([from_list(imu), from_list(gps, fail_after=20)]))
+    assert summary.imu_samples == len(imu)
+    assert summary.status["failures"]["source 1"]["last"] == "OSError: device unplugged"
+    assert runtime.est.counts["gps"].received == 20
+
+
+def test_a_sample_whose_handling_raises_is_skipped(flight):
+    items = samples(flight, 6.0)
+    mid = len(items) // 2
+    items.insert(mid, ImuSample(items[mid - 1].t_ns + 1, None, None))  # a driver bug: no arrays at all
+    out = Collect()
+    runtime = Runtime(estimator(flight), RuntimeOptions(fusion=FusionOptions(delay_s=0.1)), outputs=[out])
+    summary = asyncio.run(runtime.run([from_list(items)]))
+    assert summary.status["failures"]["handling ImuSample"]["failures"] == 1
+    assert out.poses[-1].t_ns == max(s.t_ns for s in items if isinstance(s, ImuSample) and s.gyro is not None)
+
+
+def test_failure_book_summarises_a_flood_once_per_period(caplog):
+    now = [0.0]
+    book = FailureBook(period_s=10.0, clock=lambda: now[0])
+    with caplog.at_level(logging.ERROR):
+        for k in range(2000):  # 200 failures a second for 10 s
+            now[0] = k * 0.005
+            book.record("output zenoh", RuntimeError(f"#{k}"))
+        now[0] = 10.0
+        book.record("output zenoh", RuntimeError("late"))
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and "2000 more failure(s)" in lines[1] and "late" in lines[1]
+    assert book.report() == {"output zenoh": {"failures": 2001, "last": "RuntimeError: late"}}
+    assert str(book.first("output")) == "#0"
+
+
+def test_published_quality_never_exceeds_the_health_cap(flight):
+    out = Collect()
+    runtime = Runtime(estimator(flight), RuntimeOptions(fusion=FusionOptions(delay_s=0.1)), outputs=[out])
+    summary = asyncio.run(runtime.run([from_list(samples(flight, 12.0))]))
+    sharp = dataclasses.replace(out.poses[-1], cov9=np.eye(9) * 1e-6)
+    assert pose_quality(sharp) == 100
+    assert pose_quality(dataclasses.replace(sharp, quality_cap=20)) == 20
+    assert summary.status["quality"] == pose_quality(out.poses[-1])
+    assert summary.status["health"]["sensors"]["gps"]["used"] > 0
