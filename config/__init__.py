@@ -31,6 +31,8 @@ def _read_yaml(text: str, origin: str) -> dict:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
         raise ConfigError(f"{origin}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    except RecursionError:  # PyYAML recurses per nesting level: '[[[[...' a thousand deep
+        raise ConfigError(f"{origin}: nested too deeply to be a configuration") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -58,6 +60,14 @@ def _type_name(value: Any) -> str:
     return "null" if value is None else type(value).__name__
 
 
+def _finite(x: int | float) -> bool:
+    """Finite as a float: YAML integers have no size limit, and 10**400 is no float."""
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
+
+
 def _check(key: str, value: Any, field: Field, origin: str) -> Any:
     def fail(problem: str) -> ConfigError:
         return ConfigError(f"{origin}: key '{key}': {problem} (got {value!r}, a {_type_name(value)})")
@@ -74,7 +84,7 @@ def _check(key: str, value: Any, field: Field, origin: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, int):
             raise fail("expected an integer")
     elif kind == "float":
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not _finite(value):
             raise fail("expected a finite number")
         value = float(value)
     elif kind == "str":
@@ -90,7 +100,7 @@ def _check(key: str, value: Any, field: Field, origin: str) -> Any:
         rows = value if kind == "matrix3" else [value]
         ok = isinstance(value, list) and len(rows) == (3 if kind == "matrix3" else 1)
         ok = ok and all(isinstance(r, list) and len(r) == 3 for r in rows)
-        ok = ok and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for r in rows for x in r)
+        ok = ok and all(isinstance(x, (int, float)) and not isinstance(x, bool) and _finite(x) for r in rows for x in r)
         if not ok:
             raise fail("expected a list of 3 numbers" if kind == "vector3" else "expected 3 rows of 3 numbers")
     else:  # pragma: no cover - a schema typo
@@ -152,7 +162,11 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         path = Path(path)
         if not path.is_file():
             raise ConfigError(f"config file {path}: not found")
-        user = _read_yaml(path.read_text(encoding="utf-8"), f"config file {path}")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"config file {path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
+        user = _read_yaml(text, f"config file {path}")
         validate(user, f"config file {path}")
         tree = _merge(tree, user)
         origin = f"config file {path}"

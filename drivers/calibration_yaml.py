@@ -26,6 +26,14 @@ _NOISE_KEYS = ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", 
 _CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "distortion", "R_BC", "t_BC", "rate_hz", "time_offset_s"}
 
 
+def _finite(x: int | float) -> bool:
+    """Finite as a float (a YAML integer has no size limit: 10**400 is no float)."""
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
+
+
 class CalibrationError(ValueError):
     """A calibration file that cannot be used; the message names the file and the key."""
 
@@ -53,7 +61,7 @@ class YamlReader:
         return value
 
     def number(self, value: Any, key: str, positive: bool = False, non_negative: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not _finite(value):
             raise self.fail(key, "a finite number", value)
         if positive and value <= 0:
             raise self.fail(key, "a positive number", value)

@@ -217,13 +217,13 @@ class PacketFramer:
             return False
         if self._in_sequence(words):
             return True
-        if self.step is None and self._last_end == self._start + pos:
+        if self.step is None and self._last_end == self._start + pos and self._could_follow(self._last_words, words):
             return True  # contiguous with the previous packet, and no counter model yet
         after = pos + PACKET_LEN
         if len(self._buf) < after + PACKET_LEN:
             return None
         following = decode_packet(self._buf[after:after + PACKET_LEN])
-        return following is not None and (self.step is None or self._follows(words, following))
+        return following is not None and self._could_follow(words, following)
 
     def _shuffled_copy(self, pos: int, words: tuple[int, ...]) -> bool:
         """Whether the candidate at ``pos`` is more likely a damaged packet's bytes in the wrong order.
@@ -243,7 +243,7 @@ class PacketFramer:
         jump = sum(abs(a - b) for a, b in zip(words[:6], last[:6]))
         for k in range(2, PACKET_LEN + 1):
             other = decode_packet(bytes19[:k] + bytes19[k + 1:])
-            if other is not None and (self.step is None or self._follows(last, other)):
+            if other is not None and self._could_follow(last, other):
                 if sum(abs(a - b) for a, b in zip(other[:6], last[:6])) < jump:
                     return True
         return False
@@ -251,6 +251,13 @@ class PacketFramer:
     def _in_sequence(self, words: tuple[int, ...]) -> bool:
         """Whether ``words`` can follow the last packet taken (needs a learned counter step)."""
         return self._last_words is not None and self._follows(self._last_words, words)
+
+    def _could_follow(self, before: tuple[int, ...], words: tuple[int, ...]) -> bool:
+        """``_follows`` once the counter step is known; before that only the temperature can be checked
+        (without it a damaged packet whose checksum matches by chance, 1 in 256, would be taken)."""
+        if self.step is None:
+            return abs(words[6] - before[6]) <= self.MAX_TEMPERATURE_STEP
+        return self._follows(before, words)
 
     def _follows(self, before: tuple[int, ...], words: tuple[int, ...]) -> bool:
         """Counter 1..MAX_MISSING + 1 steps after ``before``'s, temperature within reach of it."""

@@ -10,7 +10,7 @@ integer nanoseconds but may be written in scientific notation: they are parsed e
 from __future__ import annotations
 
 import logging
-from decimal import Decimal, InvalidOperation
+from decimal import Decimal
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -38,15 +38,17 @@ def parse_time_ns(text: str, unit_ns: int = 1) -> int:
     Raises ValueError on anything else.
     """
     text = text.strip()
-    if unit_ns == 1 and text.isdigit():
+    if unit_ns == 1 and text.isascii() and text.isdigit():  # isdigit alone also takes '²', which int() refuses
         value = int(text)
     else:
         try:
             number = Decimal(text) * unit_ns
-        except InvalidOperation:
+        except ArithmeticError:  # InvalidOperation for text, Overflow for exponents beyond decimal's range
             raise ValueError(f"not a number: {text!r}") from None
         if not number.is_finite():
             raise ValueError(f"not finite: {text!r}")
+        if number and number.adjusted() > 19:  # beyond int64 (checked before building a huge integer)
+            raise ValueError(f"time out of int64 range: {text!r}")
         integral = number.to_integral_value()
         if unit_ns == 1 and number != integral:
             raise ValueError(f"not an integer nanosecond time: {text!r}")

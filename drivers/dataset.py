@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable
 
 import numpy as np
 import pymap3d
@@ -47,6 +47,7 @@ GT_HEADER = ("#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q
              "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]")
 LEICA_HEADER = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m]"
 GPS_FRAMES = ("WGS84", "NED")
+MAX_GPS_HEIGHT_M = 1.0e5  # a WGS84 fix beyond ±100 km is a corrupt row (it would also make a useless origin)
 
 
 @dataclass
@@ -66,10 +67,7 @@ class Dataset:
             raise FileNotFoundError(f"{root}: dataset folder not found")
         if not path.is_file():
             raise FileNotFoundError(f"{path}: not found (every dataset needs its dataset.yaml)")
-        try:
-            doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except yaml.YAMLError as exc:
-            raise CalibrationError(f"{path}: not valid YAML: {exc}") from None
+        doc = _load_yaml(path)
         if not isinstance(doc, dict) or doc.get("format") != DATASET_FORMAT:
             got = doc.get("format") if isinstance(doc, dict) else doc
             raise CalibrationError(f"{path}: format: expected {DATASET_FORMAT!r}, got {got!r}")
@@ -122,23 +120,30 @@ class Dataset:
             return None
         frame = _gps_frame(self.root / GPS_SENSOR)
         t, v = self._read(GPS_CSV, 5, GPS_HEADER_WGS84 if frame == "WGS84" else GPS_HEADER_NED)
-        valid = np.all(v[:, 3:5] > 0.0, axis=1)
-        if not np.all(valid):
-            first = int(np.flatnonzero(~valid)[0])
-            log.warning("%s: skipped %d fix(es) with sigma <= 0; first at t_ns=%d",
-                        self.root / GPS_CSV, int(np.sum(~valid)), t[first])
-            self.skipped[GPS_CSV] += int(np.sum(~valid))
-            t, v = t[valid], v[valid]
-            if t.size == 0:
-                raise ValueError(f"{self.root / GPS_CSV}: no fix with positive sigma_h and sigma_v")
+        t, v = self._keep_fixes(t, v, np.all(v[:, 3:5] > 0.0, axis=1), "sigma <= 0")
         origin = self.calibration.gps.origin_lla
         if frame == "WGS84":
+            on_earth = (np.abs(v[:, 0]) <= 90.0) & (np.abs(v[:, 1]) <= 180.0) & (np.abs(v[:, 2]) <= MAX_GPS_HEIGHT_M)
+            t, v = self._keep_fixes(t, v, on_earth,
+                                    f"lat beyond ±90°, lon beyond ±180° or |alt| > {MAX_GPS_HEIGHT_M:g} m")
             if origin is None:
                 origin = (float(v[0, 0]), float(v[0, 1]), float(v[0, 2]))
             p = np.column_stack(pymap3d.geodetic2ned(v[:, 0], v[:, 1], v[:, 2], *origin))
         else:
             p = v[:, :3]
         return GpsSeries(t, p, v[:, 3], v[:, 4], origin)
+
+    def _keep_fixes(self, t: np.ndarray, v: np.ndarray, keep: np.ndarray, why: str) -> tuple[np.ndarray, np.ndarray]:
+        """The GPS rows where ``keep`` holds; the others are counted as skipped, with one warning."""
+        if np.all(keep):
+            return t, v
+        first = int(np.flatnonzero(~keep)[0])
+        log.warning("%s: skipped %d fix(es) with %s; first at t_ns=%d",
+                    self.root / GPS_CSV, int(np.sum(~keep)), why, t[first])
+        self.skipped[GPS_CSV] += int(np.sum(~keep))
+        if not np.any(keep):
+            raise ValueError(f"{self.root / GPS_CSV}: no usable fix (every one has {why})")
+        return t[keep], v[keep]
 
     def truth(self) -> TruthSeries | None:
         """Full truth if the dataset has it, else position-only Leica-style truth, else None."""
@@ -156,13 +161,22 @@ class Dataset:
         return None
 
 
+def _load_yaml(path: Path) -> Any:
+    """The document in a small YAML file; CalibrationError names the file when it cannot be read as one."""
+    try:
+        return yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f"{path}: not valid YAML: {exc}") from None
+    except RecursionError:  # PyYAML recurses per nesting level: '[[[[...' a thousand deep
+        raise CalibrationError(f"{path}: nested too deeply to be YAML this program writes") from None
+
+
 def _gps_frame(path: Path) -> str:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not found (it says whether gps0/data.csv is WGS84 or local NED)")
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: not valid YAML: {exc}") from None
+    doc = _load_yaml(path)
     frame = doc.get("frame") if isinstance(doc, dict) else None
     if frame not in GPS_FRAMES:
         raise CalibrationError(f"{path}: frame: expected one of {list(GPS_FRAMES)}, got {frame!r}")

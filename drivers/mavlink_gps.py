@@ -5,7 +5,8 @@ estimate, and feeding it back would fuse the flight controller's errors as if th
 independent measurements. Sigmas come from the receiver's accuracy fields (``h_acc``/``v_acc``,
 MAVLink 2 extensions) when set, else ``eph``/``epv`` (DOP × 100) × UERE. Height is the
 ellipsoidal ``alt_ellipsoid`` when given, else MSL ``alt``. Fixes below 3-D, repeats of the same
-receiver time, and messages without any accuracy figure are counted and skipped.
+receiver time, messages without any accuracy figure, and positions off the globe (latitude beyond
+±90°, longitude beyond ±180°: a corrupted or uninitialised message) are counted and skipped.
 """
 
 from __future__ import annotations
@@ -122,6 +123,9 @@ class MavlinkGps:
             self.counts["no_accuracy"] += 1
             return None
         lat, lon = msg.lat * 1e-7, msg.lon * 1e-7
+        if abs(lat) > 90.0 or abs(lon) > 180.0:
+            self.counts["implausible"] += 1
+            return None
         alt = (getattr(msg, "alt_ellipsoid", 0) or msg.alt) * 1e-3
         self.counts["fixes"] += 1
         self.status = "receiving"

@@ -5,12 +5,16 @@ One fix per epoch, dated on the host clock when its GGA line arrived. Its sigmas
 fix waits up to ``GST_WAIT_S`` (or until the next GGA) for its epoch's GST, unless the receiver
 has shown it sends none — else from HDOP (and GSA's VDOP) × UERE. Bad checksums, cut-off lines, garbage and no-fix epochs are
 counted and skipped; ``read()`` never raises for I/O and reopens a lost port with back-off.
+The XOR checksum lets about one corrupted line in 256 through, so a sentence whose fields are
+malformed or out of range (hemisphere letters, latitude beyond 90°, absurd heights or error
+figures) is counted as ``implausible`` (``gst_implausible``) and skipped too.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import re
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -28,6 +32,10 @@ log = logging.getLogger(__name__)
 
 GST_WAIT_S = 0.3      # how long a fix waits for its epoch's GST before falling back to DOP
 MAX_LINE = 200        # NMEA allows 82 characters; anything much longer is garbage
+MAX_DOP = 100.0       # NMEA dilution fields hold at most 99.99
+MAX_SIGMA_M = 1.0e5   # a GST error figure beyond 100 km is line noise, not a receiver estimate
+MAX_HEIGHT_M = 1.0e5  # receivers stop reporting far below 100 km
+_DEGREES_MINUTES = re.compile(r"(\d{1,3})([0-5]\d\.\d+)")  # (d)ddmm.mmmm, minutes below 60
 
 
 @dataclass(slots=True)
@@ -65,6 +73,23 @@ def _number(text: str | None) -> float | None:
     except ValueError:
         return None
     return value if value is not None and math.isfinite(value) else None
+
+
+def _dop(text: str | None) -> float | None:
+    value = _number(text)
+    return value if value is not None and 0.0 < value < MAX_DOP else None
+
+
+def _degrees(text: Any, hemisphere: Any, signs: tuple[str, str], limit: float) -> float | None:
+    """Signed degrees from ``(d)ddmm.mmmm`` and its hemisphere letter (``signs``: positive, negative);
+    None unless both are well-formed and the angle is at most ``limit``."""
+    match = _DEGREES_MINUTES.fullmatch(text) if isinstance(text, str) else None
+    if match is None or hemisphere not in signs:
+        return None
+    degrees = int(match[1]) + float(match[2]) / 60.0
+    if degrees > limit:
+        return None
+    return -degrees if hemisphere == signs[1] else degrees
 
 
 class NmeaGps:
@@ -169,19 +194,18 @@ class NmeaGps:
             return
         self._last_line_ns = self._clock()
         self.counts["lines"] += 1
-        try:
-            line = text.decode("ascii")
-        except UnicodeDecodeError:
-            self.counts["garbled"] += 1
-            return
-        start = line.rfind("$")
+        start = text.rfind(b"$")
         if start < 0:
             self.counts["garbled"] += 1
             return
-        if start > 0:  # sentences cut off by the next one's '$', or noise before it
-            cut = line.count("$", 0, start)
+        if start > 0:  # sentences cut off by the next one's '$', or noise (any bytes) before it
+            cut = text.count(b"$", 0, start)
             self.counts["truncated" if cut else "garbled"] += max(cut, 1)
-            line = line[start:]
+        try:
+            line = text[start:].decode("ascii")
+        except UnicodeDecodeError:
+            self.counts["garbled"] += 1
+            return
         star = line.rfind("*")
         if star < 0 or len(line) - star != 3:
             self.counts["truncated"] += 1
@@ -210,7 +234,7 @@ class NmeaGps:
         self._rmc_void_utc = msg.timestamp if msg.status == "V" else None
 
     def _on_gsa(self, msg: Any, t_ns: int, out: list[GpsReading]) -> None:
-        self._vdop = _number(msg.vdop)
+        self._vdop = _dop(msg.vdop)
 
     def _on_gga(self, msg: Any, t_ns: int, out: list[GpsReading]) -> None:
         if self._pending is not None:
@@ -219,10 +243,15 @@ class NmeaGps:
         if not msg.gps_qual or not msg.lat or not msg.lon or alt is None or self._rmc_void_utc == msg.timestamp:
             self.counts["no_fix"] += 1
             return
+        lat = _degrees(msg.lat, msg.lat_dir, ("N", "S"), 90.0)
+        lon = _degrees(msg.lon, msg.lon_dir, ("E", "W"), 180.0)
+        height = alt + (_number(msg.geo_sep) or 0.0)
+        if not isinstance(msg.gps_qual, int) or lat is None or lon is None or not abs(height) <= MAX_HEIGHT_M:
+            self.counts["implausible"] += 1
+            return
         sats = _number(msg.num_sats)
-        epoch = _Epoch(t_ns, msg.timestamp, float(msg.latitude), float(msg.longitude),
-                       alt + (_number(msg.geo_sep) or 0.0), None if sats is None else int(sats),
-                       _number(msg.horizontal_dil))
+        epoch = _Epoch(t_ns, msg.timestamp, lat, lon, height, None if sats is None or not 0 <= sats < 256 else int(sats),
+                       _dop(msg.horizontal_dil))
         if self._gst is not None and self._gst[0] == epoch.utc:
             self._emit(epoch, self._gst, out)
         elif self._expect_gst:
@@ -235,6 +264,9 @@ class NmeaGps:
         if any(s is None or s <= 0.0 for s in sigmas):
             self.counts["gst_empty"] += 1
             return
+        if any(s > MAX_SIGMA_M for s in sigmas):
+            self.counts["gst_implausible"] += 1
+            return
         self._expect_gst = self._gst_seen = True
         self._gst = (msg.timestamp, *sigmas)
         if self._pending is not None and self._pending.utc == msg.timestamp:
@@ -246,7 +278,7 @@ class NmeaGps:
             if gst is None and not self._gst_seen:
                 self._expect_gst = False  # this receiver sends no GST: stop waiting for it
         if gst is not None:
-            sigma_h, sigma_v, source = math.sqrt((gst[1] ** 2 + gst[2] ** 2) / 2.0), gst[3], "GST"
+            sigma_h, sigma_v, source = math.hypot(gst[1], gst[2]) / math.sqrt(2.0), gst[3], "GST"
         elif epoch.hdop is not None and epoch.hdop > 0.0:
             (sigma_h, sigma_v), source = dop_sigmas(epoch.hdop, self._vdop, self.config.uere_m), "DOP"
         else:
