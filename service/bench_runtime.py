@@ -238,7 +238,8 @@ def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0, camer
             "zenoh": {"enabled": True, "listen": [f"tcp/127.0.0.1:{free_port()}"], "multicast_scouting": False},
         }})
         sensors = ["imu", "camera", "gps"] if camera else ["imu", "gps"]
-        source = ReplaySource(dataset, sensors, ReplayClock(0.0))
+        frames, load = (dataset.camera_frames(), dataset.load_frame) if camera else (None, None)
+        source = ReplaySource(dataset, sensors, ReplayClock(0.0), None, frames, load)
         processor = camera_processor(cfg, dataset.calibration) if camera else None
         runtime = build_runtime(cfg, dataset.calibration, lockstep=True, trajectory_path=Path(tmp) / "traj.txt",
                                 camera_processor=processor)
@@ -282,8 +283,10 @@ def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0, camer
         ("filter resets", float(runtime.est.reset_counter), "", ""),
     ]
     if camera:
+        frames_used = runtime.est.counts["camera"].used if "camera" in runtime.est.counts else 0
         rows.append(("landmarks in the map (max over the run)", float(max(s[5] for s in samples)), "landmarks",
-                     f"cap estimator.camera.max_landmarks = {cfg['estimator.camera.max_landmarks']}"))
+                     f"cap estimator.camera.max_landmarks = {cfg['estimator.camera.max_landmarks']}; "
+                     f"{frames_used} frames used of {len(frames)}"))
     return rows + [(f"  memory at {s[0] / 60:.0f} min", s[1], "MB",
                     f"history {s[2]} (capacity {s[3]})" + (f", landmarks {s[5]}" if camera else "")) for s in samples]
 
