@@ -165,3 +165,33 @@ def test_sensor_time_offsets_are_applied_where_samples_enter(flight):
 
     asyncio.run(one_frame())
     assert seen == [t - 37_000_000]
+
+
+def test_camera_work_yields_the_cpu_to_the_pose_path_in_paced_runs(flight):
+    """Live-paced: camera threads are niced and OpenCV runs single-threaded inside them (so SIFT cannot
+    take both cores from the loop); the process's OpenCV setting is restored afterwards."""
+    import os
+
+    import cv2
+
+    seen = []
+
+    def processor(frame):
+        seen.append((os.getpriority(os.PRIO_PROCESS, threading.get_native_id()), cv2.getNumThreads()))
+        return None
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)  # as on a 2-core computer, whatever this one has
+    try:
+        run(make_runtime(flight, processor), samples(flight, 0.0, 1.0), speed=50.0)
+        assert cv2.getNumThreads() == 2  # the process's setting back after the run
+    finally:
+        cv2.setNumThreads(before)
+    assert seen and all(nice == 10 and threads == 1 for nice, threads in seen)
+    seen.clear()
+    cv2.setNumThreads(2)
+    try:
+        run(make_runtime(flight, processor, lockstep=True), samples(flight, 0.0, 1.0), speed=0.0)
+    finally:
+        cv2.setNumThreads(before)
+    assert seen and all(threads == 2 for _, threads in seen)  # full-speed replays keep OpenCV's pool
