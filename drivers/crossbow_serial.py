@@ -206,8 +206,8 @@ class CrossbowImu:
         if self._link.is_open:
             try:
                 self._link.write(POLLED)
-            except LINK_ERRORS:
-                pass
+            except LINK_ERRORS as exc:  # the device is gone: nothing to quieten, the port is released below
+                log.debug("%s: could not stop continuous mode on close: %s", self._link, exc)
         self._link.close()
         self.status = "closed"
 

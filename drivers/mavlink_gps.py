@@ -67,8 +67,8 @@ class MavlinkGps:
         if self._conn is not None:
             try:
                 self._conn.close()
-            except OSError:
-                pass
+            except OSError as exc:  # the link is gone already; closing is all that was asked
+                log.debug("MAVLink GPS link close: %s", exc)
         self._conn = None
         self.status = "closed"
 

@@ -7,12 +7,15 @@ port nor give up on it. :class:`Backoff` spaces reconnection attempts (doubling 
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Callable
 
 import serial
 
 __all__ = ["BITS_PER_BYTE", "Backoff", "DeviceError", "LINK_ERRORS", "SerialLink"]
+
+log = logging.getLogger(__name__)
 
 # What a lost or misbehaving port raises: callers catch these, count them and reconnect.
 LINK_ERRORS = (OSError, serial.SerialException)
@@ -82,8 +85,8 @@ class SerialLink:
         if s is not None:
             try:
                 s.close()
-            except LINK_ERRORS:
-                pass
+            except LINK_ERRORS as exc:  # an unplugged adapter: the port is released either way
+                log.debug("%s: close: %s", self.port, exc)
 
     def _port(self) -> serial.Serial:
         if self._serial is None:

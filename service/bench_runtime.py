@@ -109,7 +109,7 @@ class _Paced:
         return out
 
     def close(self) -> None:
-        pass
+        """A list of samples holds no device."""
 
 
 def _test_image(seed: int = 0) -> np.ndarray:

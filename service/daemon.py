@@ -113,8 +113,8 @@ async def serve(
             try:
                 loop.add_signal_handler(sig, stop.set)
                 installed.append(sig)
-            except (NotImplementedError, RuntimeError):  # not the main thread, or no signals here
-                pass
+            except (NotImplementedError, RuntimeError) as exc:  # not the main thread, or no signals here
+                log.debug("signal %s not handled here (%s): stop the run by its stop event", sig.name, exc)
     try:
         return await runtime.run(sources, stop, duration_s)
     finally:

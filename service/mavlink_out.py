@@ -29,6 +29,7 @@ if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # mavutil was imported earli
 from config.outputs import parse_mavlink_url  # noqa: E402
 from estimator.fusion import OutputPose  # noqa: E402
 from estimator.rotation import quat_to_rot  # noqa: E402
+from service.runtime import stopped_within  # noqa: E402
 from service.status import FailureBook, pose_quality  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -56,7 +57,7 @@ def read_signing_key(path: str | Path) -> bytes:
         try:
             return bytes.fromhex(text)
         except ValueError:
-            pass
+            raise SigningKeyError(f"signing key file {path}: 64 characters, but not hexadecimal") from None
     raise SigningKeyError(f"signing key file {path}: expected 32 raw bytes or 64 hex characters, got {len(data)} bytes")
 
 
@@ -253,7 +254,4 @@ class MavlinkOutput:
             except Exception as exc:  # a socket error or a handler's bug: counted, the link keeps serving
                 self.stats["serve_errors"] += 1
                 self.failures.record(f"MAVLink link {self.url}", exc)
-            try:
-                await asyncio.wait_for(stop.wait(), timeout=poll_s)
-            except asyncio.TimeoutError:
-                pass
+            await stopped_within(stop, poll_s)

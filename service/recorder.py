@@ -210,8 +210,8 @@ class FlightRecorder:
         for f in self._files.values():
             try:
                 f.close()
-            except OSError:
-                pass
+            except OSError as exc:  # its write error is already in the recording's status; close the others
+                log.debug("recording file %s close: %s", f.name, exc)
         self._files.clear()
 
     def close(self) -> None:

@@ -21,7 +21,6 @@ import gc
 import logging
 import os
 import threading
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -87,6 +86,15 @@ def background_thread_priority() -> None:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), CAMERA_NICE)
     except (AttributeError, OSError) as exc:
         log.debug("camera thread nice %d refused: %s", CAMERA_NICE, exc)
+
+
+async def stopped_within(stop: asyncio.Event, seconds: float) -> bool:
+    """Sleep up to ``seconds``, ending early when ``stop`` is set; True if it was (periodic tasks)."""
+    try:
+        await asyncio.wait_for(stop.wait(), timeout=seconds)
+    except asyncio.TimeoutError:
+        return False
+    return True
 
 
 class TrajectoryFile:
@@ -310,10 +318,7 @@ class Runtime:
     async def _status_loop(self, stop: asyncio.Event) -> None:
         period = self.options.status_period_s
         while not stop.is_set():
-            try:
-                await asyncio.wait_for(stop.wait(), timeout=period)
-            except asyncio.TimeoutError:
-                pass
+            await stopped_within(stop, period)  # then one last status on the way out
             try:
                 doc = self.status_document()
             except Exception as exc:  # the status is a report: a bug in it must not stop the run

@@ -197,7 +197,7 @@ class ThreadedSource:
             try:
                 loop.call_soon_threadsafe(self._wake.set)
             except RuntimeError:  # the loop is already closed: nobody is waiting
-                pass
+                log.debug("%s: reader ended after the loop closed", self.name)
 
     async def __aiter__(self) -> AsyncIterator[Sample]:
         loop = asyncio.get_running_loop()

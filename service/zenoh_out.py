@@ -149,8 +149,8 @@ class ZenohOutput:
         for entity in self._entities:
             try:
                 entity.undeclare()
-            except zenoh.ZError:
-                pass
+            except zenoh.ZError as exc:  # the session is closing anyway; undeclare the rest
+                log.debug("Zenoh undeclare on close: %s", exc)
         self._entities = []
         if self.session is not None:
             self.session.close()

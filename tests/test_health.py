@@ -22,6 +22,8 @@ from service.runtime import Runtime, RuntimeOptions
 from service.status import FailureBook, pose_quality
 from service.wiring import filter_options
 
+from runtime_helpers import PoseList, flight_samples
+
 S = 1_000_000_000
 
 
@@ -108,13 +110,11 @@ def flight():
 
 
 def feed(est: Estimator, flight, t_from_s: float, t_to_s: float) -> None:
-    imu, gps = flight.imu, flight.gps
-    t0 = int(imu.t_ns[0])
-    items = [(int(t), 0, ImuSample(int(t), g, a)) for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel)]
-    items += [(int(t), 1, GpsFix(int(t), p, float(h), float(v))) for t, p, h, v in zip(gps.t_ns, gps.p_ned, gps.sigma_h, gps.sigma_v)]
-    for t, kind, sample in sorted(items, key=lambda e: (e[0], e[1])):
-        if t0 + t_from_s * S <= t < t0 + t_to_s * S:
-            (est.process_imu(t, sample.gyro, sample.accel) if kind == 0 else est.process_gps(sample))
+    for sample in flight_samples(flight, t_from_s, t_to_s):
+        if isinstance(sample, ImuSample):
+            est.process_imu(sample.t_ns, sample.gyro, sample.accel)
+        else:
+            est.process_gps(sample)
 
 
 def estimator(flight) -> Estimator:
@@ -145,20 +145,7 @@ def test_a_broken_filter_state_is_rebuilt_and_counted(flight, breakage):
 # ------------------------------------------------------------------------ isolation
 
 
-class Collect:
-    name = "collect"
-
-    def __init__(self) -> None:
-        self.poses = []
-
-    def open(self) -> None: ...
-    def publish(self, pose) -> None: self.poses.append(pose)
-    def publish_status(self, status) -> None: ...
-    async def serve(self, stop) -> None: await stop.wait()
-    def close(self) -> None: ...
-
-
-class Broken(Collect):
+class Broken(PoseList):
     """An output whose link has died: every publish raises."""
 
     name = "broken"
@@ -168,12 +155,7 @@ class Broken(Collect):
 
 
 def samples(flight, t_to_s: float):
-    imu, gps = flight.imu, flight.gps
-    t0 = int(imu.t_ns[0])
-    items = [(int(t), 0, ImuSample(int(t), g, a)) for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel) if t < t0 + t_to_s * S]
-    items += [(int(t), 1, GpsFix(int(t), p, float(h), float(v)))
-              for t, p, h, v in zip(gps.t_ns, gps.p_ned, gps.sigma_h, gps.sigma_v) if t < t0 + t_to_s * S]
-    return [s for _, _, s in sorted(items, key=lambda e: (e[0], e[1]))]
+    return flight_samples(flight, 0.0, t_to_s)
 
 
 async def from_list(items, fail_after: int | None = None):
@@ -185,7 +167,7 @@ async def from_list(items, fail_after: int | None = None):
 
 
 def test_a_failing_output_is_isolated_counted_and_logged_once(flight, caplog):
-    good, broken = Collect(), Broken()
+    good, broken = PoseList(), Broken()
     runtime = Runtime(estimator(flight), RuntimeOptions(fusion=FusionOptions(delay_s=0.1)), outputs=[broken, good])
     with caplog.at_level(logging.ERROR):
         summary = asyncio.run(runtime.run([from_list(samples(flight, 12.0))]))
@@ -201,7 +183,7 @@ def test_a_failing_source_ends_alone_and_the_others_go_on(flight):
     items = samples(flight, 12.0)
     imu = [s for s in items if isinstance(s, ImuSample)]
     gps = [s for s in items if isinstance(s, GpsFix)]
-    out = Collect()
+    out = PoseList()
     runtime = Runtime(estimator(flight), RuntimeOptions(fusion=FusionOptions(delay_s=0.1), lockstep=True), outputs=[out])
     summary = asyncio.run(runtime.run([from_list(imu), from_list(gps, fail_after=20)]))
     assert summary.imu_samples == len(imu)
@@ -213,7 +195,7 @@ def test_a_sample_whose_handling_raises_is_skipped(flight):
     items = samples(flight, 6.0)
     mid = len(items) // 2
     items.insert(mid, ImuSample(items[mid - 1].t_ns + 1, None, None))  # a driver bug: no arrays at all
-    out = Collect()
+    out = PoseList()
     runtime = Runtime(estimator(flight), RuntimeOptions(fusion=FusionOptions(delay_s=0.1)), outputs=[out])
     summary = asyncio.run(runtime.run([from_list(items)]))
     assert summary.status["failures"]["handling ImuSample"]["failures"] == 1
@@ -236,7 +218,7 @@ def test_failure_book_summarises_a_flood_once_per_period(caplog):
 
 
 def test_published_quality_never_exceeds_the_health_cap(flight):
-    out = Collect()
+    out = PoseList()
     runtime = Runtime(estimator(flight), RuntimeOptions(fusion=FusionOptions(delay_s=0.1)), outputs=[out])
     summary = asyncio.run(runtime.run([from_list(samples(flight, 12.0))]))
     sharp = dataclasses.replace(out.poses[-1], cov9=np.eye(9) * 1e-6)

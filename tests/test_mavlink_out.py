@@ -153,6 +153,9 @@ def test_signing_keys_are_read_and_checked(key_files, tmp_path):
         read_signing_key(tmp_path / "short.key")
     with pytest.raises(SigningKeyError, match="missing.key"):
         read_signing_key(tmp_path / "missing.key")
+    (tmp_path / "nothex.key").write_text("z" * 64)
+    with pytest.raises(SigningKeyError, match="nothex.key: 64 characters, but not hexadecimal"):
+        read_signing_key(tmp_path / "nothex.key")
 
 
 def test_signed_output_is_accepted_with_the_key_and_refused_without(key_files):

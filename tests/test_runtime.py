@@ -19,7 +19,7 @@ from service.runtime import Runtime, RuntimeOptions, TrajectoryFile
 from service.sources import ReplayClock
 from service.wiring import filter_options
 
-FRAME_PERIOD_NS = int(1e9 / 7.5)
+from runtime_helpers import PoseList, flight_samples
 
 
 @pytest.fixture(scope="module")
@@ -28,40 +28,7 @@ def flight():
 
 
 def samples(flight, t_from_s: float, t_to_s: float, frames: bool = True):
-    imu, gps = flight.imu, flight.gps
-    t0 = int(imu.t_ns[0])
-    lo, hi = t0 + int(t_from_s * 1e9), t0 + int(t_to_s * 1e9)
-    out = [(int(t), 0, ImuSample(int(t), g, a)) for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel) if lo <= t < hi]
-    out += [(int(t), 1, GpsFix(int(t), p, float(h), float(v)))
-            for t, p, h, v in zip(gps.t_ns, gps.p_ned, gps.sigma_h, gps.sigma_v) if lo <= t < hi]
-    if frames:
-        image = np.zeros((48, 64), np.uint8)
-        out += [(t, 2, CameraFrame(t, image, k)) for k, t in enumerate(range(lo + 1_000_000, hi, FRAME_PERIOD_NS))]
-    return [s for _, _, s in sorted(out, key=lambda e: (e[0], e[1]))]
-
-
-class PoseList:
-    """The simplest real output: it keeps what it is given."""
-
-    name = "list"
-
-    def __init__(self) -> None:
-        self.poses = []
-
-    def open(self) -> None:
-        pass
-
-    def publish(self, pose) -> None:
-        self.poses.append(pose)
-
-    def publish_status(self, status) -> None:
-        pass
-
-    async def serve(self, stop) -> None:
-        await stop.wait()
-
-    def close(self) -> None:
-        pass
+    return flight_samples(flight, t_from_s, t_to_s, frames)
 
 
 def make_runtime(flight, processor, lockstep=False, trajectory=None) -> Runtime:

@@ -8,6 +8,7 @@ blocking the device.
 
 from __future__ import annotations
 
+import logging
 import os
 import select
 import threading
@@ -15,6 +16,8 @@ import time
 import tty
 
 __all__ = ["PtyDevice"]
+
+log = logging.getLogger(__name__)
 
 
 class PtyDevice:
@@ -48,8 +51,8 @@ class PtyDevice:
         for fd in (self._master, self._slave):
             try:
                 os.close(fd)
-            except OSError:
-                pass
+            except OSError as exc:  # the peer's end may be gone first; close the other fd regardless
+                log.debug("pty fd %d close: %s", fd, exc)
 
     def __enter__(self) -> "PtyDevice":
         return self.start()
