@@ -127,7 +127,7 @@ class CameraPipeline:
         if pred is not None and len(assoc):
             snapshot = state.copy()
             outcome = self._update(state, pred, assoc.landmark, features.keypoints[assoc.feature], held)
-            if outcome.accepted and state.is_finite() and np.all(np.isfinite(state.landmarks)):
+            if outcome.accepted and state.is_finite():
                 matched[assoc.landmark] = True
                 record_settling(self.book, state, assoc.landmark, opts.map)
                 report.matched_ids = self.book.ids[assoc.landmark]

@@ -237,9 +237,7 @@ class Estimator:
         nominal = (state.p, state.v, state.q, state.b_g, state.b_a)
         if snap is not None and not all(np.all(np.isfinite(x)) for x in nominal):
             state.p, state.v, state.q, state.b_g, state.b_a = (x.copy() for x in (snap.p, snap.v, snap.q, snap.b_g, snap.b_a))
-        if self.camera is not None:
-            self.camera.clear(state)
-        state.landmarks = state.landmarks[:0]
+        state.landmarks = state.landmarks[:0]  # the covariance is rebuilt for the robot; _reset clears the book
         var_p = np.diagonal(state.cov)[0:3]
         if not (np.all(np.isfinite(var_p)) and np.all(var_p > 0.0)):
             var_p = np.full(3, LOST_POSITION_SIGMA_M**2)

@@ -77,10 +77,6 @@ class ImuDownsampler:
         self._dv = (0.0, 0.0, 0.0)
         self._dt = 0.0
 
-    @property
-    def last_sample(self) -> tuple[int, np.ndarray, np.ndarray] | None:
-        return self._last
-
     def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> ImuDelta | None:
         """Add a sample (strictly later than the previous); return a delta when one is complete."""
         last = self._last

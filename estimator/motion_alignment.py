@@ -62,19 +62,6 @@ class _Integrals:
     MV: np.ndarray  # (K, 3, 3)
 
 
-def _exp_stack(phi: np.ndarray) -> np.ndarray:
-    """Rodrigues for rotation vectors ``(..., 3)`` → ``(..., 3, 3)``."""
-    angle = np.linalg.norm(phi, axis=-1)
-    K = np.zeros(phi.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -phi[..., 2], phi[..., 1], -phi[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = phi[..., 2], -phi[..., 1], phi[..., 0]
-    small = angle < 1e-8
-    safe = np.where(small, 1.0, angle)
-    a = np.where(small, 1.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
-    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
-
-
 def _prefix_products(d: np.ndarray) -> np.ndarray:
     """``[I, d0, d0 d1, d0 d1 d2, …]`` for a stack ``(..., n, 3, 3)``, in log2(n) batched steps."""
     out = np.concatenate([np.broadcast_to(np.eye(3), d.shape[:-3] + (1, 3, 3)), d], axis=-3).copy()
@@ -98,7 +85,7 @@ def integrate(
     dt = np.diff(t)
     phi = dtheta - b_g[..., None, :] * dt[:, None]
     dv = dvel - 0.5 * dt[:, None] * np.cross(b_g[..., None, :], dvel)
-    R = _prefix_products(_exp_stack(phi))
+    R = _prefix_products(so3_exp(phi))
     R_start = R[..., :-1, :, :]
     inc = np.einsum("...nij,...nj->...ni", R_start, dv)  # velocity increments in the t0 frame
     zero_v = np.zeros(inc.shape[:-2] + (1, 3))

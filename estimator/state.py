@@ -110,9 +110,5 @@ class FilterState:
         return other
 
     def is_finite(self) -> bool:
-        return bool(
-            np.all(np.isfinite(self.p))
-            and np.all(np.isfinite(self.v))
-            and np.all(np.isfinite(self.q))
-            and np.all(np.isfinite(self.cov))
-        )
+        """Every nominal part (biases and landmarks included) and the covariance are finite."""
+        return all(np.all(np.isfinite(x)) for x in (self.p, self.v, self.q, self.b_g, self.b_a, self.landmarks, self.cov))
