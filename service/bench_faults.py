@@ -26,10 +26,11 @@ from drivers.dataset import Dataset
 from drivers.simulator import simulate_flight
 from drivers.simulator.export import write_flight
 from estimator.fusion import OutputPose
-from estimator.metrics import chi2_band, interpolate_poses, nees, pose_errors_for_nees
+from estimator.metrics import chi2_band, interpolate_poses, nees, nees_summary, pose_errors_for_nees
 from estimator.rotation import quat_to_rot
 from service.faults import parse_faults
 from service.replay import ReplayResult, replay
+from service.report import scoring_times
 from service.status import pose_quality
 
 Row = tuple[str, float, str, str]
@@ -79,7 +80,7 @@ def traced_replay(dataset: Dataset, cfg: dict[str, Any], sensors: Sequence[str],
     result = replay(dataset, cfg, list(sensors), faults=parse_faults(faults), fault_seed=seed, on_fused=trace.record)
     truth = dataset.truth()
     t_ns = np.array(trace.t_ns, dtype=np.int64)
-    t_data = result.faults.source_time_ns(t_ns) if result.faults is not None else t_ns
+    t_data = scoring_times(result, t_ns)
     t_first = int(dataset.imu().t_ns[0])
     inside = (t_data >= truth.t_ns[0]) & (t_data <= truth.t_ns[-1])
     p, q = np.array(trace.p)[inside], np.array(trace.q)[inside]
@@ -111,18 +112,16 @@ def recovery_time_s(run: FaultRun, t_from_s: float, threshold_m: float, hold_s: 
 def window_nees(run: FaultRun, dataset: Dataset, t0_s: float, t1_s: float) -> dict[str, float]:
     """NEES of the pose samples inside a data-time window, against the per-sample 95 % band."""
     cov = run.result.covariances
-    faults = run.result.faults
-    t_data = faults.source_time_ns(cov.t_ns) if faults is not None else cov.t_ns
+    t_data = scoring_times(run.result, cov.t_ns)
     t_first = int(dataset.imu().t_ns[0])
     m = ((t_data - t_first) * 1e-9 >= t0_s) & ((t_data - t_first) * 1e-9 < t1_s)
     err, c, dof = pose_errors_for_nees(t_data[m], cov.p[m], cov.q[m], cov.cov[m], dataset.truth(),
                                        dataset.calibration.truth_point_b)
-    values = nees(err, c)
-    lo, hi = chi2_band(dof)
-    mean_lo, mean_hi = chi2_band(dof, n_samples=len(values))
-    return {"mean": float(np.mean(values)), "fraction_in_band": float(np.mean((values >= lo) & (values <= hi))),
-            "band_lo": lo, "band_hi": hi, "mean_band_lo": mean_lo, "mean_band_hi": mean_hi, "samples": len(values),
-            "dof": dof}
+    summary = nees_summary(nees(err, c), dof)
+    lo, hi = summary["band_per_sample"]
+    mean_lo, mean_hi = chi2_band(dof, n_samples=summary["samples"])
+    return {"mean": summary["nees_mean"], "fraction_in_band": summary["fraction_in_band"], "band_lo": lo, "band_hi": hi,
+            "mean_band_lo": mean_lo, "mean_band_hi": mean_hi, "samples": summary["samples"], "dof": dof}
 
 
 def trajectory_deviation_m(run: FaultRun, clean: FaultRun, skip_t_ns: np.ndarray | None = None) -> float:

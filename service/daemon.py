@@ -14,12 +14,11 @@ from typing import Any, AsyncIterator, Callable, Sequence
 
 import yaml
 
-from config import ConfigError, get
+from config import ConfigError
 from config.outputs import zenoh_prefix
 from drivers.calibration_yaml import calibration_from_yaml
 from estimator.calibration import Calibration
 from estimator.filter import Estimator
-from estimator.health import HealthOptions
 from estimator.fusion import FusionOptions, OutputPose
 from service.runtime import CameraProcessor, Runtime, RuntimeOptions, RunSummary, TrajectoryFile
 from service.wiring import calibration_with_overrides, filter_options
@@ -31,11 +30,6 @@ Origin = tuple[float, float, float] | None
 
 def fusion_options(cfg: dict[str, Any]) -> FusionOptions:
     return FusionOptions(cfg["fusion.delay_s"], cfg["fusion.max_pending"], cfg["fusion.max_imu_buffer"])
-
-
-def health_options(cfg: dict[str, Any]) -> HealthOptions:
-    """``estimator.health.*``: what the filter does about sensor loss, divergence and IMU gaps."""
-    return HealthOptions(**get(cfg, "estimator.health"))
 
 
 def load_calibration_file(path: str | Path) -> Calibration:
@@ -67,9 +61,7 @@ def build_runtime(
     ``live``: apply ``run.realtime_priority`` (never to a replay, which would hog a core at it).
     """
     calibration = calibration_with_overrides(cfg, calibration)
-    filter_opts = filter_options(cfg, calibration.imu.noise)
-    filter_opts.health = health_options(cfg)
-    estimator = Estimator(calibration, filter_opts)
+    estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
     options = RuntimeOptions(
         fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"], camera_workers=cfg["fusion.camera_workers"],
         lockstep=lockstep, measure_latency=measure_latency, realtime_priority=cfg["run.realtime_priority"] if live else None,

@@ -28,9 +28,8 @@ if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # mavutil was imported earli
 
 from config.outputs import parse_mavlink_url  # noqa: E402
 from estimator.fusion import OutputPose  # noqa: E402
-from estimator.rotation import quat_to_rot  # noqa: E402
-from service.runtime import stopped_within  # noqa: E402
-from service.status import FailureBook, pose_quality  # noqa: E402
+from estimator.rotation import quat_to_rot, skew  # noqa: E402
+from service.status import FailureBook, pose_quality, stopped_within  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -96,10 +95,9 @@ def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple
     pose_cov[3:6, 0:3] = cross.T
     pose_cov[3:6, 3:6] = e @ cov9[6:9, 6:9] @ e.T
     rt = (quat_to_rot(pose.q) if r is None else r).T
-    vx, vy, vz = pose.v.tolist()
     jv = np.empty((3, 6))
     jv[:, 0:3] = rt
-    jv[:, 3:6] = rt @ np.array([[0.0, -vz, vy], [vz, 0.0, -vx], [-vy, vx, 0.0]])
+    jv[:, 3:6] = rt @ skew(pose.v)
     vel_cov = np.zeros((6, 6))
     vel_cov[0:3, 0:3] = jv @ cov9[3:9, 3:9] @ jv.T
     vel_cov[3, 3], vel_cov[4, 4], vel_cov[5, 5] = pose.omega_var.tolist()
@@ -114,20 +112,10 @@ def upper_triangle(cov: np.ndarray) -> list[float]:
     return values.tolist()
 
 
-def covariance_fields(pose: OutputPose) -> tuple[list[float], list[float]]:
-    """``pose_covariance`` and ``velocity_covariance`` (21 values each) for ``pose``."""
-    pose_cov, vel_cov = odometry_covariances(pose)
-    return upper_triangle(pose_cov), upper_triangle(vel_cov)
-
-
-def odometry_fields(pose: OutputPose, covariances: tuple[list[float], list[float]] | None = None) -> dict[str, Any]:
-    """Keyword arguments of ``odometry_send`` for ``pose`` (see :func:`odometry_covariances`).
-
-    ``covariances`` may be given from an earlier pose sharing the same ``cov9`` (the fusion core
-    refreshes it once per filter step), which saves their mapping on every sample.
-    """
+def odometry_fields(pose: OutputPose) -> dict[str, Any]:
+    """Keyword arguments of ``odometry_send`` for ``pose`` (see :func:`odometry_covariances`)."""
     r = quat_to_rot(pose.q)
-    pose_tri, vel_tri = covariances or covariance_fields(pose)
+    pose_cov, vel_cov = odometry_covariances(pose, r)
     v_body = r.T @ pose.v
     return dict(
         time_usec=pose.t_ns // 1000,
@@ -137,8 +125,8 @@ def odometry_fields(pose: OutputPose, covariances: tuple[list[float], list[float
         q=[float(x) for x in pose.q],
         vx=float(v_body[0]), vy=float(v_body[1]), vz=float(v_body[2]),
         rollspeed=float(pose.omega_b[0]), pitchspeed=float(pose.omega_b[1]), yawspeed=float(pose.omega_b[2]),
-        pose_covariance=pose_tri,
-        velocity_covariance=vel_tri,
+        pose_covariance=upper_triangle(pose_cov),
+        velocity_covariance=upper_triangle(vel_cov),
         reset_counter=pose.reset_counter % 256,
         estimator_type=mav.MAV_ESTIMATOR_TYPE_VIO,
         quality=pose_quality(pose),
@@ -169,8 +157,6 @@ class MavlinkOutput:
         self.conn: Any = None
         self._next_odometry_t: int | None = None
         self._active = False
-        self._cov_source: np.ndarray | None = None
-        self._cov_fields: tuple[list[float], list[float]] | None = None
         self.stats = {"odometry_sent": 0, "heartbeats_sent": 0, "received": 0, "bad_data": 0, "serve_errors": 0}
         self.failures = FailureBook()
 
@@ -198,9 +184,7 @@ class MavlinkOutput:
         if self._next_odometry_t is not None and pose.t_ns < self._next_odometry_t:
             return False
         self._next_odometry_t = pose.t_ns + self.period_ns
-        if pose.cov9 is not self._cov_source:  # a new covariance: map it once, reuse it until the next
-            self._cov_source, self._cov_fields = pose.cov9, covariance_fields(pose)
-        fields = odometry_fields(pose, self._cov_fields)
+        fields = odometry_fields(pose)
         self._active = fields["quality"] > 0
         self.conn.mav.odometry_send(**fields)
         self.stats["odometry_sent"] += 1

@@ -36,7 +36,7 @@ from estimator.filter import Estimator
 from estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
 from estimator.measurements import CameraFrame, GpsFix, ImuSample
 from estimator.pose_history import PoseHistory
-from service.status import FailureBook, LatencyProbe, StatusTracker, pose_quality
+from service.status import FailureBook, LatencyProbe, StatusTracker, pose_quality, stopped_within
 
 log = logging.getLogger(__name__)
 
@@ -86,15 +86,6 @@ def background_thread_priority() -> None:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), CAMERA_NICE)
     except (AttributeError, OSError) as exc:
         log.debug("camera thread nice %d refused: %s", CAMERA_NICE, exc)
-
-
-async def stopped_within(stop: asyncio.Event, seconds: float) -> bool:
-    """Sleep up to ``seconds``, ending early when ``stop`` is set; True if it was (periodic tasks)."""
-    try:
-        await asyncio.wait_for(stop.wait(), timeout=seconds)
-    except asyncio.TimeoutError:
-        return False
-    return True
 
 
 class TrajectoryFile:
@@ -204,7 +195,7 @@ class Runtime:
             self.status.count("unknown_sample_type")
 
     def _on_imu(self, sample: ImuSample, arrived_ns: int | None) -> None:
-        entered = time.perf_counter_ns()
+        entered = time.perf_counter_ns() if self.latency is not None else 0
         self.status.saw("imu")
         if self._first_t is None:
             self._first_t = sample.t_ns

@@ -6,6 +6,7 @@ as a growing age even while the others keep the estimator running.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import os
@@ -52,6 +53,15 @@ def resident_memory_mb() -> float | None:
     except (OSError, ValueError, IndexError):
         return None
     return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+async def stopped_within(stop: asyncio.Event, seconds: float) -> bool:
+    """Sleep up to ``seconds``, ending early when ``stop`` is set; True if it was (periodic tasks)."""
+    try:
+        await asyncio.wait_for(stop.wait(), timeout=seconds)
+    except asyncio.TimeoutError:
+        return False
+    return True
 
 
 @dataclass

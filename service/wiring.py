@@ -14,6 +14,7 @@ from estimator.calibration import Calibration, ImuNoise
 from estimator.camera_pipeline import CameraOptions
 from estimator.features import FeatureOptions
 from estimator.frame_quality import FrameQualityOptions
+from estimator.health import HealthOptions
 from estimator.filter import FilterOptions
 from estimator.initializer import InitOptions
 from estimator.map_manager import MapOptions
@@ -70,6 +71,7 @@ def filter_options(cfg: dict[str, Any], calibration_noise: ImuNoise) -> FilterOp
         gps_reset_after_s=cfg["estimator.gps_reset_after_s"],
         still=StillnessOptions(**get(cfg, "estimator.stillness")),
         camera=camera_options(cfg),
+        health=HealthOptions(**get(cfg, "estimator.health")),  # sensor loss, divergence, IMU gaps
     )
 
 

@@ -74,12 +74,12 @@ class ZenohSettings:
         return conf
 
 
-def pose_status(pose: OutputPose, quality: int | None = None) -> str:
+def pose_status(pose: OutputPose, quality: int) -> str:
     if not pose.position_initialized:
         return "no_position"
     if not pose.heading_aligned:
         return "heading_unaligned"
-    return "ok" if (pose_quality(pose) if quality is None else quality) > 0 else "poor"
+    return "ok" if quality > 0 else "poor"
 
 
 def _floats(values: np.ndarray) -> list:
@@ -94,16 +94,13 @@ def _origin_json(origin: Origin) -> dict | None:
     return None if origin is None else {"lat": origin[0], "lon": origin[1], "alt": origin[2]}
 
 
-def pose_message(pose: OutputPose, seq: int, origin: Origin, cov: list | None = None) -> dict[str, Any]:
-    """The ``<prefix>/pose`` document (INTERFACES.md), plus ``fused`` and ``quality``.
-
-    ``cov``: the covariance as a list, when already converted for an earlier pose sharing it.
-    """
+def pose_message(pose: OutputPose, seq: int, origin: Origin) -> dict[str, Any]:
+    """The ``<prefix>/pose`` document (INTERFACES.md), plus ``fused`` and ``quality``."""
     quality = pose_quality(pose)
     return {
         "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(origin),
         "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.omega_b),
-        "cov": cov if cov is not None else _floats(pose.pose_cov.reshape(36)), "status": pose_status(pose, quality),
+        "cov": _floats(pose.pose_cov.reshape(36)), "status": pose_status(pose, quality),
         "seq": seq, "fused": pose.fused, "quality": quality,
     }
 
@@ -129,8 +126,6 @@ class ZenohOutput:
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._seq = 0
-        self._cov_source: np.ndarray | None = None
-        self._cov_list: list | None = None
         self.stats = {"poses_published": 0, "queries": 0, "query_errors": 0}
 
     def open(self) -> None:
@@ -161,9 +156,7 @@ class ZenohOutput:
         if self.session is None:
             return
         self._seq += 1
-        if pose.cov9 is not self._cov_source:  # convert a new covariance once, reuse it until the next
-            self._cov_source, self._cov_list = pose.cov9, _floats(pose.pose_cov.reshape(36))
-        self._pose_pub.put(json.dumps(pose_message(pose, self._seq, self.origin(), self._cov_list)))
+        self._pose_pub.put(json.dumps(pose_message(pose, self._seq, self.origin())))
         self.stats["poses_published"] += 1
 
     def publish_status(self, status: dict[str, Any]) -> None:
