@@ -7,9 +7,11 @@ are errors too. Vectors may be written as scalars where that is natural (isotrop
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from estimator.calibration import (
     STANDARD_GRAVITY,
@@ -19,6 +21,7 @@ from estimator.calibration import (
     ImuCalibration,
     ImuNoise,
 )
+from estimator.rotation import is_proper_rotation
 
 DATASET_FORMAT = "vtolpose-dataset/1"
 _TOP_KEYS = {"format", "name", "description", "imu", "gps", "truth", "init", "camera"}
@@ -36,6 +39,18 @@ def _finite(x: int | float) -> bool:
 
 class CalibrationError(ValueError):
     """A calibration file that cannot be used; the message names the file and the key."""
+
+
+def load_yaml_file(path: Path) -> Any:
+    """The document in a small YAML file; CalibrationError names the file when it cannot be read as one."""
+    try:
+        return yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f"{path}: not valid YAML: {exc}") from None
+    except RecursionError:  # PyYAML recurses per nesting level: '[[[[...' a thousand deep
+        raise CalibrationError(f"{path}: nested too deeply to be YAML this program writes") from None
 
 
 class YamlReader:
@@ -92,7 +107,7 @@ class YamlReader:
         if not isinstance(value, list) or len(value) != 3:
             raise self.fail(key, "a 3x3 rotation matrix (list of 3 rows)", value)
         r = np.array([self.vector(row, f"{key}[{i}]", 3) for i, row in enumerate(value)])
-        if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0.0:
+        if not is_proper_rotation(r):
             raise self.fail(key, "a proper rotation (orthonormal, det +1)", value)
         return r
 

@@ -316,7 +316,8 @@ class PacketFramer:
             return
         m = statistics.median(self._steps)
         near = [s for s in self._steps if abs(s - m) <= m / 2]
-        if m <= 0 or len(near) < self.MIN_STEPS or max(near) - min(near) > self.MAX_STEP_SPREAD * m:
+        spread = max(near) - min(near) if near else 0
+        if m <= 0 or len(near) < self.MIN_STEPS or spread > self.MAX_STEP_SPREAD * m:
             return
         self.step = round(statistics.median(near))
-        self._tolerance = max(3, 2 * (max(near) - min(near)))
+        self._tolerance = max(3, 2 * spread)

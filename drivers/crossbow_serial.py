@@ -18,6 +18,7 @@ import numpy as np
 from drivers.crossbow import CrossbowScale, Frame, PacketFramer, TimeCounter, checksum
 from drivers.serial_link import LINK_ERRORS, Backoff, DeviceError, SerialLink
 from estimator.measurements import ImuSample
+from estimator.rotation import is_proper_rotation
 
 __all__ = ["CrossbowConfig", "CrossbowImu", "DeviceIdentity", "ImuReading", "parse_serial_reply", "parse_version_reply"]
 
@@ -46,7 +47,7 @@ class CrossbowConfig:
 
     def __post_init__(self) -> None:
         self.R_BI = np.asarray(self.R_BI, dtype=float).reshape(3, 3)
-        if not np.allclose(self.R_BI @ self.R_BI.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R_BI) < 0.0:
+        if not is_proper_rotation(self.R_BI):
             raise ValueError(f"sensors.imu.R_BI: must be a proper rotation (orthonormal, det +1), got {self.R_BI.tolist()}")
 
     @classmethod

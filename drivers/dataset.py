@@ -11,13 +11,13 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Iterable
 
 import numpy as np
 import pymap3d
 import yaml
 
-from drivers.calibration_yaml import DATASET_FORMAT, CalibrationError, calibration_from_yaml, calibration_to_yaml
+from drivers.calibration_yaml import DATASET_FORMAT, CalibrationError, calibration_from_yaml, calibration_to_yaml, load_yaml_file
 from drivers.csvio import read_numeric_csv, write_numeric_csv
 from drivers.frames_csv import load_grey, read_frame_index, write_frame_index, write_png
 from drivers.series import GpsSeries, ImuSeries, TruthSeries
@@ -67,7 +67,7 @@ class Dataset:
             raise FileNotFoundError(f"{root}: dataset folder not found")
         if not path.is_file():
             raise FileNotFoundError(f"{path}: not found (every dataset needs its dataset.yaml)")
-        doc = _load_yaml(path)
+        doc = load_yaml_file(path)
         if not isinstance(doc, dict) or doc.get("format") != DATASET_FORMAT:
             got = doc.get("format") if isinstance(doc, dict) else doc
             raise CalibrationError(f"{path}: format: expected {DATASET_FORMAT!r}, got {got!r}")
@@ -161,22 +161,10 @@ class Dataset:
         return None
 
 
-def _load_yaml(path: Path) -> Any:
-    """The document in a small YAML file; CalibrationError names the file when it cannot be read as one."""
-    try:
-        return yaml.safe_load(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as exc:
-        raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: not valid YAML: {exc}") from None
-    except RecursionError:  # PyYAML recurses per nesting level: '[[[[...' a thousand deep
-        raise CalibrationError(f"{path}: nested too deeply to be YAML this program writes") from None
-
-
 def _gps_frame(path: Path) -> str:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not found (it says whether gps0/data.csv is WGS84 or local NED)")
-    doc = _load_yaml(path)
+    doc = load_yaml_file(path)
     frame = doc.get("frame") if isinstance(doc, dict) else None
     if frame not in GPS_FRAMES:
         raise CalibrationError(f"{path}: frame: expected one of {list(GPS_FRAMES)}, got {frame!r}")

@@ -13,10 +13,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 import config
-from drivers.calibration_yaml import YamlReader
+from drivers.calibration_yaml import YamlReader, load_yaml_file
 from drivers.csvio import NS_PER_S, read_numeric_csv
 from drivers.dataset import (
     GPS_CSV, GPS_SENSOR, GT_CSV, IMU_HEADER, LEICA_HEADER, DatasetWriter, GpsSeries, ImuSeries, TruthSeries,
@@ -45,10 +44,7 @@ def default_mounting_path() -> Path:
 def _load_yaml(path: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not found")
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not valid YAML: {exc}") from None
+    doc = load_yaml_file(path)
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: expected a mapping at the top level, got {doc!r}")
     return doc

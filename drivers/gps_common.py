@@ -42,7 +42,6 @@ class LocalNed:
                 raise ValueError(f"GPS origin {origin}: lat must be in [-90, 90], lon in [-180, 180] degrees")
             origin = tuple(float(x) for x in origin)
         self.origin: tuple[float, float, float] | None = origin
-        self.from_first_fix = origin is None
 
     def __call__(self, lat: float, lon: float, alt: float) -> np.ndarray:
         if self.origin is None:

@@ -22,7 +22,7 @@ from typing import Any, Callable, Mapping
 
 import pynmea2
 
-from drivers.gps_common import GpsReading, LocalNed, dop_sigmas
+from drivers.gps_common import GpsReading, LocalNed, dop_sigmas, horizontal_per_axis
 from drivers.serial_link import LINK_ERRORS, Backoff, SerialLink
 from estimator.measurements import GpsFix
 
@@ -278,7 +278,7 @@ class NmeaGps:
             if gst is None and not self._gst_seen:
                 self._expect_gst = False  # this receiver sends no GST: stop waiting for it
         if gst is not None:
-            sigma_h, sigma_v, source = math.hypot(gst[1], gst[2]) / math.sqrt(2.0), gst[3], "GST"
+            sigma_h, sigma_v, source = horizontal_per_axis(math.hypot(gst[1], gst[2])), gst[3], "GST"
         elif epoch.hdop is not None and epoch.hdop > 0.0:
             (sigma_h, sigma_v), source = dop_sigmas(epoch.hdop, self._vdop, self.config.uere_m), "DOP"
         else:

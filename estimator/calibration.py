@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estimator.rotation import is_proper_rotation
+
 STANDARD_GRAVITY = 9.80665
 
 
@@ -48,7 +50,7 @@ class ImuCalibration:
 
     def __post_init__(self) -> None:
         self.R_BI = np.asarray(self.R_BI, dtype=float).reshape(3, 3)
-        if not np.allclose(self.R_BI @ self.R_BI.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R_BI) < 0.0:
+        if not is_proper_rotation(self.R_BI):
             raise ValueError("imu R_BI must be a proper rotation matrix (orthonormal, det +1)")
 
 

@@ -20,6 +20,12 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def is_proper_rotation(r: np.ndarray, atol: float = 1e-6) -> bool:
+    """Orthonormal with determinant +1 (not a reflection)."""
+    r = np.asarray(r, dtype=float)
+    return r.shape == (3, 3) and bool(np.allclose(r @ r.T, np.eye(3), atol=atol)) and np.linalg.det(r) > 0.0
+
+
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product ``p ⊗ q`` (scalar first)."""
     p = np.asarray(p, dtype=float)

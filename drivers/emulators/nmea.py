@@ -15,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 import pymap3d
+import pynmea2
 
 from drivers.emulators.pty_device import PtyDevice
 
@@ -48,10 +49,7 @@ class SentSentence:
 def nmea_sentence(talker_and_type: str, fields: list[str]) -> bytes:
     """``$<body>*<checksum>\\r\\n`` with the XOR checksum of the body."""
     body = ",".join([talker_and_type, *fields])
-    xor = 0
-    for ch in body.encode("ascii"):
-        xor ^= ch
-    return f"${body}*{xor:02X}\r\n".encode("ascii")
+    return f"${body}*{pynmea2.NMEASentence.checksum(body):02X}\r\n".encode("ascii")
 
 
 def _angle(value: float, degree_digits: int) -> tuple[str, bool]:
