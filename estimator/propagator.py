@@ -159,26 +159,32 @@ class ImuPropagator:
         )
         self._F: np.ndarray | None = None
         self._eye3 = np.eye(3)
-        self._q_key: tuple[float, StateLayout] | None = None
-        self._q_terms: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._q_key: StateLayout | None = None
+        self._q_terms: tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]] | None = None
 
     def _noise(self, q: np.ndarray, dt: float, layout: StateLayout, extra: float) -> np.ndarray:
         if not self._isotropic:
             return process_noise(q, dt, self.noise, layout, extra)
         # Isotropic white noise is invariant under rotation, and each block of Q is a power of
-        # dt times a constant: keep the three constant matrices, combine them per step.
-        key = (extra, layout)
-        if self._q_key != key:
-            identity = np.array([1.0, 0.0, 0.0, 0.0])
-            q1, q2, q3 = (process_noise(identity, x, self.noise, layout, extra) for x in (1.0, 2.0, 3.0))
-            # Solve Q(dt) = A dt + B dt² + C dt³ from dt = 1, 2, 3.
-            c3 = (q3 - 3.0 * q2 + 3.0 * q1) / 6.0
-            c2 = (q2 - 2.0 * q1) / 2.0 - 3.0 * c3
-            c1 = q1 - c2 - c3
-            self._q_terms = (c1, c2, c3)
-            self._q_key = key
-        c1, c2, c3 = self._q_terms
+        # dt times a constant: keep the constant matrices, combine them per step. Q is linear in
+        # extra² (it adds to the horizontal accelerometer variance): Q = Q(0) + extra² (Q(1) − Q(0)),
+        # so a heading still unknown (extra changing every step) costs no refit.
+        if self._q_key != layout:
+            base, unit = (self._dt_polynomial(layout, x) for x in (0.0, 1.0))
+            self._q_terms = (base, tuple(u - b for u, b in zip(unit, base)))
+            self._q_key = layout
+        base, per_extra2 = self._q_terms
+        e2 = extra * extra
+        c1, c2, c3 = (b + e2 * d for b, d in zip(base, per_extra2)) if e2 else base
         return (c1 + (c2 + c3 * dt) * dt) * dt
+
+    def _dt_polynomial(self, layout: StateLayout, extra: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(A, B, C)`` with Q(dt) = A dt + B dt² + C dt³, solved from dt = 1, 2, 3."""
+        identity = np.array([1.0, 0.0, 0.0, 0.0])
+        q1, q2, q3 = (process_noise(identity, x, self.noise, layout, extra) for x in (1.0, 2.0, 3.0))
+        c3 = (q3 - 3.0 * q2 + 3.0 * q1) / 6.0
+        c2 = (q2 - 2.0 * q1) / 2.0 - 3.0 * c3
+        return q1 - c2 - c3, c2, c3
 
     def propagate(self, state: FilterState, delta: ImuDelta, extra_horizontal_accel: float = 0.0) -> np.ndarray:
         """Propagate nominal state and covariance over ``delta``; returns ``a_W``."""
