@@ -18,6 +18,14 @@ TUM_HEADER = "# timestamp[s] tx ty tz qx qy qz qw"
 _MAX_QUAT_NORM_ERROR = 1e-3
 
 
+_ROW = " ".join(["%.9f"] * 7)
+
+
+def tum_line(t_ns: int, values: tuple[float, ...] | list[float]) -> str:
+    """One TUM line (no newline): exact seconds, then ``tx ty tz qx qy qz qw`` (finite; -0.0 written as 0)."""
+    return f"{seconds_text(t_ns)} {_ROW % tuple(v + 0.0 for v in values)}"
+
+
 def write_tum(path: str | Path, t_ns: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray) -> None:
     """Write poses (world position, body→world quaternion w-first) as TUM with exact 9-decimal seconds."""
     t_ns = np.asarray(t_ns, dtype=np.int64).reshape(-1)
@@ -27,9 +35,7 @@ def write_tum(path: str | Path, t_ns: np.ndarray, p: np.ndarray, q_wxyz: np.ndar
         raise ValueError(f"write_tum: {t_ns.size} times but {values.shape[0]} poses")
     if not np.all(np.isfinite(values)):
         raise ValueError("write_tum: refusing to write non-finite poses")
-    row = " ".join(["%.9f"] * 7)
-    body = (f"{seconds_text(t)} {row % tuple(v)}" for t, v in zip(t_ns.tolist(), (values + 0.0).tolist()))
-    lines = [TUM_HEADER, *body]
+    lines = [TUM_HEADER, *(tum_line(t, v) for t, v in zip(t_ns.tolist(), values.tolist()))]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n", encoding="utf-8", newline="\n")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import logging
+import math
 import os
 import threading
 import time
@@ -28,10 +29,8 @@ from pathlib import Path
 from typing import Any, AsyncIterator, Callable, Protocol, Sequence
 
 import cv2
-import numpy as np
 
-from drivers.csvio import seconds_text
-from drivers.tum import TUM_HEADER
+from drivers.tum import TUM_HEADER, tum_line
 from estimator.filter import Estimator
 from estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
 from estimator.measurements import CameraFrame, GpsFix, ImuSample
@@ -100,11 +99,12 @@ class TrajectoryFile:
         self.skipped = 0
 
     def write(self, pose: OutputPose) -> None:
-        values = (*pose.p.tolist(), pose.q[1], pose.q[2], pose.q[3], pose.q[0])
-        if not all(np.isfinite(values)):
+        w, x, y, z = pose.q.tolist()
+        values = (*pose.p.tolist(), x, y, z, w)
+        if not all(map(math.isfinite, values)):
             self.skipped += 1
             return
-        self._file.write(f"{seconds_text(pose.t_ns)} " + " ".join("%.9f" % (v + 0.0) for v in values) + "\n")
+        self._file.write(tum_line(pose.t_ns, values) + "\n")
         self.lines += 1
 
     def flush(self) -> None:
