@@ -171,6 +171,22 @@ def _gps_frame(path: Path) -> str:
     return frame
 
 
+IMU_FORMATS = ["%.10f"] * 6
+GPS_WGS84_FORMATS = ["%.10f", "%.10f", "%.6f", "%.6f", "%.6f"]  # lat, lon, alt, sigma_h, sigma_v
+GPS_NED_FORMATS = ["%.6f"] * 5
+
+
+def gps_sensor_yaml(frame: str) -> str:
+    """``gps0/sensor.yaml``: whether ``gps0/data.csv`` holds WGS84 or local NED positions."""
+    return f"# gps0/data.csv holds {'local NED positions' if frame == 'NED' else 'WGS84 lat/lon/alt'}\nframe: {frame}\n"
+
+
+def dataset_yaml_text(calibration: Calibration, name: str, description: str) -> str:
+    """The ``dataset.yaml`` document of a dataset with this calibration."""
+    doc = {"format": DATASET_FORMAT, "name": name, "description": description, **calibration_to_yaml(calibration)}
+    return yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120, allow_unicode=True)
+
+
 class DatasetWriter:
     """Writes the files of one dataset folder (created if needed)."""
 
@@ -179,13 +195,12 @@ class DatasetWriter:
         self.root.mkdir(parents=True, exist_ok=True)
 
     def write_calibration(self, calibration: Calibration, name: str, description: str) -> None:
-        doc = {"format": DATASET_FORMAT, "name": name, "description": description, **calibration_to_yaml(calibration)}
-        text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120, allow_unicode=True)
-        (self.root / "dataset.yaml").write_text(text, encoding="utf-8", newline="\n")
+        (self.root / "dataset.yaml").write_text(dataset_yaml_text(calibration, name, description), encoding="utf-8",
+                                                newline="\n")
 
     def write_imu(self, imu: ImuSeries) -> None:
         """IMU samples in sensor axes (``dataset.yaml``'s R_BI maps them to body)."""
-        write_numeric_csv(self.root / IMU_CSV, IMU_HEADER, imu.t_ns, np.hstack([imu.gyro, imu.accel]), ["%.10f"] * 6)
+        write_numeric_csv(self.root / IMU_CSV, IMU_HEADER, imu.t_ns, np.hstack([imu.gyro, imu.accel]), IMU_FORMATS)
 
     def write_gps(self, gps: GpsSeries, geodetic_origin: tuple[float, float, float] | None = None) -> None:
         """Fixes as local NED, or as WGS84 lat/lon/alt around ``geodetic_origin``.
@@ -195,15 +210,13 @@ class DatasetWriter:
         """
         sigmas = np.column_stack([gps.sigma_h, gps.sigma_v])
         if geodetic_origin is None:
-            frame, header, formats, pos = "NED", GPS_HEADER_NED, ["%.6f"] * 3, gps.p_ned
+            frame, header, formats, pos = "NED", GPS_HEADER_NED, GPS_NED_FORMATS, gps.p_ned
         else:
             lat, lon, alt = pymap3d.ned2geodetic(*gps.p_ned.T, *geodetic_origin)
-            frame, header, formats = "WGS84", GPS_HEADER_WGS84, ["%.10f", "%.10f", "%.6f"]
+            frame, header, formats = "WGS84", GPS_HEADER_WGS84, GPS_WGS84_FORMATS
             pos = np.column_stack([lat, lon, alt])
-        write_numeric_csv(self.root / GPS_CSV, header, gps.t_ns, np.hstack([pos, sigmas]), formats + ["%.6f"] * 2)
-        (self.root / GPS_SENSOR).write_text(
-            f"# gps0/data.csv holds {'local NED positions' if frame == 'NED' else 'WGS84 lat/lon/alt'}\n"
-            f"frame: {frame}\n", encoding="utf-8", newline="\n")
+        write_numeric_csv(self.root / GPS_CSV, header, gps.t_ns, np.hstack([pos, sigmas]), formats)
+        (self.root / GPS_SENSOR).write_text(gps_sensor_yaml(frame), encoding="utf-8", newline="\n")
 
     def write_camera_frames(self, frames: Iterable[tuple[int, np.ndarray]]) -> int:
         """Images as ``cam0/data/<t_ns>.png`` plus their index; returns how many were written."""

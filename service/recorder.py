@@ -21,11 +21,13 @@ from typing import IO, Any, Callable
 
 import cv2
 import numpy as np
-import yaml
 
-from drivers.calibration_yaml import DATASET_FORMAT, calibration_to_yaml
 from drivers.csvio import format_rows
-from drivers.dataset import CAM_CSV, GPS_CSV, GPS_HEADER_WGS84, GPS_SENSOR, IMU_CSV, IMU_HEADER
+from drivers.dataset import (
+    CAM_CSV, CAM_DIR, GPS_CSV, GPS_HEADER_WGS84, GPS_SENSOR, GPS_WGS84_FORMATS, IMU_CSV, IMU_FORMATS, IMU_HEADER,
+    dataset_yaml_text, gps_sensor_yaml,
+)
+from drivers.frames_csv import FRAMES_HEADER
 from estimator.calibration import Calibration
 from estimator.measurements import CameraFrame
 
@@ -33,10 +35,9 @@ __all__ = ["CAM_HEADER", "FlightRecorder"]
 
 log = logging.getLogger(__name__)
 
-CAM_HEADER = "#timestamp [ns],filename"  # EuRoC cam0/data.csv
-CAM_DIR = "mav0/cam0/data"
-# Same number formats as drivers.dataset.DatasetWriter, so recordings and exports read alike.
-_FORMATS = {IMU_CSV: ["%.10f"] * 6, GPS_CSV: ["%.10f", "%.10f", "%.6f", "%.6f", "%.6f"]}
+CAM_HEADER = FRAMES_HEADER  # EuRoC cam0/data.csv
+# The dataset writer's number formats, so recordings and exports read alike.
+_FORMATS = {IMU_CSV: IMU_FORMATS, GPS_CSV: GPS_WGS84_FORMATS}
 _HEADERS = {IMU_CSV: IMU_HEADER, GPS_CSV: GPS_HEADER_WGS84, CAM_CSV: CAM_HEADER}
 
 
@@ -160,7 +161,7 @@ class FlightRecorder:
         path = self.root / stream
         path.parent.mkdir(parents=True, exist_ok=True)
         if stream == GPS_CSV:
-            self._write_atomic(self.root / GPS_SENSOR, "# gps0/data.csv holds WGS84 lat/lon/alt\nframe: WGS84\n")
+            self._write_atomic(self.root / GPS_SENSOR, gps_sensor_yaml("WGS84"))
         f = self._open(path, "a", encoding="utf-8", newline="\n")
         if f.tell() == 0:
             f.write(_HEADERS[stream] + "\n")
@@ -168,11 +169,8 @@ class FlightRecorder:
         return f
 
     def _write_yaml(self) -> None:
-        doc = {"format": DATASET_FORMAT, "name": self.name, "description": self.description,
-               **calibration_to_yaml(self.calibration)}
         self.root.mkdir(parents=True, exist_ok=True)
-        self._write_atomic(self.root / "dataset.yaml",
-                           yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120, allow_unicode=True))
+        self._write_atomic(self.root / "dataset.yaml", dataset_yaml_text(self.calibration, self.name, self.description))
 
     def _write_atomic(self, path: Path, text: str) -> None:
         """Write beside, then rename: a crash leaves the old file or the new one, never half."""
