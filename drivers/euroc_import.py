@@ -20,6 +20,7 @@ from drivers.csvio import NS_PER_S, read_numeric_csv
 from drivers.dataset import (
     GPS_CSV, GPS_SENSOR, GT_CSV, IMU_HEADER, LEICA_HEADER, DatasetWriter, GpsSeries, ImuSeries, TruthSeries,
 )
+from drivers.simulator.gps_model import GpsErrorModel, gps_errors
 from estimator.calibration import Calibration, GpsCalibration, ImuCalibration, ImuNoise
 from estimator.metrics import gps_error_rmse
 
@@ -114,9 +115,9 @@ def simulated_gps(truth: TruthSeries, rate_hz: float, sigma_m: float, seed: int)
     if rate_hz <= 0.0 or sigma_m <= 0.0:
         raise ValueError(f"gps rate ({rate_hz} Hz) and sigma ({sigma_m} m) must be positive")
     idx = subsample(truth.t_ns, rate_hz)
-    sigma = np.array([sigma_m, sigma_m, np.sqrt(2.0) * sigma_m])
-    noise = np.random.default_rng(seed).standard_normal((idx.size, 3)) * sigma
-    return GpsSeries(truth.t_ns[idx], truth.p[idx] + noise, sigma[0], sigma[2])
+    model = GpsErrorModel(sigma_m, rate_hz)
+    noise = gps_errors(truth.t_ns[idx] * 1e-9, model, np.random.default_rng(seed))
+    return GpsSeries(truth.t_ns[idx], truth.p[idx] + noise, model.sigma_h, model.sigma_v)
 
 
 def import_euroc(
