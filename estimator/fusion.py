@@ -31,7 +31,8 @@ import numpy as np
 
 from estimator.filter import Estimator
 from estimator.measurements import ImuSample, RejectionCounts
-from estimator.propagator import process_noise
+from estimator.propagator import is_isotropic, noise_dt_polynomial, process_noise
+from estimator.rotation import rotvec_quat, skew
 from estimator.state import StateLayout
 
 _RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (numerical drift only)
@@ -98,7 +99,7 @@ def nominal_step(
     # Raw increments over the step.
     wx, wy, wz = 0.5 * dt * (g0[0] + g1[0]), 0.5 * dt * (g0[1] + g1[1]), 0.5 * dt * (g0[2] + g1[2])
     fx, fy, fz = 0.5 * dt * (a0[0] + a1[0]), 0.5 * dt * (a0[1] + a1[1]), 0.5 * dt * (a0[2] + a1[2])
-    hw, hx, hy, hz = _rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz)
+    hw, hx, hy, hz = rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz)
     cx, cy, cz = hy * fz - hz * fy, hz * fx - hx * fz, hx * fy - hy * fx
     dvx = fx + 2.0 * (hw * cx + hy * cz - hz * cy)
     dvy = fy + 2.0 * (hw * cy + hz * cx - hx * cz)
@@ -117,19 +118,13 @@ def nominal_step(
     hh = 0.5 * dt * dt
     p_new = (p[0] + v[0] * dt + hh * ax, p[1] + v[1] * dt + hh * ay, p[2] + v[2] * dt + hh * az)
     v_new = (v[0] + ax * dt, v[1] + ay * dt, v[2] + az * dt)
-    dw, dx, dy, dz = _rotvec_quat(px, py, pz)
+    dw, dx, dy, dz = rotvec_quat(px, py, pz)
     nw = qw * dw - qx * dx - qy * dy - qz * dz
     nx = qw * dx + qx * dw + qy * dz - qz * dy
     ny = qw * dy - qx * dz + qy * dw + qz * dx
     nz = qw * dz + qx * dy - qy * dx + qz * dw
     norm = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
     return p_new, v_new, (nw * norm, nx * norm, ny * norm, nz * norm)
-
-
-def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
-    angle = math.sqrt(x * x + y * y + z * z)
-    s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
-    return math.cos(0.5 * angle), s * x, s * y, s * z
 
 
 @dataclass(slots=True)
@@ -364,7 +359,7 @@ class FusionCore:
             # Growth over the prediction: velocity error integrates into position, attitude error
             # mis-rotates the specific force, and the IMU's white noise adds its own share.
             f_w = (np.array(pred.v) - s.v) / dt - self.est.propagator.gravity
-            a = np.array([[0.0, -f_w[2], f_w[1]], [f_w[2], 0.0, -f_w[0]], [-f_w[1], f_w[0], 0.0]])
+            a = skew(f_w)
             F = self._F
             F[0:3, 3:6] = self._eye3 * dt
             F[0:3, 6:9] = a * (-0.5 * dt * dt)
@@ -387,17 +382,7 @@ class FusionCore:
         """IMU white noise over ``dt`` on [p, v, θ]; for isotropic noise, cached polynomials in dt."""
         noise = self.est.noise
         if self._q_terms is None or self._q_terms[0] is not noise:
-            isotropic = all(np.all(np.asarray(x) == np.asarray(x).flat[0])
-                            for x in (noise.gyro_noise_density, noise.accel_noise_density))
-            terms = None
-            if isotropic:
-                # Q(dt) = A dt + B dt² + C dt³ (rotation-invariant when isotropic): solve from dt = 1, 2, 3.
-                identity = np.array([1.0, 0.0, 0.0, 0.0])
-                q1, q2, q3 = (process_noise(identity, x, noise, _ROBOT9) for x in (1.0, 2.0, 3.0))
-                c3 = (q3 - 3.0 * q2 + 3.0 * q1) / 6.0
-                c2 = (q2 - 2.0 * q1) / 2.0 - 3.0 * c3
-                terms = (q1 - c2 - c3, c2, c3)
-            self._q_terms = (noise, terms)
+            self._q_terms = (noise, noise_dt_polynomial(noise, _ROBOT9) if is_isotropic(noise) else None)
         terms = self._q_terms[1]
         if terms is None:
             return process_noise(q, dt, noise, _ROBOT9)

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimator.rotation import rotvec_quat
+
 
 @dataclass(frozen=True, slots=True)
 class ImuDelta:
@@ -25,13 +27,6 @@ class ImuDelta:
     dt: float
     dtheta: np.ndarray  # rotation vector of the accumulated body rotation
     dvel: np.ndarray  # ∫ ΔR(τ) f(τ) dτ, specific force rotated into the start frame [m/s]
-
-
-def _half_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
-    """Unit quaternion of the rotation vector (x, y, z)."""
-    angle = math.sqrt(x * x + y * y + z * z)
-    s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
-    return math.cos(0.5 * angle), s * x, s * y, s * z
 
 
 def _qmul(a: tuple, b: tuple) -> tuple[float, float, float, float]:
@@ -90,11 +85,11 @@ class ImuDownsampler:
         dt = (t_ns - t_prev) * 1e-9
         wx, wy, wz = (0.5 * dt * (g_prev + gyro)).tolist()  # rotation vector of this sample step
         fx, fy, fz = (0.5 * dt * (a_prev + accel)).tolist()
-        half = _qmul(self._q, _half_quat(0.5 * wx, 0.5 * wy, 0.5 * wz))
+        half = _qmul(self._q, rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz))
         dx, dy, dz = _rotate(half, fx, fy, fz)
         vx, vy, vz = self._dv
         self._dv = (vx + dx, vy + dy, vz + dz)
-        self._q = _qmul(self._q, _half_quat(wx, wy, wz))
+        self._q = _qmul(self._q, rotvec_quat(wx, wy, wz))
         self._dt += dt
         if self._dt < self.min_dt:
             return None
@@ -116,5 +111,5 @@ class ImuDownsampler:
         t_last, gyro, accel = self._last
         dt = (t_ns - t_last) * 1e-9
         self._last = (t_ns, gyro, accel)
-        half = _half_quat(*(0.5 * dt * gyro).tolist())
+        half = rotvec_quat(*(0.5 * dt * gyro).tolist())
         return ImuDelta(t_last, t_ns, dt, gyro * dt, np.array(_rotate(half, *(dt * accel).tolist())))

@@ -21,6 +21,7 @@ import numpy as np
 
 from estimator.calibration import ImuNoise
 from estimator.imu_delta import ImuDelta
+from estimator.rotation import rotvec_quat
 from estimator.state import FilterState, StateLayout
 
 
@@ -54,10 +55,7 @@ def _rot(w: float, x: float, y: float, z: float) -> tuple:
 
 def _quat_times_rotvec(q: np.ndarray, phi: np.ndarray) -> np.ndarray:
     """``q ⊗ Exp(φ)``, normalised: the body-frame attitude increment."""
-    px, py, pz = phi.tolist()
-    angle = math.sqrt(px * px + py * py + pz * pz)
-    s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
-    dw, dx, dy, dz = math.cos(0.5 * angle), s * px, s * py, s * pz
+    dw, dx, dy, dz = rotvec_quat(*phi.tolist())
     w, x, y, z = q.tolist()
     out = np.array(
         [
@@ -144,6 +142,20 @@ def process_noise(
     return Q
 
 
+def is_isotropic(noise: ImuNoise) -> bool:
+    """The same white-noise density on every axis: Q is then invariant under rotation."""
+    return all(np.all(np.asarray(x) == np.asarray(x).flat[0]) for x in (noise.gyro_noise_density, noise.accel_noise_density))
+
+
+def noise_dt_polynomial(noise: ImuNoise, layout: StateLayout, extra: float = 0.0) -> tuple[np.ndarray, ...]:
+    """``(A, B, C)`` with Q(dt) = A dt + B dt² + C dt³ for isotropic noise, solved from dt = 1, 2, 3."""
+    identity = np.array([1.0, 0.0, 0.0, 0.0])
+    q1, q2, q3 = (process_noise(identity, x, noise, layout, extra) for x in (1.0, 2.0, 3.0))
+    c3 = (q3 - 3.0 * q2 + 3.0 * q1) / 6.0
+    c2 = (q2 - 2.0 * q1) / 2.0 - 3.0 * c3
+    return q1 - c2 - c3, c2, c3
+
+
 class ImuPropagator:
     """Advances a :class:`FilterState` by one IMU delta.
 
@@ -154,9 +166,7 @@ class ImuPropagator:
     def __init__(self, noise: ImuNoise, gravity: float) -> None:
         self.noise = noise
         self.gravity = np.array([0.0, 0.0, float(gravity)])
-        self._isotropic = all(
-            np.all(getattr(noise, k) == getattr(noise, k)[0]) for k in ("gyro_noise_density", "accel_noise_density")
-        )
+        self._isotropic = is_isotropic(noise)
         self._F: np.ndarray | None = None
         self._eye3 = np.eye(3)
         self._q_key: StateLayout | None = None
@@ -170,21 +180,13 @@ class ImuPropagator:
         # extra² (it adds to the horizontal accelerometer variance): Q = Q(0) + extra² (Q(1) − Q(0)),
         # so a heading still unknown (extra changing every step) costs no refit.
         if self._q_key != layout:
-            base, unit = (self._dt_polynomial(layout, x) for x in (0.0, 1.0))
+            base, unit = (noise_dt_polynomial(self.noise, layout, x) for x in (0.0, 1.0))
             self._q_terms = (base, tuple(u - b for u, b in zip(unit, base)))
             self._q_key = layout
         base, per_extra2 = self._q_terms
         e2 = extra * extra
         c1, c2, c3 = (b + e2 * d for b, d in zip(base, per_extra2)) if e2 else base
         return (c1 + (c2 + c3 * dt) * dt) * dt
-
-    def _dt_polynomial(self, layout: StateLayout, extra: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(A, B, C)`` with Q(dt) = A dt + B dt² + C dt³, solved from dt = 1, 2, 3."""
-        identity = np.array([1.0, 0.0, 0.0, 0.0])
-        q1, q2, q3 = (process_noise(identity, x, self.noise, layout, extra) for x in (1.0, 2.0, 3.0))
-        c3 = (q3 - 3.0 * q2 + 3.0 * q1) / 6.0
-        c2 = (q2 - 2.0 * q1) / 2.0 - 3.0 * c3
-        return q1 - c2 - c3, c2, c3
 
     def propagate(self, state: FilterState, delta: ImuDelta, extra_horizontal_accel: float = 0.0) -> np.ndarray:
         """Propagate nominal state and covariance over ``delta``; returns ``a_W``."""
@@ -208,9 +210,7 @@ class ImuPropagator:
         a_w = np.array([ax, ay, az + self.gravity[2]])
         state.p = state.p + state.v * dt + (0.5 * dt * dt) * a_w
         state.v = state.v + a_w * dt
-        angle = math.sqrt(px * px + py * py + pz * pz)
-        s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
-        dw, dx, dy, dz = math.cos(0.5 * angle), s * px, s * py, s * pz
+        dw, dx, dy, dz = rotvec_quat(px, py, pz)
         nw = w * dw - x * dx - y * dy - z * dz
         nx = w * dx + x * dw + y * dz - z * dy
         ny = w * dy - x * dz + y * dw + z * dx

@@ -9,6 +9,8 @@ Python loops.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 _SMALL_ANGLE = 1e-8
@@ -24,6 +26,14 @@ def is_proper_rotation(r: np.ndarray, atol: float = 1e-6) -> bool:
     """Orthonormal with determinant +1 (not a reflection)."""
     r = np.asarray(r, dtype=float)
     return r.shape == (3, 3) and bool(np.allclose(r @ r.T, np.eye(3), atol=atol)) and np.linalg.det(r) > 0.0
+
+
+def rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """Unit quaternion of the rotation vector (x, y, z), on plain floats: the per-sample fast path
+    (:func:`quat_exp` is the array version)."""
+    angle = math.sqrt(x * x + y * y + z * z)
+    s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
+    return math.cos(0.5 * angle), s * x, s * y, s * z
 
 
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
