@@ -21,8 +21,8 @@ import numpy as np
 
 from estimator.camera_model import CameraModel
 from estimator.kalman import UpdateOutcome, ekf_update
-from estimator.landmarks import ROBOT_POSE_COLS, direction, direction_derivatives, skew_stack
-from estimator.rotation import quat_conj, quat_log, quat_mul
+from estimator.landmarks import ROBOT_POSE_COLS, direction, direction_derivatives
+from estimator.rotation import quat_conj, quat_log, quat_mul, skew
 from estimator.state import LANDMARK_DIM, FilterState
 
 
@@ -63,7 +63,7 @@ def predict_h(state: FilterState, R_BC: np.ndarray, t_BC: np.ndarray) -> tuple[n
     k = len(y)
     dh_w_pose = np.zeros((k, 3, 6))
     dh_w_pose[:, :, 0:3] = -rho[:, None, None] * np.eye(3)
-    dh_w_pose[:, :, 3:6] = skew_stack(h_w) + rho[:, None, None] * skew_stack(lever_w)
+    dh_w_pose[:, :, 3:6] = skew(h_w) + rho[:, None, None] * skew(lever_w)
     dm_dt, dm_dp = direction_derivatives(y[:, 3], y[:, 4])
     dh_w_y = np.empty((k, 3, 6))
     dh_w_y[:, :, 0:3] = rho[:, None, None] * np.eye(3)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from estimator.camera_model import CameraModel
+from estimator.rotation import skew
 from estimator.state import LANDMARK_DIM, FilterState
 
 ROBOT_POSE_COLS = np.r_[0:3, 6:9]  # [δp, δθ] in every robot layout
@@ -76,15 +77,6 @@ def point_jacobian(y: np.ndarray) -> np.ndarray:
     return J
 
 
-def skew_stack(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices of a stack of vectors ``(..., 3)`` → ``(..., 3, 3)``."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
 def world_rays(R_WB: np.ndarray, R_BC: np.ndarray, camera: CameraModel, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World-frame rays of pixels and their undistorted normalised coordinates."""
     xn = camera.undistort(uv)
@@ -117,8 +109,8 @@ def initial_landmarks(
     d_angles = angles_jacobian(r_w)  # (K, 2, 3)
     J_x = np.zeros((k, 6, 6))
     J_x[:, 0:3, 0:3] = np.eye(3)
-    J_x[:, 0:3, 3:6] = -skew_stack(R_WB @ t_BC)
-    J_x[:, 3:5, 3:6] = d_angles @ -skew_stack(r_w)
+    J_x[:, 0:3, 3:6] = -skew(R_WB @ t_BC)
+    J_x[:, 3:5, 3:6] = d_angles @ -skew(r_w)
     J_z = np.zeros((k, 6, 3))
     # r_W = R R_BC [x, y, 1]: ∂r/∂(x, y) is the first two columns of R R_BC.
     dr_dxn = (R_WB @ R_BC)[:, 0:2]
@@ -168,7 +160,7 @@ def baseline_significance(state: FilterState, rows: np.ndarray, t_BC: np.ndarray
         return np.zeros(0)
     R = state.R
     d = state.p + R @ t_BC - state.landmarks[rows, 0:3]
-    J = np.hstack([np.eye(3), -skew_stack(R @ t_BC), -np.eye(3)])  # over [δp, δθ, δa]
+    J = np.hstack([np.eye(3), -skew(R @ t_BC), -np.eye(3)])  # over [δp, δθ, δa]
     anchor = state.robot_dim + LANDMARK_DIM * rows[:, None] + np.arange(3)
     cols = np.concatenate([np.broadcast_to(ROBOT_POSE_COLS, (len(rows), 6)), anchor], axis=1)  # (K, 9)
     P = state.cov[cols[:, :, None], cols[:, None, :]]  # (K, 9, 9)

@@ -188,7 +188,7 @@ def pose_errors_for_nees(
     lever_w = R @ point_b
     J = np.zeros((len(t_ns), 6, 6))
     J[:, 0:3, 0:3] = np.eye(3)
-    J[:, 0:3, 3:6] = -np.array([skew(v) for v in lever_w]) if len(t_ns) else 0.0
+    J[:, 0:3, 3:6] = -skew(lever_w) if len(t_ns) else 0.0
     J[:, 3:6, 3:6] = np.eye(3)
     cov = J @ pose_cov @ np.swapaxes(J, 1, 2)
     err_p = p_true - (p + lever_w)

@@ -181,7 +181,7 @@ class MotionAligner:
             Jr = np.zeros((K, 3, 15))
             Jr[:, :, 0:3] = eye
             Jr[:, :, 3:6] = eye * fix_t[:, None, None]
-            Jr[:, :, 6:9] = -np.array([skew(v) for v in body @ R0.T])
+            Jr[:, :, 6:9] = -skew(body @ R0.T)
             Jr[:, :, 12:15] = -np.einsum("ij,kjl->kil", R0, ints.M)
             alt = integrate(imu_t, dtheta, dvel, b_g + eps * np.eye(3), fix_t)
             for j in range(3):

@@ -17,9 +17,16 @@ _SMALL_ANGLE = 1e-8
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrix: ``skew(a) @ b == np.cross(a, b)``."""
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """Cross-product matrix: ``skew(a) @ b == np.cross(a, b)``; a stack ``(..., 3)`` gives ``(..., 3, 3)``."""
+    v = np.asarray(v, dtype=float)
+    if v.ndim == 1:
+        x, y, z = v
+        return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
 
 
 def is_proper_rotation(r: np.ndarray, atol: float = 1e-6) -> bool:
