@@ -24,13 +24,11 @@ from estimator.filter import Estimator
 from estimator.fusion import OutputPose
 from estimator.measurements import CameraFrame
 from service.faults import Fault, FaultInjector
-from service.replay_runtime import run_replay
+from service.replay_runtime import checked_sensors, run_replay
 from service.threads import limit_blas_threads
 from service.wiring import feature_options
 
 log = logging.getLogger(__name__)
-
-SENSOR_NAMES = ("imu", "gps", "camera")
 
 # Called after each frame with the image, its features and what the filter did with them.
 FrameCallback = Callable[[np.ndarray | None, FrameFeatures, FrameReport], None]
@@ -151,12 +149,7 @@ def replay(
     on_fused: Callable[[OutputPose], None] | None = None,
 ) -> ReplayResult:
     """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0), ``faults`` played on its stream."""
-    sensors = list(sensors or cfg["replay.sensors"])
-    unknown = [s for s in sensors if s not in SENSOR_NAMES]
-    if unknown:
-        raise ValueError(f"unknown sensor(s) {unknown}; choose from {', '.join(SENSOR_NAMES)}")
-    if "imu" not in sensors:
-        raise ValueError("the estimator needs the IMU: include 'imu' in the sensors")
+    sensors = checked_sensors(sensors or cfg["replay.sensors"])
     notes: list[str] = []
     has_gps = "gps" in sensors and dataset.gps() is not None
     if "gps" in sensors and not has_gps:

@@ -22,7 +22,18 @@ from service.sources import ReplayClock, ReplaySource
 
 log = logging.getLogger(__name__)
 
-RUNTIME_SENSORS = ("imu", "gps", "camera")
+SENSOR_NAMES = ("imu", "gps", "camera")
+
+
+def checked_sensors(sensors: Sequence[str]) -> list[str]:
+    """``sensors`` as a list, or ValueError naming what is wrong (unknown names, no IMU)."""
+    sensors = list(sensors)
+    unknown = [s for s in sensors if s not in SENSOR_NAMES]
+    if unknown:
+        raise ValueError(f"unknown sensor(s) {unknown}; choose from {', '.join(SENSOR_NAMES)}")
+    if "imu" not in sensors:
+        raise ValueError("the estimator needs the IMU: include 'imu' in the sensors")
+    return sensors
 
 
 async def replay_async(
@@ -46,10 +57,7 @@ async def replay_async(
     ``hold``: after the data, keep the outputs up (queries answered from the history) until stopped.
     ``faults``: played on the stream between the dataset and the runtime (``service.faults``).
     """
-    sensors = list(sensors or cfg["replay.sensors"])
-    unknown = [s for s in sensors if s not in RUNTIME_SENSORS]
-    if unknown or "imu" not in sensors:
-        raise ValueError(f"sensors {sensors}: choose from {', '.join(RUNTIME_SENSORS)}, including imu")
+    sensors = checked_sensors(sensors or cfg["replay.sensors"])
     speed = cfg["replay.speed"] if speed is None else speed
     frames, load = None, None
     if "camera" in sensors:
