@@ -12,17 +12,14 @@ receiver time, messages without any accuracy figure, and positions off the globe
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
-os.environ.setdefault("MAVLINK20", "1")  # MAVLink 2 everywhere (INTERFACES.md); parses MAVLink 1 too
-from pymavlink import mavutil  # noqa: E402
-
-from drivers.gps_common import GpsReading, LocalNed, dop_sigmas, horizontal_per_axis  # noqa: E402
-from estimator.measurements import GpsFix  # noqa: E402
+from drivers.gps_common import GpsReading, LocalNed, dop_sigmas, horizontal_per_axis
+from drivers.mavlink_wire import ensure_mavlink2, mavutil
+from estimator.measurements import GpsFix
 
 __all__ = ["GPS_FIX_TYPE_3D", "MavlinkGps", "MavlinkGpsConfig"]
 
@@ -58,8 +55,7 @@ class MavlinkGps:
 
     def open(self) -> None:
         """Open the MAVLink endpoint (a UDP/TCP socket or serial port); raises OSError on failure."""
-        if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
-            mavutil.set_dialect(mavutil.current_dialect)  # imported before MAVLINK20 was set
+        ensure_mavlink2()
         self._conn = mavutil.mavlink_connection(self.config.url, autoreconnect=True)
         self.status = "listening"
 

@@ -13,23 +13,16 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import os
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-os.environ.setdefault("MAVLINK20", "1")  # must precede the first import of mavutil
-from pymavlink import mavutil  # noqa: E402
-
-if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":  # mavutil was imported earlier without MAVLINK20
-    os.environ["MAVLINK20"] = "1"
-    mavutil.set_dialect(mavutil.current_dialect)
-
-from config.outputs import parse_mavlink_url  # noqa: E402
-from estimator.fusion import OutputPose  # noqa: E402
-from estimator.rotation import quat_to_rot, skew  # noqa: E402
-from service.status import FailureBook, pose_quality, stopped_within  # noqa: E402
+from config.outputs import parse_mavlink_url
+from drivers.mavlink_wire import mavutil
+from estimator.fusion import OutputPose
+from estimator.rotation import quat_to_rot, skew
+from service.status import FailureBook, pose_quality, stopped_within
 
 log = logging.getLogger(__name__)
 
