@@ -22,7 +22,7 @@ RUN apt-get update \
     && rm -rf /var/lib/apt/lists/*
 
 WORKDIR /opt/vtolpose
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md __init__.py __main__.py client.py ./
 COPY config ./config
 COPY estimator ./estimator
 COPY drivers ./drivers

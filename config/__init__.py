@@ -14,8 +14,8 @@ from typing import Any
 
 import yaml
 
-from config.outputs import check_outputs
-from config.schema import SCHEMA, Field
+from vtolpose.config.outputs import check_outputs
+from vtolpose.config.schema import SCHEMA, Field
 
 __all__ = ["ConfigError", "load_config", "default_config", "get", "validate"]
 
@@ -41,7 +41,7 @@ def _read_yaml(text: str, origin: str) -> dict:
 
 
 def default_config() -> dict:
-    text = resources.files("config").joinpath("default.yaml").read_text(encoding="utf-8")
+    text = resources.files(__name__).joinpath("default.yaml").read_text(encoding="utf-8")
     return _read_yaml(text, "config/default.yaml")
 
 

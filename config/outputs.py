@@ -73,7 +73,7 @@ def zenoh_prefix(cfg: dict[str, Any]) -> str:
 
 def check_outputs(cfg: dict[str, Any], origin: str) -> None:
     """Raise ConfigError naming the key of the first output setting that cannot work."""
-    from config import ConfigError
+    from vtolpose.config import ConfigError
 
     def fail(key: str, problem: str) -> ConfigError:
         return ConfigError(f"{origin}: key '{key}': {problem}")

@@ -1,6 +1,6 @@
 """The estimator: start-up, IMU propagation and measurement updates, in time order.
 
-Feed it samples in timestamp order (late measurements are ordered by ``estimator.fusion``);
+Feed it samples in timestamp order (late measurements are ordered by ``vtolpose.estimator.fusion``);
 ask it for the pose. Bad samples are counted per sensor and reason, never raised: the
 caller always gets the best estimate the good data allow.
 
@@ -17,21 +17,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.calibration import Calibration, ImuNoise
-from estimator.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
-from estimator.features import FrameFeatures
-from estimator.gps_update import GpsUpdater, gps_sigmas
-from estimator.gravity_update import GravityLeveller
-from estimator.health import GapWidener, HealthMonitor, HealthOptions
-from estimator.imu_delta import ImuDelta, ImuDownsampler
-from estimator.initializer import InitialAttitude, InitOptions, StaticInitializer
-from estimator.kalman import UpdateOutcome, chi2_gate, ekf_update
-from estimator.measurements import GpsFix, RejectionCounts
-from estimator.motion_alignment import MotionAligner, MotionAlignment, MotionAlignOptions
-from estimator.propagator import ImuPropagator
-from estimator.startup import state_from_alignment, state_from_static
-from estimator.state import FilterState, StateLayout
-from estimator.stillness import StillChunk, StillnessDetector, StillnessOptions
+from vtolpose.estimator.core.calibration import Calibration, ImuNoise
+from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
+from vtolpose.estimator.vision.features import FrameFeatures
+from vtolpose.estimator.gnss.gps_update import GpsUpdater, gps_sigmas
+from vtolpose.estimator.inertial.gravity_update import GravityLeveller
+from vtolpose.estimator.health import GapWidener, HealthMonitor, HealthOptions
+from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
+from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
+from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
+from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts
+from vtolpose.estimator.inertial.motion_alignment import MotionAligner, MotionAlignment, MotionAlignOptions
+from vtolpose.estimator.inertial.propagator import ImuPropagator
+from vtolpose.estimator.inertial.startup import state_from_alignment, state_from_static
+from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
@@ -376,7 +376,7 @@ class Estimator:
 
     # ------------------------------------------------------------------------------ camera
     def process_features(self, features: FrameFeatures) -> FrameReport:
-        """Fuse one frame's features at its own time (EKF-SLAM, ``estimator.camera_pipeline``).
+        """Fuse one frame's features at its own time (EKF-SLAM, ``vtolpose.estimator.vision.camera_pipeline``).
 
         Bad frames are counted under ``camera`` by reason; landmark-level outcomes (matched,
         rejected by gate, ratio, χ², behind the camera) under ``camera_match``.

@@ -29,11 +29,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from estimator.filter import Estimator
-from estimator.measurements import ImuSample, RejectionCounts
-from estimator.propagator import is_isotropic, noise_dt_polynomial, process_noise
-from estimator.rotation import rotvec_quat, skew
-from estimator.state import StateLayout
+from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.core.measurements import ImuSample, RejectionCounts
+from vtolpose.estimator.inertial.propagator import is_isotropic, noise_dt_polynomial, process_noise
+from vtolpose.estimator.core.rotation import rotvec_quat, skew
+from vtolpose.estimator.core.state import StateLayout
 
 _RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (numerical drift only)
 _ROBOT9 = StateLayout("thesis")  # p, v, θ: the blocks the predictor's covariance covers
@@ -92,9 +92,9 @@ def nominal_step(
 ) -> tuple[tuple, tuple, tuple]:
     """One IMU sample step of the nominal state, in scalars (it runs for every sample).
 
-    The same arithmetic as a one-sample :class:`~estimator.imu_delta.ImuDelta` (trapezoid rates,
+    The same arithmetic as a one-sample :class:`~vtolpose.estimator.inertial.imu_delta.ImuDelta` (trapezoid rates,
     specific force rotated by the half-step) followed by
-    :func:`~estimator.propagator.integrate_nominal`; a test holds the two together.
+    :func:`~vtolpose.estimator.inertial.propagator.integrate_nominal`; a test holds the two together.
     """
     # Raw increments over the step.
     wx, wy, wz = 0.5 * dt * (g0[0] + g1[0]), 0.5 * dt * (g0[1] + g1[1]), 0.5 * dt * (g0[2] + g1[2])

@@ -1,6 +1,6 @@
 """Filter health: which sensors are alive, whether the filter is still sound, when it must reset.
 
-The estimator (``estimator.filter``) asks short questions at the points where it can act:
+The estimator (``vtolpose.estimator.filter``) asks short questions at the points where it can act:
 
 - A sensor goes quiet or every measurement of it is refused: after ``gps_stale_s`` /
   ``camera_stale_s`` without a *used* measurement it is reported stale and the published
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.state import FilterState
+from vtolpose.estimator.core.state import FilterState
 
 RESET_KINDS = ("gps_rejected", "imu_gap", "state_invalid")
 

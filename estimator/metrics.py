@@ -13,7 +13,7 @@ from typing import Protocol
 import numpy as np
 from scipy.stats import chi2
 
-from estimator.rotation import quat_conj, quat_log, quat_mul, quat_slerp, quat_to_rot, rotation_angle, skew
+from vtolpose.estimator.core.rotation import quat_conj, quat_log, quat_mul, quat_slerp, quat_to_rot, rotation_angle, skew
 
 
 class Trajectory(Protocol):

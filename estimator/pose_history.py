@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.rotation import quat_slerp
+from vtolpose.estimator.core.rotation import quat_slerp
 
 # One row per pose: p (3), q (4, w first), v (3), w (3, body rate), cov (36, [δp, δθ] row-major).
 P, Q, V, W, COV = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13), slice(13, 49)

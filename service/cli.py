@@ -12,9 +12,9 @@ import sys
 # that feature extraction needs. Set before anything imports numpy.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from config import ConfigError
+from vtolpose.config import ConfigError
 
-# Subcommand name -> module in service.commands providing add_parser(subparsers) and run(args).
+# Subcommand name -> module in vtolpose.service.commands providing add_parser(subparsers) and run(args).
 COMMANDS = ("demo", "simulate", "import", "replay", "eval", "bench", "calibrate", "probe", "run")
 
 DESCRIPTION = """\
@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        module = importlib.import_module(f"service.commands.{name.replace('import', 'importer')}")
+        module = importlib.import_module(f"vtolpose.service.commands.{name.replace('import', 'importer')}")
         module.add_parser(sub)
     return parser
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.measurements import CameraFrame, GpsFix, ImuSample
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
 
 FRAME_PERIOD_NS = int(1e9 / 7.5)
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimator.association import AssociationOptions, associate
-from estimator.camera_update import Predictions
-from estimator.features import FrameFeatures, descriptor_distances
+from vtolpose.estimator.vision.association import AssociationOptions, associate
+from vtolpose.estimator.vision.camera_update import Predictions
+from vtolpose.estimator.vision.features import FrameFeatures, descriptor_distances
 
 
 def unit_rows(n: int, seed: int, dim: int = 128) -> np.ndarray:

@@ -7,13 +7,13 @@ import builtins
 import numpy as np
 import pytest
 
-from config import ConfigError, load_config
-from drivers.dataset import DatasetWriter
-from drivers.simulator import ImuErrorModel, SimulationOptions, simulate_flight
-from drivers.simulator.export import write_flight
-from service import calibration_output
-from service.calibration_plots import PlotUnavailable, plot_allan
-from service.cli import main
+from vtolpose.config import ConfigError, load_config
+from vtolpose.drivers.files.dataset import DatasetWriter
+from vtolpose.drivers.simulator import ImuErrorModel, SimulationOptions, simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.service.calibration import output as calibration_output
+from vtolpose.service.calibration.plots import PlotUnavailable, plot_allan
+from vtolpose.service.cli import main
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

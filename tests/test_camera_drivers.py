@@ -8,10 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-import drivers.camera_dc1394 as dc
-from config import load_config
-from drivers.camera_common import CameraUnavailable, camera_from_config
-from drivers.camera_opencv import OpenCvCamera, OpenCvCameraConfig
+import vtolpose.drivers.camera.dc1394 as dc
+from vtolpose.config import load_config
+from vtolpose.drivers.camera.common import CameraUnavailable
+from vtolpose.drivers.camera.select import camera_from_config
+from vtolpose.drivers.camera.opencv import OpenCvCamera, OpenCvCameraConfig
 
 N_FRAMES, W, H = 12, 160, 120
 

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from estimator.calibration import CameraCalibration
-from estimator.camera_model import CameraModel
+from vtolpose.estimator.core.calibration import CameraCalibration
+from vtolpose.estimator.vision.camera_model import CameraModel
 
 DISTORTION = np.array([-0.28, 0.09, 0.0012, -0.0008, -0.01])
 

@@ -7,13 +7,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from estimator.calibration import Calibration, CameraCalibration, ImuCalibration, ImuNoise
-from estimator.camera_pipeline import CameraOptions, CameraPipeline
-from estimator.features import FeatureOptions, FrameFeatures, extract_features
-from estimator.filter import Estimator, FilterOptions
-from estimator.map_manager import LandmarkBook, MapOptions, deletions, depth_priors, select_new_features
-from estimator.rotation import quat_from_euler
-from estimator.state import FilterState, StateLayout
+from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, ImuCalibration, ImuNoise
+from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline
+from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
+from vtolpose.estimator.filter import Estimator, FilterOptions
+from vtolpose.estimator.vision.map_manager import LandmarkBook, MapOptions, deletions, depth_priors, select_new_features
+from vtolpose.estimator.core.rotation import quat_from_euler
+from vtolpose.estimator.core.state import FilterState, StateLayout
 
 R_BC = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 CAM = CameraCalibration(656, 494, 570.0, 570.0, 327.5, 246.5, np.array([-0.12, 0.05, 5e-4, -3e-4, 0.0]), R_BC, np.array([0.05, 0.0, 0.05]))
@@ -140,7 +140,7 @@ def scene_pipeline(options: CameraOptions, n: int = 20) -> tuple[FilterState, Ca
 
 def seen(pipe: CameraPipeline, state: FilterState, desc: np.ndarray, which: np.ndarray, t_ns: int) -> FrameFeatures:
     """Features exactly at the predicted pixels of landmarks ``which`` (by row), with their descriptors."""
-    from estimator.camera_update import predict
+    from vtolpose.estimator.vision.camera_update import predict
 
     uv = predict(state, pipe.camera, pipe.R_BC, pipe.t_BC, 1.0).uv
     row_of = {int(i): r for r, i in enumerate(pipe.book.ids)}
@@ -265,7 +265,7 @@ def test_a_guessed_depth_is_held_until_the_camera_has_moved():
     state.cov[0:3, 0:3] += np.eye(3) * 1e-6
     real = state.copy()
     real.landmarks = truth
-    from estimator.camera_update import predict
+    from vtolpose.estimator.vision.camera_update import predict
 
     uv = predict(real, pipe.camera, pipe.R_BC, pipe.t_BC, 1.0).uv
     order = {int(i): r for r, i in enumerate(pipe.book.ids)}
@@ -277,7 +277,7 @@ def test_a_guessed_depth_is_held_until_the_camera_has_moved():
 
 
 def test_baseline_significance_grows_with_the_displacement_since_the_anchor():
-    from estimator.landmarks import baseline_significance
+    from vtolpose.estimator.vision.landmarks import baseline_significance
 
     state, pipe, _ = scene_pipeline(CameraOptions(), 4)
     assert np.all(baseline_significance(state, np.arange(4), CAM.t_BC) < 1e-6)  # seen from where they were born

@@ -13,9 +13,9 @@ import pytest
 import skimage.data
 import yaml
 
-from config import load_config
-from estimator.chessboard import Board, ChessboardError, calibrate_views, find_corners
-from service.cli import main
+from vtolpose.config import load_config
+from vtolpose.estimator.calibration.chessboard import Board, ChessboardError, calibrate_views, find_corners
+from vtolpose.service.cli import main
 
 K_TRUE = np.array([[520.0, 0.0, 322.0], [0.0, 515.0, 241.0], [0.0, 0.0, 1.0]])
 DIST_TRUE = np.array([-0.28, 0.09, 0.0008, -0.0006, 0.0])

@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.dataset import Dataset
-from drivers.tum import read_tum
-from service.cli import COMMANDS, build_parser, main
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.tum import read_tum
+from vtolpose.service.cli import COMMANDS, build_parser, main
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import yaml
 
-import config
-from config import ConfigError, load_config
-from config.schema import SCHEMA
+from vtolpose import config
+from vtolpose.config import ConfigError, load_config
+from vtolpose.config.schema import SCHEMA
 
 
 def test_every_default_has_a_schema_entry_and_back():
@@ -74,9 +74,9 @@ def test_default_yaml_is_commented_and_parseable():
 
 
 def test_calibration_section_overrides_the_dataset_calibration():
-    from drivers.simulator import simulate_flight
-    from drivers.simulator.render import default_camera
-    from service.wiring import calibration_with_overrides
+    from vtolpose.drivers.simulator import simulate_flight
+    from vtolpose.drivers.simulator.render import default_camera
+    from vtolpose.service.runtime.wiring import calibration_with_overrides
 
     cal = simulate_flight("book", 2.0, 0).calibration
     cfg = load_config(None, {"calibration": {"gps": {"time_offset_s": -0.12, "lever_arm_b": [0.1, 0.0, -0.2]},

@@ -13,15 +13,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.crossbow import (
+from vtolpose.drivers.imu.crossbow import (
     PACKET_LEN, CrossbowScale, PacketFramer, TimeCounter, checksum, decode_packet, encode_packet,
 )
-from drivers.crossbow_serial import CrossbowConfig, CrossbowImu, parse_serial_reply, parse_version_reply
-from drivers.dataset import Dataset, DatasetWriter, ImuSeries
-from drivers.emulators import Imu400Emulator
-from drivers.serial_link import DeviceError
-from estimator.calibration import Calibration, ImuCalibration, ImuNoise
-from estimator.rotation import quat_from_euler, quat_to_rot
+from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, CrossbowImu, parse_serial_reply, parse_version_reply
+from vtolpose.drivers.files.dataset import Dataset, DatasetWriter, ImuSeries
+from vtolpose.drivers.emulators import Imu400Emulator
+from vtolpose.drivers.links.serial_link import DeviceError
+from vtolpose.estimator.core.calibration import Calibration, ImuCalibration, ImuNoise
+from vtolpose.estimator.core.rotation import quat_from_euler, quat_to_rot
 
 SCALE = CrossbowScale(100.0, 2.0)
 COUNTER = TimeCounter(7.9e-7, counts_down=True)

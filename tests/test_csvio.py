@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.csvio import parse_time_ns, read_numeric_csv, seconds_text, write_numeric_csv
+from vtolpose.drivers.files.csvio import parse_time_ns, read_numeric_csv, seconds_text, write_numeric_csv
 
 HEADER = "#timestamp [ns],a,b,c"
 
@@ -62,7 +62,7 @@ def test_malformed_lines_are_skipped_counted_and_warned_once(tmp_path: Path, cap
         "# a comment is not a data line",
         "2000,7,8,9",
     )
-    with caplog.at_level(logging.WARNING, logger="drivers.csvio"):
+    with caplog.at_level(logging.WARNING, logger="vtolpose.drivers.files.csvio"):
         data = read_numeric_csv(f, 3)
     assert data.t_ns.tolist() == [100, 1700, 2000]
     assert data.skipped == 8

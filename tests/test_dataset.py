@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from drivers.dataset import (
+from vtolpose.drivers.files.dataset import (
     CalibrationError,
     Dataset,
     DatasetWriter,
@@ -21,8 +21,8 @@ from drivers.dataset import (
     calibration_from_yaml,
     calibration_to_yaml,
 )
-from estimator.calibration import Calibration, CameraCalibration, GpsCalibration, ImuCalibration, ImuNoise
-from estimator.rotation import quat_exp, quat_normalize
+from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, GpsCalibration, ImuCalibration, ImuNoise
+from vtolpose.estimator.core.rotation import quat_exp, quat_normalize
 
 R_BI = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 ORIGIN = (58.4, 15.6, 60.0)

@@ -9,12 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from drivers.simulator import simulate_flight
-from estimator.filter import Estimator, FilterOptions
-from estimator.kalman import chi2_gate
-from estimator.measurements import GpsFix
-from estimator.metrics import evaluate, gps_error_rmse, nees, pose_errors_for_nees
-from estimator.rotation import quat_to_rot, rotation_angle, yaw_of
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.estimator.filter import Estimator, FilterOptions
+from vtolpose.estimator.core.kalman import chi2_gate
+from vtolpose.estimator.core.measurements import GpsFix
+from vtolpose.estimator.metrics import evaluate, gps_error_rmse, nees, pose_errors_for_nees
+from vtolpose.estimator.core.rotation import quat_to_rot, rotation_angle, yaw_of
 
 
 def run(flight, options=None, start_s=0.0, imu=None, gps=None, calibration=None):

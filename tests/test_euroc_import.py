@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from drivers.dataset import Dataset
-from drivers.euroc_import import default_mounting_path, import_euroc, load_mounting, subsample
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.euroc_import import default_mounting_path, import_euroc, load_mounting, subsample
 
 PRISM_IMU = np.array([7.48903e-02, -1.84772e-02, -1.20209e-01])  # leica0/sensor.yaml T_BS translation
 R_BI = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
@@ -20,7 +20,7 @@ SIGMA = 0.02
 @pytest.fixture(scope="module")
 def imported(euroc_mh01: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, list[str]]:
     out = tmp_path_factory.mktemp("mh01") / "ds"
-    logger = logging.getLogger("drivers.csvio")
+    logger = logging.getLogger("vtolpose.drivers.files.csvio")
     records: list[str] = []
     handler = logging.Handler()
     handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]

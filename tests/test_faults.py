@@ -11,14 +11,14 @@ import math
 import numpy as np
 import pytest
 
-from config import load_config
-from drivers.dataset import Dataset
-from drivers.simulator import simulate_flight
-from drivers.simulator.export import write_flight
-from estimator.measurements import CameraFrame, GpsFix, ImuSample
-from service.bench_faults import FaultRun, recovery_time_s, traced_replay, trajectory_deviation_m, window_nees
-from service.cli import main
-from service.faults import FaultError, FaultInjector, parse_fault, parse_faults
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
+from vtolpose.service.bench.faults import FaultRun, recovery_time_s, traced_replay, trajectory_deviation_m, window_nees
+from vtolpose.service.cli import main
+from vtolpose.service.replay.faults import FaultError, FaultInjector, parse_fault, parse_faults
 
 DURATION_S = 70.0
 STALE_CAP, RESET_CAP = 50, 20  # estimator.health defaults: quality ceilings while stale / after a reset
@@ -247,7 +247,7 @@ def test_replay_command_plays_faults_into_the_report(landfill, tmp_path, capsys)
 @pytest.fixture(scope="module")
 def book(tmp_path_factory) -> Dataset:
     pytest.importorskip("skimage", reason="rendering needs scikit-image (the 'sim' extra)")
-    from drivers.simulator.render import default_camera
+    from vtolpose.drivers.simulator.render import default_camera
 
     root = tmp_path_factory.mktemp("faults") / "book"
     write_flight(simulate_flight("book", 24.0, 1), root, camera=default_camera())

@@ -4,14 +4,14 @@ predictor reaches the newest sample; everything deterministic."""
 import numpy as np
 import pytest
 
-from config import load_config
-from drivers.simulator import simulate_flight
-from estimator.filter import Estimator
-from estimator.fusion import FusionCore, FusionOptions, nominal_step
-from estimator.imu_delta import ImuDownsampler
-from estimator.measurements import GpsFix, ImuSample
-from estimator.propagator import integrate_nominal
-from service.wiring import filter_options
+from vtolpose.config import load_config
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.fusion import FusionCore, FusionOptions, nominal_step
+from vtolpose.estimator.inertial.imu_delta import ImuDownsampler
+from vtolpose.estimator.core.measurements import GpsFix, ImuSample
+from vtolpose.estimator.inertial.propagator import integrate_nominal
+from vtolpose.service.runtime.wiring import filter_options
 
 DELAY = 0.15
 

@@ -8,18 +8,18 @@ import numpy as np
 import pytest
 import yaml
 
-from config import load_config
-from drivers.dataset import Dataset, DatasetWriter
-from drivers.euroc_import import default_mounting_path, import_euroc
-from drivers.series import GpsSeries
-from drivers.simulator import GpsErrorModel, ImuErrorModel, SimulationOptions, simulate_flight
-from drivers.simulator.export import write_flight
-from drivers.simulator.gps_model import antenna_positions
-from drivers.simulator.imu_model import corrupt_imu
-from drivers.simulator.trajectory import EulerTrajectory, SineMotion
-from estimator.gps_calibration import GpsCalibOptions, GpsCalibrationError, fit_lever_arm, scan_latency
-from service.calibration_plots import plot_latency
-from service.cli import main
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import Dataset, DatasetWriter
+from vtolpose.drivers.files.euroc_import import default_mounting_path, import_euroc
+from vtolpose.drivers.files.series import GpsSeries
+from vtolpose.drivers.simulator import GpsErrorModel, ImuErrorModel, SimulationOptions, simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.drivers.simulator.gps_model import antenna_positions
+from vtolpose.drivers.simulator.imu_model import corrupt_imu
+from vtolpose.drivers.simulator.trajectory import EulerTrajectory, SineMotion
+from vtolpose.estimator.calibration.gps import GpsCalibOptions, GpsCalibrationError, fit_lever_arm, scan_latency
+from vtolpose.service.calibration.plots import plot_latency
+from vtolpose.service.cli import main
 
 G = 9.80665
 LATENCY_S = 0.08  # the fixes are stamped this late: the offset to find is -LATENCY_S

@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from estimator.gravity_update import GravityLeveller, GravityModel
-from estimator.rotation import euler_from_quat, quat_conj, quat_exp, quat_from_euler, quat_log, quat_mul, quat_to_rot
-from estimator.state import FilterState, StateLayout
+from vtolpose.estimator.inertial.gravity_update import GravityLeveller, GravityModel
+from vtolpose.estimator.core.rotation import euler_from_quat, quat_conj, quat_exp, quat_from_euler, quat_log, quat_mul, quat_to_rot
+from vtolpose.estimator.core.state import FilterState, StateLayout
 
 
 def make_state(variant="biases"):

@@ -11,16 +11,16 @@ import logging
 import numpy as np
 import pytest
 
-from config import load_config
-from drivers.simulator import simulate_flight
-from estimator.filter import Estimator
-from estimator.fusion import FusionOptions
-from estimator.health import GapWidener, HealthMonitor, HealthOptions, gap_variances, state_problem
-from estimator.measurements import GpsFix, ImuSample
-from estimator.state import FilterState, StateLayout
-from service.runtime import Runtime, RuntimeOptions
-from service.status import FailureBook, pose_quality
-from service.wiring import filter_options
+from vtolpose.config import load_config
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.fusion import FusionOptions
+from vtolpose.estimator.health import GapWidener, HealthMonitor, HealthOptions, gap_variances, state_problem
+from vtolpose.estimator.core.measurements import GpsFix, ImuSample
+from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.service.runtime.loop import Runtime, RuntimeOptions
+from vtolpose.service.runtime.status import FailureBook, pose_quality
+from vtolpose.service.runtime.wiring import filter_options
 
 from runtime_helpers import PoseList, flight_samples
 

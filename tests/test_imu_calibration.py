@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from drivers.dataset import Dataset
-from drivers.euroc_import import import_euroc
-from drivers.simulator import BookScenario, ImuErrorModel, SimulationOptions, simulate_flight
-from drivers.simulator.imu_model import corrupt_imu
-from estimator.allan import allan_deviation, fit_noise
-from estimator.imu_calibration import calibrate_imu
-from estimator.static_detection import NoStaticStretchError, StaticOptions, find_static_stretches
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.euroc_import import import_euroc
+from vtolpose.drivers.simulator import BookScenario, ImuErrorModel, SimulationOptions, simulate_flight
+from vtolpose.drivers.simulator.imu_model import corrupt_imu
+from vtolpose.estimator.calibration.allan import allan_deviation, fit_noise
+from vtolpose.estimator.calibration.imu import calibrate_imu
+from vtolpose.estimator.calibration.static_detection import NoStaticStretchError, StaticOptions, find_static_stretches
 
 RATE = 125.0
 LONG_RATE = 50.0  # the long Allan record: densities do not depend on the rate, and 50 Hz is quicker

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimator.calibration import CameraCalibration
-from estimator.camera_model import CameraModel
-from estimator.camera_update import iterated_update, predict, predict_h, stacked_update
-from estimator.landmarks import (
+from vtolpose.estimator.core.calibration import CameraCalibration
+from vtolpose.estimator.vision.camera_model import CameraModel
+from vtolpose.estimator.vision.camera_update import iterated_update, predict, predict_h, stacked_update
+from vtolpose.estimator.vision.landmarks import (
     ROBOT_POSE_COLS,
     add_landmarks,
     angles,
@@ -19,8 +19,8 @@ from estimator.landmarks import (
     point_jacobian,
     remove_landmarks,
 )
-from estimator.rotation import quat_exp, quat_from_euler, quat_mul
-from estimator.state import FilterState, StateLayout
+from vtolpose.estimator.core.rotation import quat_exp, quat_from_euler, quat_mul
+from vtolpose.estimator.core.state import FilterState, StateLayout
 
 R_BC = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 T_BC = np.array([0.05, 0.01, 0.05])

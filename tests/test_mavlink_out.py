@@ -8,13 +8,13 @@ import time
 import numpy as np
 import pytest
 
-from estimator.fusion import OutputPose
-from estimator.rotation import euler_from_quat, quat_exp, quat_from_euler, quat_mul, quat_to_rot
-from service.mavlink_out import (
+from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator.core.rotation import euler_from_quat, quat_exp, quat_from_euler, quat_mul, quat_to_rot
+from vtolpose.service.outputs.mavlink import (
     COMPONENT_ID, MavlinkOutput, SigningKeyError, euler_jacobian, mavutil, odometry_covariances, odometry_fields,
     read_signing_key,
 )
-from service.status import pose_quality
+from vtolpose.service.runtime.status import pose_quality
 
 mav = mavutil.mavlink
 TRIU_DIAG = [0, 6, 11, 15, 18, 20]  # where the diagonal sits in the 21-value upper triangle

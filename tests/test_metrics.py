@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from estimator.metrics import chi2_band, evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary
-from estimator.rotation import quat_exp, quat_from_euler, quat_mul, rotation_angle
+from vtolpose.estimator.metrics import chi2_band, evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary
+from vtolpose.estimator.core.rotation import quat_exp, quat_from_euler, quat_mul, rotation_angle
 
 S = 1_000_000_000
 

@@ -9,12 +9,12 @@ import numpy as np
 import pymap3d
 import pytest
 
-from drivers.dataset import Dataset, DatasetWriter, GpsSeries
-from drivers.emulators import NmeaEmulator, NmeaEpoch
-from drivers.emulators.nmea import nmea_sentence
-from drivers.gps_common import VDOP_PER_HDOP, LocalNed, dop_sigmas
-from drivers.nmea_gps import NmeaConfig, NmeaGps
-from estimator.calibration import Calibration, GpsCalibration, ImuCalibration, ImuNoise
+from vtolpose.drivers.files.dataset import Dataset, DatasetWriter, GpsSeries
+from vtolpose.drivers.emulators import NmeaEmulator, NmeaEpoch
+from vtolpose.drivers.emulators.nmea import nmea_sentence
+from vtolpose.drivers.gps.common import VDOP_PER_HDOP, LocalNed, dop_sigmas
+from vtolpose.drivers.gps.nmea import NmeaConfig, NmeaGps
+from vtolpose.estimator.core.calibration import Calibration, GpsCalibration, ImuCalibration, ImuNoise
 
 ORIGIN = (58.3975, 15.5762, 95.0)
 

@@ -30,22 +30,22 @@ import yaml
 from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
-import config
-from config import ConfigError, load_config
-from config.schema import SCHEMA
-from drivers.calibration_yaml import CalibrationError, calibration_from_yaml, calibration_to_yaml
-from drivers.crossbow import PACKET_LEN, CrossbowScale, PacketFramer, TimeCounter, checksum, decode_packet, encode_packet
-from drivers.crossbow_serial import parse_serial_reply, parse_version_reply
-from drivers.csvio import parse_time_ns, read_numeric_csv, seconds_text
-from drivers.dataset import Dataset, DatasetWriter
-from drivers.emulators.nmea import nmea_sentence
-from drivers.frames_csv import read_frame_index
-from drivers.mavlink_gps import MavlinkGps, MavlinkGpsConfig, mavutil
-from drivers.nmea_gps import MAX_LINE, NmeaConfig, NmeaGps
-from drivers.tum import read_tum, write_tum
-from estimator.calibration import Calibration, CameraCalibration, GpsCalibration, ImuCalibration, ImuNoise
-from estimator.rotation import quat_to_rot
-from service.faults import FAULT_KINDS, MAX_CLOCK_STEP_S, FaultError, parse_fault, parse_faults
+from vtolpose import config
+from vtolpose.config import ConfigError, load_config
+from vtolpose.config.schema import SCHEMA
+from vtolpose.drivers.files.calibration_yaml import CalibrationError, calibration_from_yaml, calibration_to_yaml
+from vtolpose.drivers.imu.crossbow import PACKET_LEN, CrossbowScale, PacketFramer, TimeCounter, checksum, decode_packet, encode_packet
+from vtolpose.drivers.imu.crossbow_serial import parse_serial_reply, parse_version_reply
+from vtolpose.drivers.files.csvio import parse_time_ns, read_numeric_csv, seconds_text
+from vtolpose.drivers.files.dataset import Dataset, DatasetWriter
+from vtolpose.drivers.emulators.nmea import nmea_sentence
+from vtolpose.drivers.files.frames_csv import read_frame_index
+from vtolpose.drivers.gps.mavlink import MavlinkGps, MavlinkGpsConfig, mavutil
+from vtolpose.drivers.gps.nmea import MAX_LINE, NmeaConfig, NmeaGps
+from vtolpose.drivers.files.tum import read_tum, write_tum
+from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, GpsCalibration, ImuCalibration, ImuNoise
+from vtolpose.estimator.core.rotation import quat_to_rot
+from vtolpose.service.replay.faults import FAULT_KINDS, MAX_CLOCK_STEP_S, FaultError, parse_fault, parse_faults
 
 _FUZZ = int(os.environ.get("VTOLPOSE_FUZZ", "0"))
 
@@ -289,7 +289,7 @@ def nmea_readings(stream: bytes, sizes: list[int]) -> tuple[list, NmeaGps]:
         links.append(ScriptedLink(port, baud, clock))
         return links[-1]
 
-    with mock.patch("drivers.nmea_gps.SerialLink", link):
+    with mock.patch("vtolpose.drivers.gps.nmea.SerialLink", link):
         gps = NmeaGps(NmeaConfig("scripted", 115200, uere_m=UERE_M, origin=ORIGIN), clock=lambda: now[0])
     gps.open()
     links[0].chunks.extend(cut(stream, sizes))

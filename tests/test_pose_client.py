@@ -7,11 +7,12 @@ import time
 import numpy as np
 import pytest
 
-from estimator.fusion import OutputPose
-from estimator.pose_history import PoseHistory
-from estimator.rotation import quat_from_euler, rotation_angle
-from service.pose_client import PoseClient, PoseUnavailable
-from service.zenoh_out import ZenohOutput, ZenohSettings
+from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator.pose_history import PoseHistory
+from vtolpose.estimator.core.rotation import quat_from_euler, rotation_angle
+from vtolpose.service.outputs.pose_client import PoseClient, PoseUnavailable
+from vtolpose.service.outputs.zenoh import ZenohOutput
+from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
 MS = 1_000_000
 PREFIX = "test/vehicle"

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from estimator.pose_history import OutsideHistory, PoseHistory, interpolate_rows
-from estimator.rotation import quat_from_euler, rotation_angle
+from vtolpose.estimator.pose_history import OutsideHistory, PoseHistory, interpolate_rows
+from vtolpose.estimator.core.rotation import quat_from_euler, rotation_angle
 
 MS = 1_000_000
 

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.emulators import Imu400Emulator, NmeaEmulator, NmeaEpoch
-from service.cli import main
+from vtolpose.drivers.emulators import Imu400Emulator, NmeaEmulator, NmeaEpoch
+from vtolpose.service.cli import main
 
 
 def test_probe_imu_prints_identity_rate_samples_and_statistics(capsys):

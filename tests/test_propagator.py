@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from estimator.calibration import ImuNoise
-from estimator.imu_delta import ImuDelta, ImuDownsampler
-from estimator.propagator import ImuPropagator, error_transition, integrate_nominal, process_noise
-from estimator.rotation import quat_conj, quat_exp, quat_from_euler, quat_log, quat_mul
-from estimator.state import FilterState, StateLayout
+from vtolpose.estimator.core.calibration import ImuNoise
+from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
+from vtolpose.estimator.inertial.propagator import ImuPropagator, error_transition, integrate_nominal, process_noise
+from vtolpose.estimator.core.rotation import quat_conj, quat_exp, quat_from_euler, quat_log, quat_mul
+from vtolpose.estimator.core.state import FilterState, StateLayout
 
 G = np.array([0.0, 0.0, 9.81])
 rng = np.random.default_rng(3)

@@ -16,15 +16,15 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.crossbow import CrossbowScale, TimeCounter
-from drivers.crossbow_serial import CrossbowConfig, CrossbowImu
-from drivers.dataset import IMU_CSV, Dataset, DatasetWriter, ImuSeries
-from drivers.emulators import Imu400Emulator
-from drivers.gps_common import LocalNed
-from estimator.calibration import Calibration, CameraCalibration, GpsCalibration, ImuCalibration, ImuNoise
-from estimator.measurements import CameraFrame
-from estimator.rotation import quat_from_euler, quat_to_rot
-from service.recorder import FlightRecorder
+from vtolpose.drivers.imu.crossbow import CrossbowScale, TimeCounter
+from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, CrossbowImu
+from vtolpose.drivers.files.dataset import IMU_CSV, Dataset, DatasetWriter, ImuSeries
+from vtolpose.drivers.emulators import Imu400Emulator
+from vtolpose.drivers.gps.common import LocalNed
+from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, GpsCalibration, ImuCalibration, ImuNoise
+from vtolpose.estimator.core.measurements import CameraFrame
+from vtolpose.estimator.core.rotation import quat_from_euler, quat_to_rot
+from vtolpose.service.outputs.recorder import FlightRecorder
 
 R_BI = quat_to_rot(quat_from_euler(0.0, np.pi, np.pi / 2))  # mounted upside down, turned
 
@@ -119,8 +119,8 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path):
     root = tmp_path / "killed"
     script = textwrap.dedent(f"""
         import time, numpy as np
-        from estimator.calibration import Calibration, ImuCalibration, ImuNoise
-        from service.recorder import FlightRecorder
+        from vtolpose.estimator.core.calibration import Calibration, ImuCalibration, ImuNoise
+        from vtolpose.service.outputs.recorder import FlightRecorder
         rec = FlightRecorder({str(root)!r}, Calibration(ImuCalibration(250.0, ImuNoise.isotropic(1e-4, 1e-5, 1e-3, 1e-4))),
                              flush_interval_s=1.0)
         print("ready", flush=True)
@@ -167,7 +167,7 @@ def test_full_disk_stops_recording_loudly_but_never_raises(tmp_path, caplog):
     rec = FlightRecorder(tmp_path / "full", calibration(), flush_interval_s=60.0, fsync=False,
                          opener=lambda path, mode, **kw: FullDisk(path, mode, room, **kw), on_status=statuses.append)
     imu = imu_samples(400)
-    with caplog.at_level(logging.ERROR, logger="service.recorder"):
+    with caplog.at_level(logging.ERROR, logger="vtolpose.service.outputs.recorder"):
         for k, (t, g, a) in enumerate(zip(imu.t_ns, imu.gyro, imu.accel)):
             rec.record_imu(int(t), g, a)  # the estimator's thread: must never see an exception
             if k % 50 == 49:
@@ -186,7 +186,7 @@ def test_full_disk_stops_recording_loudly_but_never_raises(tmp_path, caplog):
 def test_record_dir_start_placeholder_gives_each_start_its_own_folder():
     import datetime
 
-    from service.commands.run import recording_folder
+    from vtolpose.service.commands.run import recording_folder
 
     start = datetime.datetime(2026, 11, 22, 10, 31, 5, tzinfo=datetime.timezone.utc)
     assert recording_folder("/data/flights/{start}", start) == "/data/flights/20261122T103105Z"

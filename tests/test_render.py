@@ -11,11 +11,11 @@ import pytest
 
 pytest.importorskip("skimage", reason="rendering needs scikit-image (the 'sim' extra)")
 
-from drivers.dataset import CAM_CSV, Dataset  # noqa: E402
-from drivers.simulator import simulate_flight  # noqa: E402
-from drivers.simulator.export import write_flight  # noqa: E402
-from drivers.simulator.render import FrameRenderer, RenderOptions, default_camera, render_frames  # noqa: E402
-from estimator.camera_model import CameraModel  # noqa: E402
+from vtolpose.drivers.files.dataset import CAM_CSV, Dataset  # noqa: E402
+from vtolpose.drivers.simulator import simulate_flight  # noqa: E402
+from vtolpose.drivers.simulator.export import write_flight  # noqa: E402
+from vtolpose.drivers.simulator.render import FrameRenderer, RenderOptions, default_camera, render_frames  # noqa: E402
+from vtolpose.estimator.vision.camera_model import CameraModel  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from estimator import frames
-from estimator.rotation import (
+from vtolpose.estimator.core import frames
+from vtolpose.estimator.core.rotation import (
     euler_from_quat,
     quat_conj,
     quat_exp,

@@ -14,18 +14,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from config import load_config
-from drivers.dataset import Dataset
-from drivers.simulator import simulate_flight
-from drivers.simulator.export import write_flight
-from drivers.tum import read_tum, write_tum
-from estimator.pose_history import interpolate_rows
-from estimator.rotation import rotation_angle
-from service.cli import main
-from service.mavlink_out import mavutil
-from service.pose_client import PoseClient, PoseUnavailable
-from service.replay import replay
-from service.replay_runtime import run_replay
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.drivers.files.tum import read_tum, write_tum
+from vtolpose.estimator.pose_history import interpolate_rows
+from vtolpose.estimator.core.rotation import rotation_angle
+from vtolpose.service.cli import main
+from vtolpose.service.outputs.mavlink import mavutil
+from vtolpose.service.outputs.pose_client import PoseClient, PoseUnavailable
+from vtolpose.service.replay.session import replay
+from vtolpose.service.runtime.replay_feed import run_replay
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 mav = mavutil.mavlink
@@ -96,7 +96,7 @@ def test_daemon_replay_with_real_peers_then_sigterm(flight_dir, tmp_path):
     client.subscribe(poses.append)
     client.session.declare_subscriber("vtolpose/vtol1/status", lambda s: status.append(json.loads(s.payload.to_string())))
     cmd = [
-        sys.executable, "-m", "service.cli", "run", "--replay", str(flight_dir), "--speed", "15", "--hold",
+        sys.executable, "-m", "vtolpose", "run", "--replay", str(flight_dir), "--speed", "15", "--hold",
         "--out", str(traj), "--mavlink", f"udpout:127.0.0.1:{mav_port}", "--zenoh",
         "--set", f"outputs.zenoh.listen=[tcp/127.0.0.1:{zenoh_listen_port}]",
         "--set", f"outputs.zenoh.connect=[tcp/127.0.0.1:{zenoh_client_port}]",
@@ -221,7 +221,7 @@ def test_bad_configuration_file_and_missing_calibration(tmp_path, capsys):
 
 def test_sigint_mid_replay_flushes_and_releases_ports(flight_dir, tmp_path):
     traj, udp_port, tcp_port = tmp_path / "traj.txt", free_port(socket.SOCK_DGRAM), free_port()
-    cmd = [sys.executable, "-m", "service.cli", "run", "--replay", str(flight_dir), "--speed", "3", "--out", str(traj),
+    cmd = [sys.executable, "-m", "vtolpose", "run", "--replay", str(flight_dir), "--speed", "3", "--out", str(traj),
            "--mavlink", f"udpin:127.0.0.1:{udp_port}", "--zenoh", "--set", f"outputs.zenoh.listen=[tcp/127.0.0.1:{tcp_port}]",
            "--set", "outputs.zenoh.multicast_scouting=false"]
     proc = subprocess.Popen(cmd, cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from drivers.simulator import simulate_flight
-from drivers.simulator.export import write_flight
-from service.pose_client import PoseClient
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.service.outputs.pose_client import PoseClient
 
-emulators = pytest.importorskip("drivers.emulators")
+emulators = pytest.importorskip("vtolpose.drivers.emulators")
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -41,7 +41,7 @@ def test_live_run_with_emulated_devices(tmp_path):
             client.session.declare_subscriber("vtolpose/vtol1/status",
                                               lambda s: status.append(json.loads(s.payload.to_string())))
             started = time.monotonic()
-            done = subprocess.run([sys.executable, "-m", "service.cli", "run", "--config", str(config), "--duration", "5"],
+            done = subprocess.run([sys.executable, "-m", "vtolpose", "run", "--config", str(config), "--duration", "5"],
                                   cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
             assert done.returncode == 0, done.stderr
             assert "stopped by duration" in done.stdout and time.monotonic() - started < 30
@@ -55,10 +55,10 @@ def test_live_run_with_emulated_devices(tmp_path):
 
 def test_autopilot_gps_on_the_output_link_feeds_the_fusion(tmp_path):
     """``sensors.gps.type: mavlink`` on the same link as ODOMETRY: no second connection, fixes fused."""
-    from config import load_config
-    from service.daemon import build_runtime
-    from service.live import live_sources
-    from service.mavlink_out import mavutil
+    from vtolpose.config import load_config
+    from vtolpose.service.runtime.daemon import build_runtime
+    from vtolpose.service.runtime.live import live_sources
+    from vtolpose.service.outputs.mavlink import mavutil
 
     url = "udpout:127.0.0.1:14599"
     cfg = load_config(None, {
@@ -83,7 +83,7 @@ def test_a_live_recording_replays_to_the_same_trajectory(tmp_path):
     """`vtolpose run --record` from the emulated devices, then `vtolpose replay` of what it wrote."""
     import numpy as np
 
-    from drivers.tum import read_tum
+    from vtolpose.drivers.files.tum import read_tum
 
     root = tmp_path / "flight"
     write_flight(simulate_flight("landfill", 30.0, 4), root)
@@ -94,11 +94,11 @@ def test_a_live_recording_replays_to_the_same_trajectory(tmp_path):
             f"sensors:\n  imu: {{port: {imu.port}}}\n  gps: {{type: nmea, port: {gps.port}}}\n  camera: {{type: none}}\n"
             f"run:\n  calibration_file: {root / 'dataset.yaml'}\n"
         )
-        done = subprocess.run([sys.executable, "-m", "service.cli", "run", "--config", str(config), "--duration", "6",
+        done = subprocess.run([sys.executable, "-m", "vtolpose", "run", "--config", str(config), "--duration", "6",
                                "--record", str(rec), "--out", str(live_traj)],
                               cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
         assert done.returncode == 0, done.stderr
-    done = subprocess.run([sys.executable, "-m", "service.cli", "-q", "replay", str(rec), "--out", str(replay_traj),
+    done = subprocess.run([sys.executable, "-m", "vtolpose", "-q", "replay", str(rec), "--out", str(replay_traj),
                            "--no-progress"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     t_live, p_live, _ = read_tum(live_traj)

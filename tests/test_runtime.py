@@ -9,15 +9,16 @@ import time
 import numpy as np
 import pytest
 
-from config import load_config
-from drivers.simulator import simulate_flight
-from drivers.tum import read_tum
-from estimator.filter import Estimator
-from estimator.fusion import FusionOptions
-from estimator.measurements import CameraFrame, GpsFix, ImuSample
-from service.runtime import Runtime, RuntimeOptions, TrajectoryFile
-from service.sources import ReplayClock
-from service.wiring import filter_options
+from vtolpose.config import load_config
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.drivers.files.tum import read_tum
+from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.fusion import FusionOptions
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
+from vtolpose.service.outputs.trajectory_file import TrajectoryFile
+from vtolpose.service.runtime.loop import Runtime, RuntimeOptions
+from vtolpose.service.runtime.sources import ReplayClock
+from vtolpose.service.runtime.wiring import filter_options
 
 from runtime_helpers import PoseList, flight_samples
 
@@ -112,7 +113,7 @@ def test_sensor_time_offsets_are_applied_where_samples_enter(flight):
     """A GPS 120 ms late and a camera 37 ms late are fused at the times they really measured."""
     from dataclasses import replace
 
-    from drivers.simulator.render import default_camera
+    from vtolpose.drivers.simulator.render import default_camera
 
     cal = replace(flight.calibration, gps=replace(flight.calibration.gps, time_offset_s=-0.12),
                   camera=replace(default_camera(), time_offset_s=-0.037))

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from drivers.simulator import (
+from vtolpose.drivers.simulator import (
     BookScenario,
     GpsErrorModel,
     ImuErrorModel,
@@ -16,9 +16,9 @@ from drivers.simulator import (
     SimulationOptions,
     simulate_flight,
 )
-from drivers.simulator.gps_model import gps_errors
-from drivers.simulator.imu_model import corrupt_imu
-from estimator.rotation import euler_from_quat, quat_mul, quat_to_rot, rotation_angle, yaw_of
+from vtolpose.drivers.simulator.gps_model import gps_errors
+from vtolpose.drivers.simulator.imu_model import corrupt_imu
+from vtolpose.estimator.core.rotation import euler_from_quat, quat_mul, quat_to_rot, rotation_angle, yaw_of
 
 EPOCH = 1_000_000_000
 

@@ -12,16 +12,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from config import load_config
-from drivers.dataset import DatasetWriter
-from drivers.series import ImuSeries
-from drivers.simulator import ImuErrorModel, simulate_flight
-from drivers.simulator.flight import sample_times_ns
-from drivers.simulator.imu_model import corrupt_imu
-from drivers.simulator.render import default_camera, render_frames
-from drivers.simulator.trajectory import EulerTrajectory, SineMotion
-from estimator.timesync import TimeSyncError, correlate, frame_rotations
-from service.cli import main
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import DatasetWriter
+from vtolpose.drivers.files.series import ImuSeries
+from vtolpose.drivers.simulator import ImuErrorModel, simulate_flight
+from vtolpose.drivers.simulator.flight import sample_times_ns
+from vtolpose.drivers.simulator.imu_model import corrupt_imu
+from vtolpose.drivers.simulator.render import default_camera, render_frames
+from vtolpose.drivers.simulator.trajectory import EulerTrajectory, SineMotion
+from vtolpose.estimator.calibration.timesync import TimeSyncError, correlate, frame_rotations
+from vtolpose.service.cli import main
 
 G = 9.80665
 SHIFT_NS = 37_000_000  # the camera stamps are this late: the offset to find is -37 ms

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.tum import read_tum, write_tum
-from estimator.rotation import quat_exp, quat_normalize
+from vtolpose.drivers.files.tum import read_tum, write_tum
+from vtolpose.estimator.core.rotation import quat_exp, quat_normalize
 
 
 def poses(n: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from estimator.gps_update import GpsModel, GpsUpdater, gps_sigmas
-from estimator.kalman import chi2_gate, ekf_update
-from estimator.measurements import GpsFix
-from estimator.rotation import quat_exp, quat_from_euler, quat_mul
-from estimator.state import FilterState, StateLayout
+from vtolpose.estimator.gnss.gps_update import GpsModel, GpsUpdater, gps_sigmas
+from vtolpose.estimator.core.kalman import chi2_gate, ekf_update
+from vtolpose.estimator.core.measurements import GpsFix
+from vtolpose.estimator.core.rotation import quat_exp, quat_from_euler, quat_mul
+from vtolpose.estimator.core.state import FilterState, StateLayout
 
 
 def make_state(variant="biases", n_landmarks=0, seed=0):

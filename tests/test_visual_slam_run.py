@@ -14,14 +14,14 @@ import pytest
 
 pytest.importorskip("skimage", reason="rendering needs scikit-image (the 'sim' extra)")
 
-from config import load_config  # noqa: E402
-from drivers.dataset import Dataset  # noqa: E402
-from drivers.simulator import simulate_flight  # noqa: E402
-from drivers.simulator.export import write_flight  # noqa: E402
-from drivers.simulator.render import default_camera  # noqa: E402
-from service.overlay import OverlayWriter  # noqa: E402
-from service.replay import replay  # noqa: E402
-from service.report import build_report, summary_lines  # noqa: E402
+from vtolpose.config import load_config  # noqa: E402
+from vtolpose.drivers.files.dataset import Dataset  # noqa: E402
+from vtolpose.drivers.simulator import simulate_flight  # noqa: E402
+from vtolpose.drivers.simulator.export import write_flight  # noqa: E402
+from vtolpose.drivers.simulator.render import default_camera  # noqa: E402
+from vtolpose.service.replay.overlay import OverlayWriter  # noqa: E402
+from vtolpose.service.replay.session import replay  # noqa: E402
+from vtolpose.service.replay.report import build_report, summary_lines  # noqa: E402
 
 DURATION_S = 24.0  # 10 s on the spot, then the arm starts to wave the platform
 

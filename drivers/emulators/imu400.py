@@ -17,8 +17,8 @@ from typing import Callable
 
 import numpy as np
 
-from drivers.crossbow import CrossbowScale, TimeCounter, checksum, encode_packet
-from drivers.emulators.pty_device import PtyDevice
+from vtolpose.drivers.imu.crossbow import CrossbowScale, TimeCounter, checksum, encode_packet
+from vtolpose.drivers.emulators.pty_device import PtyDevice
 
 __all__ = ["Imu400Emulator", "SentPacket"]
 
@@ -74,7 +74,7 @@ class Imu400Emulator(PtyDevice):
     @classmethod
     def from_dataset(cls, root: str | Path, **kwargs) -> "Imu400Emulator":
         """Stream the dataset's ``imu0`` samples in sensor axes, as the device would give them."""
-        from drivers.dataset import Dataset
+        from vtolpose.drivers.files.dataset import Dataset
 
         raw = Dataset.open(root).imu_raw()
         return cls(raw.t_ns, raw.gyro, raw.accel, **kwargs)

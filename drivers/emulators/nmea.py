@@ -17,7 +17,7 @@ import numpy as np
 import pymap3d
 import pynmea2
 
-from drivers.emulators.pty_device import PtyDevice
+from vtolpose.drivers.emulators.pty_device import PtyDevice
 
 __all__ = ["NmeaEmulator", "NmeaEpoch", "nmea_sentence"]
 
@@ -83,7 +83,7 @@ class NmeaEmulator(PtyDevice):
     @classmethod
     def from_dataset(cls, root: str | Path, origin: tuple[float, float, float] | None = None, **kwargs) -> "NmeaEmulator":
         """Epochs from the dataset's GPS (NED around its origin, or ``origin`` if it has none)."""
-        from drivers.dataset import Dataset
+        from vtolpose.drivers.files.dataset import Dataset
 
         gps = Dataset.open(root).gps()
         if gps is None:

@@ -1,11 +1,11 @@
 """Flight simulator: exact truth, IMU and GPS for the ``book`` and ``landfill`` scenarios.
 
 ``simulate_flight(scenario, duration_s, seed, options)`` returns arrays and a calibration; the
-dataset writer (``drivers.dataset``) puts them on disk and a renderer can later draw camera
+dataset writer (``vtolpose.drivers.files.dataset``) puts them on disk and a renderer can later draw camera
 frames from ``flight.trajectory`` over ``flight.scenario.ground_height``.
 """
 
-from drivers.simulator.flight import (
+from vtolpose.drivers.simulator.flight import (
     GpsSeries,
     ImuSeries,
     SimulatedFlight,
@@ -13,9 +13,9 @@ from drivers.simulator.flight import (
     TruthSeries,
     simulate_flight,
 )
-from drivers.simulator.gps_model import GpsErrorModel
-from drivers.simulator.imu_model import ImuErrorModel
-from drivers.simulator.scenarios import SCENARIOS, BookScenario, LandfillScenario, make_scenario
+from vtolpose.drivers.simulator.gps_model import GpsErrorModel
+from vtolpose.drivers.simulator.imu_model import ImuErrorModel
+from vtolpose.drivers.simulator.scenarios import SCENARIOS, BookScenario, LandfillScenario, make_scenario
 
 __all__ = [
     "SCENARIOS",

@@ -5,10 +5,10 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from drivers.dataset import DatasetWriter
-from drivers.simulator.flight import SimulatedFlight
-from drivers.simulator.render import RenderOptions, render_frames
-from estimator.calibration import CameraCalibration
+from vtolpose.drivers.files.dataset import DatasetWriter
+from vtolpose.drivers.simulator.flight import SimulatedFlight
+from vtolpose.drivers.simulator.render import RenderOptions, render_frames
+from vtolpose.estimator.core.calibration import CameraCalibration
 
 
 def write_flight(
@@ -20,7 +20,7 @@ def write_flight(
 ) -> Path:
     """Dataset with IMU, GPS (WGS84 when the scenario has a geodetic origin) and full truth.
 
-    With ``camera`` the frames are rendered (``drivers.simulator.render``, needs scikit-image)
+    With ``camera`` the frames are rendered (``vtolpose.drivers.simulator.render``, needs scikit-image)
     into ``mav0/cam0`` and the camera's calibration goes into ``dataset.yaml``; IMU, GPS and
     truth are byte for byte the same either way.
     """

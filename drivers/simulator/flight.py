@@ -1,7 +1,7 @@
 """One simulated flight: truth, IMU and GPS arrays plus the calibration that describes them.
 
 ``simulate_flight`` is what ``vtolpose simulate`` calls; writing the dataset is
-``drivers.dataset``'s job. Determinism: each sensor draws from its own PCG64 stream, seeded by
+``vtolpose.drivers.files.dataset``'s job. Determinism: each sensor draws from its own PCG64 stream, seeded by
 ``SeedSequence(seed, spawn_key=(stream,))`` with a fixed stream number per sensor, so the same
 seed gives identical arrays and a sensor added later (camera: stream 2) changes nothing else.
 """
@@ -12,12 +12,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.simulator.gps_model import GpsErrorModel, antenna_positions, gps_errors
-from drivers.simulator.imu_model import ImuErrorModel, bias_at, corrupt_imu
-from drivers.simulator.scenarios import Scenario, make_scenario
-from drivers.series import GpsSeries, ImuSeries, TruthSeries
-from drivers.simulator.trajectory import Trajectory
-from estimator.calibration import STANDARD_GRAVITY, Calibration, GpsCalibration, ImuCalibration
+from vtolpose.drivers.simulator.gps_model import GpsErrorModel, antenna_positions, gps_errors
+from vtolpose.drivers.simulator.imu_model import ImuErrorModel, bias_at, corrupt_imu
+from vtolpose.drivers.simulator.scenarios import Scenario, make_scenario
+from vtolpose.drivers.files.series import GpsSeries, ImuSeries, TruthSeries
+from vtolpose.drivers.simulator.trajectory import Trajectory
+from vtolpose.estimator.core.calibration import STANDARD_GRAVITY, Calibration, GpsCalibration, ImuCalibration
 
 STREAM_IMU = 0
 STREAM_GPS = 1

@@ -10,7 +10,7 @@ Default values are of the class of the thesis' Crossbow IMU400CC, a MEMS unit of
   accelerometer figure is the residual after the pre-flight calibration the thesis does before
   every run (section 5.2: gravity and a multi-position bias calibration); the raw turn-on
   bias of such a unit is several times larger. The gyro bias is measured on the pad.
-Densities follow the Kalibr/EuRoC convention (see ``estimator.calibration.ImuNoise``):
+Densities follow the Kalibr/EuRoC convention (see ``vtolpose.estimator.core.calibration.ImuNoise``):
 per-sample white std = density·√rate, per-step bias increment std = random_walk·√dt.
 """
 
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.calibration import ImuNoise
+from vtolpose.estimator.core.calibration import ImuNoise
 
 
 @dataclass(frozen=True, slots=True)

@@ -21,10 +21,10 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from drivers.simulator.flight import STREAM_CAMERA, SimulatedFlight, _rng, sample_times_ns
-from drivers.simulator.textures import Appearance, appearance_for
-from estimator.calibration import CameraCalibration
-from estimator.camera_model import CameraModel
+from vtolpose.drivers.simulator.flight import STREAM_CAMERA, SimulatedFlight, _rng, sample_times_ns
+from vtolpose.drivers.simulator.textures import Appearance, appearance_for
+from vtolpose.estimator.core.calibration import CameraCalibration
+from vtolpose.estimator.vision.camera_model import CameraModel
 
 R_BC_DOWN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # x right, y back, z down
 

@@ -17,8 +17,8 @@ from typing import Callable, Iterator, Protocol
 
 import numpy as np
 
-from drivers.simulator.gps_model import GpsErrorModel
-from drivers.simulator.trajectory import (
+from vtolpose.drivers.simulator.gps_model import GpsErrorModel
+from vtolpose.drivers.simulator.trajectory import (
     AlongTrack,
     EulerTrajectory,
     Hold,

@@ -24,7 +24,7 @@ from typing import Protocol
 import numpy as np
 from numpy.polynomial import Polynomial
 
-from estimator.rotation import quat_from_euler, quat_to_rot
+from vtolpose.estimator.core.rotation import quat_from_euler, quat_to_rot
 
 # Degree-9 smoothstep: 0 -> 1 on [0, 1], four derivatives vanish at both ends, so joining
 # segments with it keeps the path C^4 and hence the body rate C^1 (RK4 integrates it cleanly).

@@ -6,7 +6,7 @@ import argparse
 import os
 import platform
 
-from service.bench import BENCHMARKS, LONG_BENCHMARKS, run_benchmarks
+from vtolpose.service.bench.runner import BENCHMARKS, LONG_BENCHMARKS, run_benchmarks
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.dataset import Dataset
-from estimator.gps_calibration import GpsCalibOptions, fit_lever_arm, scan_latency
-from estimator.imu_calibration import calibrate_imu
-from estimator.static_detection import StaticOptions, find_static_stretches
-from service import calibration_output as out
-from service.calibration_output import add_output_options, finish
-from service.commands import calibrate_camera
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.estimator.calibration.gps import GpsCalibOptions, fit_lever_arm, scan_latency
+from vtolpose.estimator.calibration.imu import calibrate_imu
+from vtolpose.estimator.calibration.static_detection import StaticOptions, find_static_stretches
+from vtolpose.service.calibration import output as out
+from vtolpose.service.calibration.output import add_output_options, finish
+from vtolpose.service.commands import calibrate_camera
 
 REST_BIAS_SIGMA = 0.005  # rad/s: how far a gyro bias measured at rest may wander during a flight of minutes
 
@@ -117,7 +117,7 @@ def run_imu(args: argparse.Namespace) -> int:
     text = out.config_block(out.imu_tree(r), header)
 
     def draw(path: Path) -> None:
-        from service.calibration_plots import plot_allan
+        from vtolpose.service.calibration.plots import plot_allan
 
         plot_allan(path, r)
 
@@ -171,7 +171,7 @@ def run_gps_latency(args: argparse.Namespace) -> int:
     text = out.config_block(out.gps_tree(time_offset_s=scan.offset_s), header)
 
     def draw(path: Path) -> None:
-        from service.calibration_plots import plot_latency
+        from vtolpose.service.calibration.plots import plot_latency
 
         plot_latency(path, scan, what)
 

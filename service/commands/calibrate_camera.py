@@ -9,11 +9,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.dataset import Dataset
-from estimator.chessboard import Board, ChessboardCalibration, ChessboardError, calibrate_views, find_corners
-from estimator.timesync import TimeSyncOptions, correlate, frame_rotations
-from service import calibration_output as out
-from service.calibration_output import add_output_options, finish
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.estimator.calibration.chessboard import Board, ChessboardCalibration, ChessboardError, calibrate_views, find_corners
+from vtolpose.estimator.calibration.timesync import TimeSyncOptions, correlate, frame_rotations
+from vtolpose.service.calibration import output as out
+from vtolpose.service.calibration.output import add_output_options, finish
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +119,7 @@ def run_camera(args: argparse.Namespace) -> int:
     text = out.config_block(out.camera_tree(cal), header)
 
     def draw(path: Path) -> None:
-        from service.calibration_plots import plot_reprojection
+        from vtolpose.service.calibration.plots import plot_reprojection
 
         plot_reprojection(path, cal)
 
@@ -150,7 +150,7 @@ def run_timesync(args: argparse.Namespace) -> int:
     text = out.config_block(out.camera_offset_tree(r.offset_s), header)
 
     def draw(path: Path) -> None:
-        from service.calibration_plots import plot_correlation
+        from vtolpose.service.calibration.plots import plot_correlation
 
         plot_correlation(path, r)
 

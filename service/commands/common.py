@@ -9,7 +9,7 @@ from typing import Any
 
 import yaml
 
-from config import ConfigError, load_config
+from vtolpose.config import ConfigError, load_config
 
 
 def add_config_options(p: argparse.ArgumentParser) -> None:

@@ -5,15 +5,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from config import load_config
-from drivers.dataset import Dataset
-from drivers.simulator import simulate_flight
-from drivers.simulator.export import write_flight
-from drivers.tum import write_tum
-from service.commands.common import write_json
-from service.progress import Progress
-from service.replay import replay
-from service.report import build_report, summary_lines
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.drivers.files.tum import write_tum
+from vtolpose.service.commands.common import write_json
+from vtolpose.service.replay.progress import Progress
+from vtolpose.service.replay.session import replay
+from vtolpose.service.replay.report import build_report, summary_lines
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.dataset import Dataset
-from drivers.series import TruthSeries
-from drivers.tum import read_tum
-from estimator.metrics import evaluate
-from service.commands.common import write_json
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.series import TruthSeries
+from vtolpose.drivers.files.tum import read_tum
+from vtolpose.estimator.metrics import evaluate
+from vtolpose.service.commands.common import write_json
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

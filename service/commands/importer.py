@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from drivers.euroc_import import default_mounting_path, import_euroc
+from vtolpose.drivers.files.euroc_import import default_mounting_path, import_euroc
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -13,11 +13,12 @@ import time
 
 import numpy as np
 
-from drivers.camera_common import CameraUnavailable, camera_from_config
-from drivers.crossbow_serial import CrossbowConfig, CrossbowImu, ImuReading
-from drivers.gps_common import GpsReading
-from drivers.serial_link import LINK_ERRORS, DeviceError
-from service.commands.common import add_config_options, config_from
+from vtolpose.drivers.camera.common import CameraUnavailable
+from vtolpose.drivers.camera.select import camera_from_config
+from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, CrossbowImu, ImuReading
+from vtolpose.drivers.gps.common import GpsReading
+from vtolpose.drivers.links.serial_link import LINK_ERRORS, DeviceError
+from vtolpose.service.commands.common import add_config_options, config_from
 
 COUNTER_AGREEMENT = 0.1  # implied tick within 10 % of the configured one counts as consistent
 
@@ -120,13 +121,13 @@ def _counter_report(readings: list[ImuReading], conf: CrossbowConfig) -> str:
 def _probe_gps(args: argparse.Namespace, cfg: dict) -> int:
     kind = args.kind or cfg["sensors.gps.type"]
     if kind == "nmea":
-        from drivers.nmea_gps import NmeaConfig, NmeaGps
+        from vtolpose.drivers.gps.nmea import NmeaConfig, NmeaGps
 
         conf = NmeaConfig.from_config(cfg, args.port, args.baud)
         print(f"probe gps: NMEA on {conf.port} at {conf.baud} baud, {args.seconds:g} s")
         gps = NmeaGps(conf)
     elif kind == "mavlink":
-        from drivers.mavlink_gps import MavlinkGps, MavlinkGpsConfig
+        from vtolpose.drivers.gps.mavlink import MavlinkGps, MavlinkGpsConfig
 
         conf = MavlinkGpsConfig.from_config(cfg, args.port)
         print(f"probe gps: MAVLink GPS_RAW_INT on {conf.url}, {args.seconds:g} s")
@@ -162,7 +163,7 @@ def _probe_camera(args: argparse.Namespace, cfg: dict) -> int:
     kind = args.kind or cfg["sensors.camera.type"]
     try:
         if kind == "dc1394":
-            from drivers.camera_dc1394 import list_cameras
+            from vtolpose.drivers.camera.dc1394 import list_cameras
 
             found = list_cameras()
             print("IIDC cameras: " + ("; ".join(c.describe() for c in found) or "none"))

@@ -5,15 +5,15 @@ from __future__ import annotations
 import argparse
 import logging
 
-from drivers.dataset import Dataset
-from drivers.tum import write_tum
-from service.commands.common import add_config_options, parse_sensors, write_json
-from service.commands.run import add_runtime_options, config_for
-from service.faults import add_fault_options, parse_faults
-from service.overlay import OverlayWriter
-from service.progress import Progress
-from service.replay import replay
-from service.report import build_report, summary_lines
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.tum import write_tum
+from vtolpose.service.commands.common import add_config_options, parse_sensors, write_json
+from vtolpose.service.commands.run import add_runtime_options, config_for
+from vtolpose.service.replay.faults import add_fault_options, parse_faults
+from vtolpose.service.replay.overlay import OverlayWriter
+from vtolpose.service.replay.progress import Progress
+from vtolpose.service.replay.session import replay
+from vtolpose.service.replay.report import build_report, summary_lines
 
 log = logging.getLogger(__name__)
 

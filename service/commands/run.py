@@ -7,9 +7,9 @@ import asyncio
 import datetime
 import logging
 
-from config import ConfigError, load_config
-from service.commands.common import add_config_options, overrides_from, parse_sensors
-from service.faults import add_fault_options, injector_from
+from vtolpose.config import ConfigError, load_config
+from vtolpose.service.commands.common import add_config_options, overrides_from, parse_sensors
+from vtolpose.service.replay.faults import add_fault_options, injector_from
 
 log = logging.getLogger(__name__)
 LIVE_FRAME_REPORTS = 1000  # recent per-frame reports a long run keeps (memory stays flat)
@@ -34,7 +34,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--replay", metavar="DATASET", help="replay this dataset instead of reading the sensors")
     p.add_argument("--sensors", metavar="LIST", help="replay: streams to use, e.g. imu,gps (replay.sensors)")
     add_runtime_options(p)
-    add_fault_options(p)  # replay only: faults played on the replayed stream (service.faults)
+    add_fault_options(p)  # replay only: faults played on the replayed stream (vtolpose.service.replay.faults)
     p.add_argument("--out", metavar="TRAJ.txt", help="write the fused trajectory here (TUM; run.trajectory)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time")
     p.add_argument("--record", metavar="DIR", help="live: record every raw sample into this new dataset folder; {start} in it becomes the UTC start "
@@ -77,8 +77,8 @@ def recording_folder(template: str, now: datetime.datetime | None = None) -> str
 
 def camera_processor(cfg: dict, calibration):
     """Feature extraction for the runtime's camera workers, or None (with a warning) without intrinsics."""
-    from service.replay import FrameProcessor
-    from service.wiring import feature_options
+    from vtolpose.service.replay.session import FrameProcessor
+    from vtolpose.service.runtime.wiring import feature_options
 
     cam = calibration.camera
     if cam is None:
@@ -91,11 +91,11 @@ def run(args: argparse.Namespace) -> int:
     cfg = config_for(args)
     if args.duration is not None and args.duration <= 0:
         raise ConfigError(f"--duration {args.duration}: must be greater than 0")
-    from service.daemon import summary_lines
+    from vtolpose.service.runtime.daemon import summary_lines
 
     if args.replay:
-        from drivers.dataset import Dataset
-        from service.replay_runtime import replay_async
+        from vtolpose.drivers.files.dataset import Dataset
+        from vtolpose.service.runtime.replay_feed import replay_async
 
         dataset = Dataset.open(args.replay)
         sensors = parse_sensors(args.sensors) or cfg["replay.sensors"]
@@ -116,8 +116,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _live(cfg: dict, args: argparse.Namespace):
-    from service.daemon import build_runtime, load_calibration_file, serve
-    from service.live import live_sources
+    from vtolpose.service.runtime.daemon import build_runtime, load_calibration_file, serve
+    from vtolpose.service.runtime.live import live_sources
 
     if cfg["run.calibration_file"] is None:
         raise ConfigError("key 'run.calibration_file': a live run needs the vehicle's calibration "
@@ -130,7 +130,7 @@ async def _live(cfg: dict, args: argparse.Namespace):
     runtime = build_runtime(cfg, calibration, trajectory_path=args.out, live=True, camera_processor=processor)
     recorder = None
     if cfg["run.record_dir"]:
-        from service.recorder import FlightRecorder
+        from vtolpose.service.outputs.recorder import FlightRecorder
 
         recorder = FlightRecorder(recording_folder(cfg["run.record_dir"]), calibration,
                                   description="recorded live by vtolpose run")

@@ -6,9 +6,9 @@ import argparse
 import importlib.util
 import time
 
-from drivers.simulator import SCENARIOS, simulate_flight
-from drivers.simulator.export import write_flight
-from drivers.simulator.render import default_camera
+from vtolpose.drivers.simulator import SCENARIOS, simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.drivers.simulator.render import default_camera
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -1,0 +1,108 @@
+"""Calibration and noise of the sensor set: what a dataset's ``dataset.yaml`` holds.
+
+Pure data with validation; reading and writing YAML is the drivers' job
+(``vtolpose.drivers.files.dataset``). Frames: ``R_BI`` maps IMU sensor axes to body FRD; lever arms are in
+body FRD, metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vtolpose.estimator.core.rotation import is_proper_rotation
+
+STANDARD_GRAVITY = 9.80665
+
+
+@dataclass(slots=True)
+class ImuNoise:
+    """Continuous-time densities: white noise and bias random walk, per axis (3-vectors).
+
+    Units: gyro noise rad/s/√Hz, gyro random walk rad/s²/√Hz, accel noise m/s²/√Hz,
+    accel random walk m/s³/√Hz — the Kalibr/EuRoC convention.
+    """
+
+    gyro_noise_density: np.ndarray
+    gyro_random_walk: np.ndarray
+    accel_noise_density: np.ndarray
+    accel_random_walk: np.ndarray
+
+    @classmethod
+    def isotropic(cls, gyro_nd: float, gyro_rw: float, accel_nd: float, accel_rw: float) -> "ImuNoise":
+        return cls(*(np.full(3, float(x)) for x in (gyro_nd, gyro_rw, accel_nd, accel_rw)))
+
+    def __post_init__(self) -> None:
+        for name in ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", "accel_random_walk"):
+            value = np.broadcast_to(np.asarray(getattr(self, name), dtype=float), (3,)).copy()
+            if not np.all(np.isfinite(value)) or np.any(value < 0.0):
+                raise ValueError(f"imu noise {name} must be finite and non-negative, got {value.tolist()}")
+            setattr(self, name, value)
+
+
+@dataclass(slots=True)
+class ImuCalibration:
+    rate_hz: float
+    noise: ImuNoise
+    R_BI: np.ndarray = field(default_factory=lambda: np.eye(3))
+    gravity: float = STANDARD_GRAVITY
+
+    def __post_init__(self) -> None:
+        self.R_BI = np.asarray(self.R_BI, dtype=float).reshape(3, 3)
+        if not is_proper_rotation(self.R_BI):
+            raise ValueError("imu R_BI must be a proper rotation matrix (orthonormal, det +1)")
+
+
+@dataclass(slots=True)
+class GpsCalibration:
+    """Antenna lever arm in body FRD, the geodetic origin of the local NED frame (if any), and the
+    offset added to GPS stamps to put them on the IMU clock (a receiver latency L is −L)."""
+
+    lever_arm_b: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    origin_lla: tuple[float, float, float] | None = None
+    time_offset_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.lever_arm_b = np.asarray(self.lever_arm_b, dtype=float).reshape(3)
+
+
+@dataclass(slots=True)
+class CameraCalibration:
+    """Pinhole + radial-tangential distortion (OpenCV order k1, k2, p1, p2, k3) and mounting."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    R_BC: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t_BC: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    rate_hz: float = 7.5
+    time_offset_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.distortion = np.asarray(self.distortion, dtype=float).reshape(5)
+        self.R_BC = np.asarray(self.R_BC, dtype=float).reshape(3, 3)
+        self.t_BC = np.asarray(self.t_BC, dtype=float).reshape(3)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(slots=True)
+class Calibration:
+    """Everything the estimator needs to know about the sensor set."""
+
+    imu: ImuCalibration
+    gps: GpsCalibration = field(default_factory=GpsCalibration)
+    camera: CameraCalibration | None = None
+    initial_heading_rad: float | None = None
+    initial_heading_sigma_rad: float | None = None  # how well that heading is known (None: config default)
+    truth_point_b: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        self.truth_point_b = np.asarray(self.truth_point_b, dtype=float).reshape(3)

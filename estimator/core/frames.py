@@ -1,0 +1,53 @@
+"""Frame conversions at the system's edges: NED/FRD inside, ENU/FLU (ROS REP 103) outside.
+
+Inside vtolpose the world is local NED and the body FRD. Consumers that follow REP 103 want
+ENU and FLU. Both changes are fixed proper rotations, so a pose converts as
+``q_ENU_FLU = q_ENU_NED ⊗ q_NED_FRD ⊗ q_FRD_FLU``. Everything here is its own inverse.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vtolpose.estimator.core.rotation import quat_mul, quat_normalize
+
+# NED -> ENU swaps north and east and flips down: [e, n, u] = [n_E, n_N, -n_D].
+R_ENU_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+# FRD -> FLU: a half turn about the forward axis.
+R_FLU_FRD = np.diag([1.0, -1.0, -1.0])
+
+# The same rotations as quaternions (w, x, y, z).
+Q_ENU_NED = np.array([0.0, np.sqrt(0.5), np.sqrt(0.5), 0.0])
+Q_FLU_FRD = np.array([0.0, 1.0, 0.0, 0.0])
+
+
+def ned_to_enu(v: np.ndarray) -> np.ndarray:
+    """Vector(s) in NED to ENU; works on ``[..., 3]``."""
+    v = np.asarray(v, dtype=float)
+    return np.stack([v[..., 1], v[..., 0], -v[..., 2]], axis=-1)
+
+
+def enu_to_ned(v: np.ndarray) -> np.ndarray:
+    """Vector(s) in ENU to NED (the same swap; the map is an involution)."""
+    return ned_to_enu(v)
+
+
+def frd_to_flu(v: np.ndarray) -> np.ndarray:
+    """Body vector(s) in FRD to FLU."""
+    v = np.asarray(v, dtype=float)
+    return np.stack([v[..., 0], -v[..., 1], -v[..., 2]], axis=-1)
+
+
+def flu_to_frd(v: np.ndarray) -> np.ndarray:
+    """Body vector(s) in FLU to FRD."""
+    return frd_to_flu(v)
+
+
+def q_ned_frd_to_enu_flu(q_ned_frd: np.ndarray) -> np.ndarray:
+    """Attitude body(FRD)→NED into body(FLU)→ENU."""
+    return quat_normalize(quat_mul(quat_mul(Q_ENU_NED, q_ned_frd), Q_FLU_FRD))
+
+
+def q_enu_flu_to_ned_frd(q_enu_flu: np.ndarray) -> np.ndarray:
+    """Attitude body(FLU)→ENU into body(FRD)→NED."""
+    return quat_normalize(quat_mul(quat_mul(Q_ENU_NED, q_enu_flu), Q_FLU_FRD))

@@ -1,0 +1,94 @@
+"""The EKF measurement update, shared by every updater (GPS, camera, …).
+
+Measurement Jacobians are usually sparse in columns (a GPS fix touches the robot block, a
+landmark observation the robot block and six landmark columns), so an updater passes only
+the columns it touches. Optionally some states are *held*: they get no correction and their
+covariance stays as it was, but cross-covariances are kept consistent (Schmidt–Kalman).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy.stats import chi2
+
+from vtolpose.estimator.core.state import FilterState
+
+
+@lru_cache(maxsize=64)
+def chi2_gate(dof: int, probability: float = 0.95) -> float:
+    """Upper χ² quantile: innovations with NIS above it are outliers at this confidence."""
+    return float(chi2.ppf(probability, dof))
+
+
+@dataclass(frozen=True, slots=True)
+class UpdateOutcome:
+    accepted: bool
+    nis: float
+    dof: int
+    reason: str = ""
+
+
+def _cholesky(S: np.ndarray) -> np.ndarray | None:
+    try:
+        return np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def innovation_covariance(state: FilterState, cols: np.ndarray | slice, H: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``S = H P H^T + R`` for a Jacobian that is non-zero only in ``cols``."""
+    block = state.cov[cols, cols] if isinstance(cols, slice) else state.cov[np.ix_(cols, cols)]
+    return H @ block @ H.T + R
+
+
+def normalized_innovation(S: np.ndarray, residual: np.ndarray) -> float | None:
+    """NIS ``ε^T S^-1 ε``, or None when S is not positive definite."""
+    L = _cholesky(S)
+    if L is None:
+        return None
+    w = np.linalg.solve(L, residual)
+    return float(w @ w)
+
+
+def ekf_update(
+    state: FilterState,
+    cols: np.ndarray | slice,
+    H: np.ndarray,
+    residual: np.ndarray,
+    R: np.ndarray,
+    gate: float | None = None,
+    held: np.ndarray | None = None,
+) -> UpdateOutcome:
+    """Fuse one (possibly stacked) measurement into ``state``.
+
+    ``H`` has shape (m, len(cols)). ``gate`` is the NIS threshold; a measurement beyond it is
+    rejected and the state is untouched. ``held`` is a boolean mask over the error state of
+    states that must not be corrected.
+    """
+    m = residual.shape[0]
+    cov = state.cov
+    PHt = cov[:, cols] @ H.T  # (n, m)
+    S = H @ PHt[cols] + R
+    S = 0.5 * (S + S.T)
+    L = _cholesky(S)
+    if L is None or not np.all(np.isfinite(residual)):
+        return UpdateOutcome(False, float("nan"), m, "singular innovation covariance" if L is None else "non-finite residual")
+    w = np.linalg.solve(L, residual)
+    nis = float(w @ w)
+    if gate is not None and nis > gate:
+        return UpdateOutcome(False, nis, m, "chi2 gate")
+    # K = PHt S^-1, computed through the Cholesky factor.
+    K = np.linalg.solve(L.T, np.linalg.solve(L, PHt.T)).T
+    if held is not None:
+        K[held] = 0.0
+        # Joseph-equivalent form for a suboptimal gain that leaves held states alone.
+        KPHt = K @ PHt.T
+        cov -= KPHt + KPHt.T - K @ S @ K.T
+    else:
+        cov -= K @ PHt.T
+    cov[...] = 0.5 * (cov + cov.T)
+    state.inject(K @ residual)
+    return UpdateOutcome(True, nis, m)

@@ -1,0 +1,114 @@
+"""Filter state: nominal values and the error-state covariance.
+
+The covariance lives on the error state ``[δp, δv, δθ, (δb_g, δb_a), δy_1 … δy_M]``. The
+attitude error is a small rotation in the *world* frame, ``R_true = Exp(δθ) R_est``, so yaw
+error is simply ``δθ_D`` and the quaternion stays unit without renormalisation tricks.
+The two robot variants share this code: ``thesis`` (p, v, q; 9 error states) and ``biases``
+(adds gyro and accelerometer biases; 15). Landmarks occupy 6 error states each after the
+robot block (see ``vtolpose.estimator.vision.landmarks``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vtolpose.estimator.core.rotation import quat_exp, quat_mul, quat_to_rot
+
+VARIANTS = ("thesis", "biases")
+LANDMARK_DIM = 6
+
+
+@dataclass(frozen=True, slots=True)
+class StateLayout:
+    """Where each robot error block sits in the covariance."""
+
+    variant: str
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown state variant {self.variant!r}; expected one of {', '.join(VARIANTS)}")
+
+    @property
+    def estimates_biases(self) -> bool:
+        return self.variant == "biases"
+
+    @property
+    def robot_dim(self) -> int:
+        return 15 if self.estimates_biases else 9
+
+    P = slice(0, 3)
+    V = slice(3, 6)
+    TH = slice(6, 9)
+    BG = slice(9, 12)
+    BA = slice(12, 15)
+
+
+class FilterState:
+    """Nominal state plus covariance; the single mutable object the filter works on."""
+
+    def __init__(self, layout: StateLayout) -> None:
+        self.layout = layout
+        self.t_ns: int = 0
+        self.p = np.zeros(3)
+        self.v = np.zeros(3)
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+        # Biases are always present in the nominal state: the thesis variant keeps them
+        # fixed at their initial calibration (e.g. the static gyro bias), the biases variant
+        # estimates them.
+        self.b_g = np.zeros(3)
+        self.b_a = np.zeros(3)
+        self.landmarks = np.zeros((0, LANDMARK_DIM))
+        self.cov = np.zeros((layout.robot_dim, layout.robot_dim))
+
+    @property
+    def robot_dim(self) -> int:
+        return self.layout.robot_dim
+
+    @property
+    def dim(self) -> int:
+        return self.cov.shape[0]
+
+    @property
+    def n_landmarks(self) -> int:
+        return self.landmarks.shape[0]
+
+    @property
+    def R(self) -> np.ndarray:
+        return quat_to_rot(self.q)
+
+    def landmark_slice(self, index: int) -> slice:
+        start = self.robot_dim + LANDMARK_DIM * index
+        return slice(start, start + LANDMARK_DIM)
+
+    def inject(self, dx: np.ndarray) -> None:
+        """Fold an error-state correction into the nominal state."""
+        lay = self.layout
+        self.p = self.p + dx[lay.P]
+        self.v = self.v + dx[lay.V]
+        q = quat_mul(quat_exp(dx[lay.TH]), self.q)
+        self.q = q / np.linalg.norm(q)
+        if lay.estimates_biases:
+            self.b_g = self.b_g + dx[lay.BG]
+            self.b_a = self.b_a + dx[lay.BA]
+        if self.n_landmarks:
+            self.landmarks = self.landmarks + dx[self.robot_dim :].reshape(-1, LANDMARK_DIM)
+
+    def pose_covariance(self) -> np.ndarray:
+        """6 × 6 covariance of [δp, δθ] (position, then world-frame attitude error)."""
+        idx = np.r_[0:3, 6:9]
+        return self.cov[np.ix_(idx, idx)].copy()
+
+    def copy(self) -> "FilterState":
+        other = FilterState(self.layout)
+        other.t_ns = self.t_ns
+        other.p, other.v, other.q = self.p.copy(), self.v.copy(), self.q.copy()
+        other.b_g, other.b_a = self.b_g.copy(), self.b_a.copy()
+        other.landmarks = self.landmarks.copy()
+        other.cov = self.cov.copy()
+        return other
+
+    def is_finite(self) -> bool:
+        """Every nominal part (biases and landmarks included) and the covariance are finite."""
+        return all(np.all(np.isfinite(x)) for x in (self.p, self.v, self.q, self.b_g, self.b_a, self.landmarks, self.cov))

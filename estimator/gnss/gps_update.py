@@ -1,0 +1,61 @@
+"""GPS position update (thesis eq. 4.6) with the antenna lever arm and a χ² gate.
+
+``y = p + R(q) l + e``, ``e ~ N(0, diag(σ_h², σ_h², σ_v²))``. The thesis sets σ_v² = 2 σ_h²;
+a fix that carries its own σ_v (NMEA GST, MAVLink epv) uses it instead.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update
+from vtolpose.estimator.core.measurements import GpsFix
+from vtolpose.estimator.core.rotation import skew
+from vtolpose.estimator.core.state import FilterState
+
+GPS_COLS = slice(0, 9)  # δp, δv, δθ: the only error states a fix depends on
+
+
+def gps_sigmas(fix: GpsFix, floor_m: float) -> tuple[float, float]:
+    """Horizontal and vertical 1-sigma of a fix, with the thesis' σ_v = √2 σ_h as fallback."""
+    sigma_h = max(float(fix.sigma_h), floor_m)
+    sigma_v = float(fix.sigma_v) if fix.sigma_v and math.isfinite(fix.sigma_v) and fix.sigma_v > 0 else math.sqrt(2.0) * sigma_h
+    return sigma_h, max(sigma_v, floor_m)
+
+
+class GpsModel:
+    """Measurement function and its analytic Jacobian (tested against central differences)."""
+
+    def __init__(self, lever_arm_b: np.ndarray) -> None:
+        self.lever_arm_b = np.asarray(lever_arm_b, dtype=float).reshape(3)
+
+    def predict(self, state: FilterState) -> np.ndarray:
+        return state.p + state.R @ self.lever_arm_b
+
+    def jacobian(self, state: FilterState) -> np.ndarray:
+        """∂y/∂[δp, δv, δθ] with the world-frame attitude error ``R_true = Exp(δθ) R``."""
+        H = np.zeros((3, 9))
+        H[:, 0:3] = np.eye(3)
+        H[:, 6:9] = -skew(state.R @ self.lever_arm_b)
+        return H
+
+
+class GpsUpdater:
+    def __init__(self, lever_arm_b: np.ndarray, gate: float | None, sigma_floor_m: float = 1e-3) -> None:
+        self.model = GpsModel(lever_arm_b)
+        self.gate = gate
+        self.sigma_floor_m = sigma_floor_m
+
+    def residual(self, state: FilterState, fix: GpsFix) -> np.ndarray:
+        return np.asarray(fix.p_ned, dtype=float) - self.model.predict(state)
+
+    def noise(self, fix: GpsFix) -> np.ndarray:
+        sigma_h, sigma_v = gps_sigmas(fix, self.sigma_floor_m)
+        return np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
+
+    def update(self, state: FilterState, fix: GpsFix, held: np.ndarray | None = None) -> UpdateOutcome:
+        return ekf_update(
+            state, GPS_COLS, self.model.jacobian(state), self.residual(state, fix), self.noise(fix), self.gate, held
+        )

@@ -1,0 +1,115 @@
+"""IMU deltas: rotation and velocity increments accumulated over one filter step.
+
+The filter does not need to step at the IMU's rate: like PX4's EKF2 it integrates the raw
+samples into a delta angle and a delta velocity and propagates the covariance at a lower,
+steady rate (≤ ``max_rate_hz``), which halves the cost at 200 Hz without losing the motion
+between steps. Within a step each pair of consecutive samples is averaged (trapezoid) and the
+specific force is rotated by the half-step attitude, so one-sample deltas reproduce exactly
+what a per-sample filter would do.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from vtolpose.estimator.core.rotation import rotvec_quat
+
+
+@dataclass(frozen=True, slots=True)
+class ImuDelta:
+    """Raw (bias-uncorrected) increments over ``[t0_ns, t1_ns]``, in the body frame at ``t0``."""
+
+    t0_ns: int
+    t1_ns: int
+    dt: float
+    dtheta: np.ndarray  # rotation vector of the accumulated body rotation
+    dvel: np.ndarray  # ∫ ΔR(τ) f(τ) dτ, specific force rotated into the start frame [m/s]
+
+
+def _qmul(a: tuple, b: tuple) -> tuple[float, float, float, float]:
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def _rotate(q: tuple, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """``R(q) v`` for a unit quaternion: v + 2w (r × v) + 2 r × (r × v)."""
+    w, rx, ry, rz = q
+    cx, cy, cz = ry * z - rz * y, rz * x - rx * z, rx * y - ry * x
+    return (
+        x + 2.0 * (w * cx + ry * cz - rz * cy),
+        y + 2.0 * (w * cy + rz * cx - rx * cz),
+        z + 2.0 * (w * cz + rx * cy - ry * cx),
+    )
+
+
+def _log(q: tuple) -> np.ndarray:
+    w, x, y, z = q
+    n = math.sqrt(x * x + y * y + z * z)
+    k = 2.0 * math.atan2(n, w) / n if n > 1e-12 else 2.0
+    return np.array([k * x, k * y, k * z])
+
+
+class ImuDownsampler:
+    """Turns IMU samples into deltas of at least ``0.9 / max_rate_hz`` seconds."""
+
+    def __init__(self, max_rate_hz: float) -> None:
+        self.min_dt = 0.9 / max_rate_hz
+        self._last: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._reset()
+
+    def _reset(self) -> None:
+        self._t0: int | None = None
+        self._q = (1.0, 0.0, 0.0, 0.0)  # accumulated rotation since the step's start
+        self._dv = (0.0, 0.0, 0.0)
+        self._dt = 0.0
+
+    def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> ImuDelta | None:
+        """Add a sample (strictly later than the previous); return a delta when one is complete."""
+        last = self._last
+        self._last = (t_ns, gyro, accel)
+        if last is None:
+            return None
+        t_prev, g_prev, a_prev = last
+        if self._t0 is None:
+            self._t0 = t_prev
+        # Scalar arithmetic: this runs for every IMU sample.
+        dt = (t_ns - t_prev) * 1e-9
+        wx, wy, wz = (0.5 * dt * (g_prev + gyro)).tolist()  # rotation vector of this sample step
+        fx, fy, fz = (0.5 * dt * (a_prev + accel)).tolist()
+        half = _qmul(self._q, rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz))
+        dx, dy, dz = _rotate(half, fx, fy, fz)
+        vx, vy, vz = self._dv
+        self._dv = (vx + dx, vy + dy, vz + dz)
+        self._q = _qmul(self._q, rotvec_quat(wx, wy, wz))
+        self._dt += dt
+        if self._dt < self.min_dt:
+            return None
+        return self.flush()
+
+    def flush(self) -> ImuDelta | None:
+        """The partial delta accumulated so far (e.g. up to a measurement's time), if any."""
+        if self._t0 is None or self._dt <= 0.0:
+            return None
+        delta = ImuDelta(self._t0, self._last[0], self._dt, _log(self._q), np.array(self._dv))
+        self._reset()
+        return delta
+
+    def hold(self, t_ns: int) -> ImuDelta | None:
+        """A delta from the last sample to ``t_ns`` holding its readings, for a measurement that
+        falls between samples. Call :meth:`flush` first; the next delta then starts at ``t_ns``."""
+        if self._last is None or t_ns <= self._last[0] or self._t0 is not None:
+            return None
+        t_last, gyro, accel = self._last
+        dt = (t_ns - t_last) * 1e-9
+        self._last = (t_ns, gyro, accel)
+        half = rotvec_quat(*(0.5 * dt * gyro).tolist())
+        return ImuDelta(t_last, t_ns, dt, gyro * dt, np.array(_rotate(half, *(dt * accel).tolist())))

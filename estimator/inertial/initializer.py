@@ -1,0 +1,108 @@
+"""Initial attitude from the IMU: roll and pitch from gravity, gyro bias, gravity magnitude.
+
+The thesis calibrates before each run from a static stretch (section 5.2). Here the filter
+waits for a window in which the IMU is still; if none comes within ``max_wait_s`` (the vehicle
+is already moving, as at the start of EuRoC MH01) it starts from the mean of the last window
+with wider uncertainties instead of waiting forever.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from vtolpose.estimator.core.rotation import quat_from_euler
+
+
+@dataclass(slots=True)
+class InitOptions:
+    static_window_s: float = 2.0
+    max_wait_s: float = 3.0
+    gyro_std_max: float = 0.02  # rad/s, per axis, over the window
+    accel_std_max: float = 0.15  # m/s^2, per axis, over the window
+    estimate_gravity: bool = True  # the service resolves the config's 'auto' per variant
+    sigma_attitude_static_deg: float = 0.5
+    sigma_attitude_moving_deg: float = 5.0
+    sigma_heading_known_deg: float = 2.0
+    sigma_velocity_static: float = 0.02
+    sigma_velocity_moving: float = 1.0
+    sigma_gyro_bias: float = 0.01  # rad/s, prior when no static window gives it
+    sigma_accel_bias: float = 0.1  # m/s^2
+
+
+@dataclass(frozen=True, slots=True)
+class InitialAttitude:
+    t_ns: int
+    q: np.ndarray
+    gyro_bias: np.ndarray
+    gravity: float
+    static: bool
+    sigma_roll_pitch: float  # rad
+    sigma_gyro_bias: float  # rad/s
+    n_samples: int
+
+
+def roll_pitch_from_specific_force(f_b: np.ndarray) -> tuple[float, float]:
+    """Roll and pitch of a body at rest: its accelerometer reads ``f_B = -R^T g_W``."""
+    roll = math.atan2(-f_b[1], -f_b[2])
+    pitch = math.atan2(f_b[0], math.hypot(f_b[1], f_b[2]))
+    return roll, pitch
+
+
+class StaticInitializer:
+    """Feed IMU samples; returns an :class:`InitialAttitude` once it can."""
+
+    def __init__(self, options: InitOptions, nominal_gravity: float, heading_rad: float = 0.0) -> None:
+        self.options = options
+        self.nominal_gravity = nominal_gravity
+        self.heading_rad = heading_rad
+        self._t: deque[int] = deque()
+        self._gyro: deque[np.ndarray] = deque()
+        self._accel: deque[np.ndarray] = deque()
+        self._first_t: int | None = None
+
+    def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, allow_moving: bool = True) -> InitialAttitude | None:
+        """Returns the initial attitude once a still window exists or, if ``allow_moving``, once
+        ``max_wait_s`` has passed without one (then from the last window, less certain)."""
+        opts = self.options
+        if self._first_t is None:
+            self._first_t = t_ns
+        self._t.append(t_ns)
+        self._gyro.append(gyro)
+        self._accel.append(accel)
+        window_ns = int(opts.static_window_s * 1e9)
+        while self._t[-1] - self._t[0] > window_ns:
+            self._t.popleft()
+            self._gyro.popleft()
+            self._accel.popleft()
+        full = self._t[-1] - self._t[0] >= 0.95 * window_ns and len(self._t) >= 10
+        if not full:
+            return None
+        g = np.array(self._gyro)
+        a = np.array(self._accel)
+        static = bool(np.all(g.std(axis=0) < opts.gyro_std_max) and np.all(a.std(axis=0) < opts.accel_std_max))
+        timed_out = t_ns - self._first_t >= int(opts.max_wait_s * 1e9)
+        if not (static or (timed_out and allow_moving)):
+            return None
+        return self._solve(t_ns, g, a, static)
+
+    def _solve(self, t_ns: int, g: np.ndarray, a: np.ndarray, static: bool) -> InitialAttitude:
+        opts = self.options
+        f_mean = a.mean(axis=0)
+        roll, pitch = roll_pitch_from_specific_force(f_mean)
+        q = quat_from_euler(roll, pitch, self.heading_rad)
+        if static:
+            gyro_bias = g.mean(axis=0)
+            gravity = float(np.linalg.norm(f_mean)) if opts.estimate_gravity else self.nominal_gravity
+            sigma_rp = math.radians(opts.sigma_attitude_static_deg)
+            # The mean of N samples pins the bias far better than the prior does.
+            sigma_bg = max(float(g.std(axis=0).max()) / math.sqrt(len(g)), 1e-5)
+        else:
+            gyro_bias = np.zeros(3)
+            gravity = self.nominal_gravity
+            sigma_rp = math.radians(opts.sigma_attitude_moving_deg)
+            sigma_bg = opts.sigma_gyro_bias
+        return InitialAttitude(t_ns, q, gyro_bias, gravity, static, sigma_rp, sigma_bg, len(g))

@@ -1,0 +1,240 @@
+"""One camera frame through EKF-SLAM: predict, associate, update, manage the map.
+
+The estimator calls :meth:`CameraPipeline.process` with the state already propagated to the
+frame's time. The matches of a frame are fused together: those of landmarks whose depth has
+been observed in one stacked EKF update, those whose depth is still a guess in one iterated
+EKF update (see :meth:`CameraPipeline._update` for why). The pipeline owns what the filter state does not: the landmarks' ids,
+descriptors and match statistics (:class:`~vtolpose.estimator.vision.map_manager.LandmarkBook`, in the
+state's landmark order). It returns a :class:`FrameReport` with everything a person needs to
+see why the filter did what it did (the per-frame overlay is drawn from it).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vtolpose.estimator.vision.association import AssociationOptions, associate
+from vtolpose.estimator.core.calibration import CameraCalibration
+from vtolpose.estimator.vision.camera_model import CameraModel
+from vtolpose.estimator.vision.camera_update import Predictions, assign_state, iterated_update, predict, stacked_update
+from vtolpose.estimator.vision.features import FrameFeatures
+from vtolpose.estimator.core.kalman import UpdateOutcome
+from vtolpose.estimator.vision.landmarks import add_landmarks, baseline_significance, initial_landmarks, remove_landmarks, world_rays
+from vtolpose.estimator.vision.map_manager import (
+    LandmarkBook,
+    MapOptions,
+    deletions,
+    depth_known,
+    depth_priors,
+    record_settling,
+    scene_depth,
+    select_new_features,
+)
+from vtolpose.estimator.core.state import FilterState
+
+
+@dataclass(frozen=True, slots=True)
+class CameraOptions:
+    pixel_sigma: float = 1.0  # px, feature position noise (thesis: R_c)
+    association: AssociationOptions = field(default_factory=AssociationOptions)
+    map: MapOptions = field(default_factory=MapOptions)
+
+
+@dataclass(slots=True)
+class FrameReport:
+    """What one frame did. Pixel arrays are (K, 2); ids are the landmarks' stable ids."""
+
+    t_ns: int
+    accepted: bool
+    reason: str = ""
+    n_features: int = 0
+    n_landmarks: int = 0  # in the map after this frame
+    predicted_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    predicted_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    gate_px: float = 0.0
+    matched_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    matched_features: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    candidates: int = 0  # landmarks predicted in view
+    behind_camera: int = 0
+    match_rejections: dict[str, int] = field(default_factory=dict)
+    new_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    new_features: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    depth_source: str = ""
+    deleted: dict[str, int] = field(default_factory=dict)
+    nis: float = float("nan")
+    timing_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def n_matches(self) -> int:
+        return len(self.matched_ids)
+
+
+class CameraPipeline:
+    """Visual EKF-SLAM for one calibrated camera."""
+
+    def __init__(self, calibration: CameraCalibration, options: CameraOptions | None = None) -> None:
+        self.options = options or CameraOptions()
+        self.calibration = calibration
+        self.camera = CameraModel(calibration)
+        self.R_BC = np.asarray(calibration.R_BC, dtype=float)
+        self.t_BC = np.asarray(calibration.t_BC, dtype=float)
+        self.book = LandmarkBook()
+        self.initialized_total = 0
+        self.deleted_total: dict[str, int] = {}
+
+    def clear(self, state: FilterState) -> int:
+        """Forget every landmark (after a filter reset: they belong to the old frame)."""
+        n = len(self.book)
+        if state.n_landmarks:
+            remove_landmarks(state, np.ones(state.n_landmarks, dtype=bool))
+        self.book.clear()
+        return n
+
+    def process(
+        self,
+        state: FilterState,
+        features: FrameFeatures,
+        t_ns: int,
+        add_allowed: bool,
+        absolute_position: bool,
+        held: np.ndarray | None = None,
+    ) -> FrameReport:
+        """Update ``state`` with one frame's features (already at the frame's time)."""
+        opts = self.options
+        clock = time.perf_counter
+        t0 = clock()
+        report = FrameReport(t_ns, True, n_features=len(features), gate_px=opts.association.gate_px)
+        if len(self.book) != state.n_landmarks:  # the filter was rebuilt under us: start over
+            self.clear(state)
+        m = state.n_landmarks
+        pred = predict(state, self.camera, self.R_BC, self.t_BC, opts.pixel_sigma) if m else None
+        t1 = clock()
+        matched = np.zeros(m, dtype=bool)
+        in_view = np.zeros(m, dtype=bool)
+        in_front = np.ones(m, dtype=bool)
+        if pred is not None:
+            in_view, in_front = pred.in_image, pred.in_front
+            report.predicted_ids = self.book.ids[in_view]
+            report.predicted_uv = pred.uv[in_view]
+            report.behind_camera = int(np.sum(~in_front))
+            assoc = associate(pred, self.book.descriptors, features, opts.association)
+            report.candidates = assoc.candidates
+            report.match_rejections = dict(assoc.rejected)
+        t2 = clock()
+        if pred is not None and len(assoc):
+            snapshot = state.copy()
+            outcome = self._update(state, pred, assoc.landmark, features.keypoints[assoc.feature], held)
+            if outcome.accepted and state.is_finite():
+                matched[assoc.landmark] = True
+                record_settling(self.book, state, assoc.landmark, opts.map)
+                report.matched_ids = self.book.ids[assoc.landmark]
+                report.matched_features = assoc.feature
+                report.nis = outcome.nis
+            else:
+                assign_state(state, snapshot)
+                report.accepted = False
+                report.reason = "singular_innovation" if "singular" in outcome.reason else "non_finite_update"
+        t3 = clock()
+        if m:
+            self.book.record(in_view, matched)
+            gone = deletions(self.book, state, in_front, opts.map)
+            remove = np.zeros(m, dtype=bool)
+            for reason, mask in gone.items():
+                if np.any(mask):
+                    report.deleted[reason] = int(np.sum(mask))
+                    self.deleted_total[reason] = self.deleted_total.get(reason, 0) + int(np.sum(mask))
+                remove |= mask
+            remove_landmarks(state, remove)
+            self.book.keep(~remove)
+            in_view = in_view[~remove]
+        if add_allowed and report.accepted:
+            occupied = report.predicted_uv
+            if len(report.matched_features):
+                occupied = np.vstack([occupied, features.keypoints[report.matched_features]])
+            self._add(state, features, in_view, occupied, absolute_position, report)
+        report.n_landmarks = state.n_landmarks
+        t4 = clock()
+        report.timing_ms = {
+            "predict": (t1 - t0) * 1e3, "associate": (t2 - t1) * 1e3, "update": (t3 - t2) * 1e3,
+            "map": (t4 - t3) * 1e3, "total": (t4 - t0) * 1e3,
+        }
+        return report
+
+    def _update(
+        self, state: FilterState, pred: Predictions, landmarks: np.ndarray, uv: np.ndarray, held: np.ndarray | None
+    ) -> UpdateOutcome:
+        """Fuse the frame's matches, in up to three groups by what their landmark's depth is worth.
+
+        The measurement is bilinear in a landmark's inverse depth and the camera centre.
+        - Depth observed (:func:`~vtolpose.estimator.vision.map_manager.depth_known`): one stacked EKF update.
+        - Depth guessed, camera well away from the anchor: an iterated EKF update. The first real
+          baseline can move a guessed depth a long way; one linearisation at the guess gets the
+          depth, the robot's correction and both variances wrong (it reads parallax as motion).
+        - Depth guessed, no significant baseline yet: such a match still says the camera has
+          not moved relative to the scene, so it updates position and velocity (and the
+          landmark's bearing); its depth, the attitude and the biases are held (a Schmidt
+          update). Without a baseline the depth cannot be observed, and an apparent baseline
+          that is only position noise (GPS steps while the vehicle sits on its pad) would
+          otherwise be "explained" by a bogus depth or attitude.
+        """
+        opts = self.options
+        known = depth_known(self.book, state, landmarks, opts.map)
+        baseline = baseline_significance(state, landmarks, self.t_BC) >= opts.map.min_baseline_chi2
+        outcome = None
+        if np.any(known):
+            outcome = stacked_update(state, pred, landmarks[known], uv[known], opts.pixel_sigma, held)
+            if not outcome.accepted:
+                return outcome
+        groups = (
+            (~known & baseline, None, opts.map.guessed_iterations),
+            (~known & ~baseline, self._no_baseline_held(state, landmarks[~known & ~baseline]), 1),
+        )
+        for members, extra_held, iterations in groups:
+            if not np.any(members):
+                continue
+            hold = held if extra_held is None else extra_held if held is None else held | extra_held
+            step = iterated_update(state, self.camera, self.R_BC, self.t_BC, landmarks[members], uv[members],
+                                   opts.pixel_sigma, hold, iterations)
+            if not step.accepted:
+                return step
+            outcome = step if outcome is None else UpdateOutcome(True, outcome.nis + step.nis, outcome.dof + step.dof)
+        return outcome
+
+    @staticmethod
+    def _no_baseline_held(state: FilterState, landmarks: np.ndarray) -> np.ndarray:
+        """Everything but position, velocity and the landmarks' bearings and anchors."""
+        hold = np.zeros(state.dim, dtype=bool)
+        hold[6 : state.robot_dim] = True
+        hold[state.robot_dim + 6 * landmarks + 5] = True
+        return hold
+
+    def _add(self, state: FilterState, features: FrameFeatures, in_view: np.ndarray, occupied: np.ndarray,
+             absolute_position: bool, report: FrameReport) -> None:
+        mo = self.options.map
+        n_new = min(mo.max_new_per_frame, mo.target_in_view - int(np.sum(in_view)), mo.max_landmarks - state.n_landmarks)
+        chosen = select_new_features(features, occupied, report.matched_features, n_new, mo.min_feature_distance_px, mo.border_px)
+        if len(chosen) == 0:
+            return
+        R_WB = state.R
+        R_WC = R_WB @ self.R_BC
+        c_w = state.p + R_WB @ self.t_BC
+        uv = features.keypoints[chosen]
+        rays_w, xn = world_rays(R_WB, self.R_BC, self.camera, uv)
+        rays_w /= np.linalg.norm(rays_w, axis=1, keepdims=True)
+        rays_c = np.column_stack([xn, np.ones(len(xn))])
+        depth = scene_depth(self.book, state, R_WC, c_w, in_view, mo)
+        rho0, sigma_rho, source = depth_priors(rays_w, rays_c, c_w, absolute_position, depth, mo)
+        y, J_x, J_z = initial_landmarks(state.p, R_WB, self.camera, self.R_BC, self.t_BC, uv, rho0)
+        px2 = self.options.pixel_sigma**2
+        R_z = np.zeros((len(chosen), 3, 3))
+        R_z[:, 0, 0] = R_z[:, 1, 1] = px2
+        R_z[:, 2, 2] = sigma_rho**2
+        add_landmarks(state, y, J_x, J_z, R_z)
+        report.new_ids = self.book.append(features.descriptors[chosen], sigma_rho)
+        report.new_features = chosen
+        report.depth_source = source
+        self.initialized_total += len(chosen)
+

@@ -1,0 +1,120 @@
+"""Point features of one frame: keypoints and descriptors through OpenCV.
+
+SIFT is the thesis' choice (and the default); ORB is an order of magnitude cheaper; AKAZE is
+offered where the OpenCV build has it (OpenCV 5 moved it to the contrib modules). The work is
+one plain function of (image, options) with no shared state, so a daemon can run it in a
+thread pool: OpenCV releases the GIL while it detects and describes.
+
+Descriptors are normalised so that one distance scale serves every detector: float
+descriptors (SIFT) to unit L2 norm, so distances lie in [0, 2]; binary descriptors (ORB,
+AKAZE's MLDB) stay packed bits, compared by the fraction of differing bits in [0, 1].
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from vtolpose.estimator.vision.frame_quality import FrameQualityOptions, frame_problem
+
+DETECTORS = ("sift", "orb", "akaze")
+
+
+@dataclass(frozen=True, slots=True)
+class FeatureOptions:
+    detector: str = "sift"
+    max_features: int = 400  # strongest responses kept per frame
+    sift_contrast_threshold: float = 0.02  # lower than OpenCV's 0.04: aerial texture is soft
+    orb_fast_threshold: int = 20
+    quality: FrameQualityOptions = field(default_factory=FrameQualityOptions)
+
+    def __post_init__(self) -> None:
+        if self.detector not in DETECTORS:
+            raise ValueError(f"unknown feature detector {self.detector!r}; choose one of {', '.join(DETECTORS)}")
+        if self.max_features < 1:
+            raise ValueError(f"max_features must be at least 1, got {self.max_features}")
+        if self.detector == "akaze" and not hasattr(cv2, "AKAZE_create"):
+            raise ValueError(f"detector 'akaze' is not in this OpenCV build ({cv2.__version__}); use sift or orb")
+
+
+@dataclass(frozen=True, slots=True)
+class FrameFeatures:
+    """Features of the frame taken at ``t_ns``; ``problem`` names why a frame gave none."""
+
+    t_ns: int
+    keypoints: np.ndarray  # (N, 2) pixel coordinates, float64
+    descriptors: np.ndarray  # (N, D): float32 unit vectors, or uint8 packed bits when ``binary``
+    responses: np.ndarray  # (N,) detector response (strength)
+    image_shape: tuple[int, int]
+    binary: bool = False
+    problem: str | None = None  # one of vtolpose.estimator.vision.frame_quality.PROBLEMS, or None
+    digest: bytes = b""  # hash of the pixels: an identical frame twice is a duplicate
+    extract_ms: float = 0.0
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+    @classmethod
+    def rejected(cls, t_ns: int, image_shape: tuple[int, ...], problem: str, digest: bytes = b"") -> "FrameFeatures":
+        return cls(t_ns, np.zeros((0, 2)), np.zeros((0, 0), np.float32), np.zeros(0), tuple(image_shape[:2]),
+                   problem=problem, digest=digest)
+
+
+def _detector(options: FeatureOptions) -> cv2.Feature2D:
+    if options.detector == "sift":
+        return cv2.SIFT_create(nfeatures=options.max_features, contrastThreshold=options.sift_contrast_threshold)
+    if options.detector == "orb":
+        return cv2.ORB_create(nfeatures=options.max_features, fastThreshold=options.orb_fast_threshold)
+    return cv2.AKAZE_create()
+
+
+def image_digest(image: np.ndarray) -> bytes:
+    return hashlib.blake2b(np.ascontiguousarray(image).data, digest_size=16).digest()
+
+
+def extract_features(
+    image: np.ndarray, t_ns: int, options: FeatureOptions, expected_shape: tuple[int, int] | None = None
+) -> FrameFeatures:
+    """Quality check, then keypoints and descriptors of a grey uint8 image, strongest first."""
+    started = time.perf_counter()
+    image = np.asarray(image)
+    digest = image_digest(image) if image.size else b""
+    problem = frame_problem(image, expected_shape, options.quality)
+    if problem is not None:
+        return FrameFeatures.rejected(t_ns, image.shape, problem, digest)
+    keypoints, descriptors = _detector(options).detectAndCompute(image, None)
+    if descriptors is None or not keypoints:
+        return FrameFeatures(t_ns, np.zeros((0, 2)), np.zeros((0, 0), np.float32), np.zeros(0), image.shape[:2],
+                             binary=options.detector != "sift", digest=digest,
+                             extract_ms=(time.perf_counter() - started) * 1e3)
+    pts = np.array([k.pt for k in keypoints], dtype=float)
+    responses = np.array([k.response for k in keypoints], dtype=float)
+    order = np.argsort(-responses, kind="stable")[: options.max_features]
+    binary = descriptors.dtype == np.uint8 and options.detector != "sift"
+    if binary:
+        desc = descriptors[order]
+    else:
+        desc = descriptors[order].astype(np.float32)
+        desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+    return FrameFeatures(
+        t_ns, pts[order], desc, responses[order], image.shape[:2], binary=binary, digest=digest,
+        extract_ms=(time.perf_counter() - started) * 1e3,
+    )
+
+
+def descriptor_distances(a: np.ndarray, b: np.ndarray, binary: bool) -> np.ndarray:
+    """All distances between rows of ``a (M, D)`` and ``b (N, D)``: L2 of unit vectors, or bit fraction."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((len(a), len(b)))
+    if binary:
+        bits_a = np.unpackbits(a, axis=1).astype(np.float32)
+        bits_b = np.unpackbits(b, axis=1).astype(np.float32)
+        # Hamming = |a| + |b| − 2 a·b over 0/1 bits.
+        ham = bits_a.sum(1)[:, None] + bits_b.sum(1)[None, :] - 2.0 * bits_a @ bits_b.T
+        return np.maximum(ham, 0.0) / bits_a.shape[1]
+    d2 = 2.0 - 2.0 * (a.astype(np.float32) @ b.astype(np.float32).T)
+    return np.sqrt(np.maximum(d2, 0.0))

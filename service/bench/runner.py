@@ -1,0 +1,111 @@
+"""Benchmarks that answer "can my helicopter computer keep up?" — figures, not asserts.
+
+Each benchmark returns rows of (name, value, unit, note). Ratios are measured against a
+baseline taken in the same run where a baseline makes sense.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+import timeit
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.estimator.core.calibration import ImuNoise
+from vtolpose.estimator.gnss.gps_update import GpsUpdater
+from vtolpose.estimator.inertial.imu_delta import ImuDelta
+from vtolpose.estimator.core.measurements import GpsFix
+from vtolpose.estimator.inertial.propagator import ImuPropagator
+from vtolpose.estimator.core.rotation import quat_from_euler
+from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
+from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
+from vtolpose.service.bench.camera import bench_camera_update, bench_features, bench_replay_camera
+from vtolpose.service.replay.session import replay
+
+Row = tuple[str, float, str, str]
+
+
+def _per_call_us(fn: Callable[[], object], number: int) -> float:
+    fn()
+    best = min(timeit.repeat(fn, number=number, repeat=5))
+    return best / number * 1e6
+
+
+def bench_filter_steps() -> list[Row]:
+    """Cost of one IMU propagation and one GPS update, both state variants."""
+    rows: list[Row] = []
+    noise = ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4)
+    gyro, accel = np.array([0.01, -0.02, 0.03]), np.array([0.2, -0.1, -9.8])
+    for variant in ("thesis", "biases"):
+        layout = StateLayout(variant)
+        state = FilterState(layout)
+        state.q = quat_from_euler(0.1, 0.05, 0.3)
+        state.cov = np.eye(layout.robot_dim) * 1e-2
+        prop = ImuPropagator(noise, 9.81)
+        delta = ImuDelta(0, 10_000_000, 0.01, gyro * 0.01, accel * 0.01)
+        rows.append((f"filter step, IMU delta ({variant})", _per_call_us(lambda: prop.propagate(state, delta), 5000), "us", "one step of <= 100 Hz"))
+        upd = GpsUpdater(np.array([0.0, 0.0, -0.3]), gate=None)
+
+        def gps_update() -> None:
+            s = state.copy()
+            upd.update(s, GpsFix(0, s.p + 0.01, 0.02, 0.03))
+
+        rows.append((f"gps update ({variant})", _per_call_us(gps_update, 2000), "us", "includes a state copy"))
+    return rows
+
+
+def bench_replay_speed(scenarios: tuple[tuple[str, float], ...] = (("book", 120.0), ("landfill", 300.0))) -> list[Row]:
+    """IMU+GPS replay speed as a multiple of real time (target ≥ 100×)."""
+    rows: list[Row] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for scenario, duration in scenarios:
+            path = Path(tmp) / scenario
+            write_flight(simulate_flight(scenario, duration, 1), path)
+            dataset = Dataset.open(path)
+            for variant in ("thesis", "biases"):
+                cfg = load_config(None, {"estimator": {"variant": variant}})
+                result = replay(dataset, cfg, ["imu", "gps"])
+                rate = result.duration_s / result.wall_s
+                rows.append((f"replay imu,gps {scenario} {duration:g} s ({variant})", rate, "x real time", f"{result.wall_s:.2f} s wall"))
+    return rows
+
+
+BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
+    "filter-steps": bench_filter_steps,
+    "replay-speed": bench_replay_speed,
+    "camera-update": bench_camera_update,
+    "features": bench_features,
+    "replay-camera": bench_replay_camera,
+    "runtime-latency": bench_runtime_latency,
+    "runtime-hour": bench_runtime_hour,
+    "soak-camera": bench_soak_camera,
+    "fault-targets": bench_fault_targets,
+    "fault-table": bench_fault_table,
+}
+
+
+# Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table")
+
+
+def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:
+    rows: list[Row] = []
+    default = [n for n in BENCHMARKS if include_long or n not in LONG_BENCHMARKS]
+    for name in names or default:
+        if name not in BENCHMARKS:
+            raise ValueError(f"unknown benchmark {name!r}; choose from {', '.join(BENCHMARKS)}")
+        t0 = time.perf_counter()
+        got = BENCHMARKS[name]()
+        for label, value, unit, note in got:
+            echo(f"  {label:<48} {value:>10.4g} {unit:<12} {note}")
+        echo(f"  ({name}: {time.perf_counter() - t0:.1f} s)")
+        rows.extend(got)
+    return rows

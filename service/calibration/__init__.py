@@ -1,0 +1,2 @@
+"""Calibration results as configuration blocks (YAML) and the plots a field team checks them with.
+"""

@@ -1,0 +1,192 @@
+"""The JSON report of a replay: accuracy against truth, consistency, speed, and every count."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.estimator.metrics import evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary, pose_errors_for_nees
+from vtolpose.estimator.core.rotation import quat_to_rot
+from vtolpose.service.replay.session import ReplayResult
+
+REPORT_VERSION = 1
+
+
+def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) -> dict:
+    est = result.estimator
+    traj = result.trajectory
+    report: dict[str, Any] = {
+        "report_version": REPORT_VERSION,
+        "dataset": dataset.meta["name"],
+        "dataset_path": str(dataset.root),
+        "variant": cfg["estimator.variant"],
+        "sensor_set": result.sensors,
+        "duration_s": round(result.duration_s, 6),
+        "wall_s": round(result.wall_s, 6),
+        "realtime_factor": round(result.duration_s / result.wall_s, 2) if result.wall_s > 0 else None,
+        "estimates": int(len(traj.t_ns)),
+        "initialised": est.initialized,
+        "heading_aligned": est.heading_aligned,
+        "heading_source": "in-motion alignment" if est.alignment is not None else "known" if est.heading_aligned else "unknown",
+        "reset_counter": est.reset_counter,
+        "sensors": est.counts_report(),
+        "skipped_lines": dict(dataset.skipped),
+        "events": [{"t_s": round((t - int(traj.t_ns[0])) * 1e-9, 3) if len(traj.t_ns) else None, "message": m} for t, m in est.events],
+        "notes": list(result.notes),
+    }
+    if result.faults is not None:
+        report["faults"] = result.faults.report()
+    if result.health:
+        report["health"] = result.health
+    if result.failures:
+        report["failures"] = result.failures
+    if est.alignment is not None:
+        a = est.alignment
+        report["alignment"] = {
+            "t_s": round((a.t_ns - int(traj.t_ns[0])) * 1e-9, 3) if len(traj.t_ns) else None,
+            "sigma_roll_pitch_heading_deg": np.degrees(np.sqrt(np.diag(a.cov)[6:9])).tolist(),
+            "residual_ratio": a.residual_ratio,
+            "window_s": a.window_s,
+            "fixes": a.n_fixes,
+        }
+    if est.state is not None:
+        report["final_biases"] = {"gyro_rad_s": est.state.b_g.tolist(), "accel_m_s2": est.state.b_a.tolist()}
+    camera = camera_summary(result)
+    if camera is not None:
+        report["camera"] = camera
+    truth = dataset.truth()
+    if truth is None or len(traj.t_ns) < 2:
+        report["truth"] = None
+        return report
+    point_b = dataset.calibration.truth_point_b
+    offset = start_offset(result, truth, point_b)
+    if offset is not None:
+        report["position_reference"] = {
+            "kind": "start",
+            "note": "no absolute position in this sensor set: the estimate's origin is where it started, so it is "
+                    "shifted onto the truth at its first pose before scoring",
+            "offset_m": offset.tolist(),
+        }
+    shift = np.zeros(3) if offset is None else offset
+    t_data = scoring_times(result, traj.t_ns)
+    scores = evaluate(t_data, traj.p + shift, traj.q, truth, point_b)
+    report["truth"] = "full" if truth.q is not None else "position only"
+    report["position_rmse_m"] = scores["position_rmse_m"]
+    if truth.q is not None:
+        report["attitude_rmse_deg"] = scores["attitude_rmse_deg"]
+    report["final_drift_m"] = scores["final_drift_m"]
+    report["distance_travelled_m"] = scores["distance_travelled_m"]
+    report["drift_percent"] = scores["drift_percent"]
+    report["scores"] = scores
+    gps = dataset.gps() if "gps" in result.sensors else None
+    if gps is not None:
+        gps_scores = gps_error_rmse(gps, truth, dataset.calibration.gps.lever_arm_b, point_b)
+        report["gps_rmse_m"] = gps_scores["rmse_m"]
+        report["gps_scores"] = gps_scores
+        report["position_rmse_over_gps"] = report["position_rmse_m"] / gps_scores["rmse_m"]
+    cov = result.covariances
+    if len(cov.t_ns):
+        err, c, dof = pose_errors_for_nees(scoring_times(result, cov.t_ns), cov.p + shift, cov.q, cov.cov, truth, point_b)
+        if len(err):
+            values = nees(err, c)
+            summary = nees_summary(values, dof)
+            report["nees_mean"] = summary["nees_mean"]
+            report["nees"] = summary
+            report["nees_position_mean"] = float(np.mean(nees(err[:, :3], c[:, :3, :3])))
+    return report
+
+
+def scoring_times(result: ReplayResult, t_ns: np.ndarray) -> np.ndarray:
+    """The estimates' stamps on the truth's clock: an injected clock step is undone before scoring."""
+    return result.faults.source_time_ns(t_ns) if result.faults is not None else t_ns
+
+
+def start_offset(result: ReplayResult, truth, point_b: np.ndarray) -> np.ndarray | None:
+    """Shift that puts the first estimated pose on the truth, for runs that never had an absolute position."""
+    est, traj = result.estimator, result.trajectory
+    if est.position_initialized or len(traj.t_ns) == 0:
+        return None
+    t0 = max(int(traj.t_ns[0]), int(truth.t_ns[0]))
+    k = int(np.searchsorted(traj.t_ns, t0))
+    if k >= len(traj.t_ns) or t0 > int(truth.t_ns[-1]):
+        return None
+    p_true, _ = interpolate_poses(np.array([traj.t_ns[k]]), truth.t_ns, truth.p, truth.q)
+    return p_true[0] - (traj.p[k] + quat_to_rot(traj.q[k]) @ point_b)
+
+
+def _stats(values: list[float] | np.ndarray, digits: int = 3) -> dict:
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
+        return {"mean": None, "max": None}
+    return {"mean": round(float(v.mean()), digits), "median": round(float(np.median(v)), digits),
+            "p95": round(float(np.percentile(v, 95)), digits), "max": round(float(v.max()), digits)}
+
+
+def camera_summary(result: ReplayResult) -> dict | None:
+    """Landmarks, matches and timing of the camera frames of a replay (None without frames)."""
+    frames = result.frames
+    if not frames:
+        return None
+    est = result.estimator
+    used = [f for f in frames if f.accepted]
+    sources: dict[str, int] = {}
+    for f in used:
+        if f.depth_source:
+            sources[f.depth_source] = sources.get(f.depth_source, 0) + len(f.new_ids)
+    timing = {name: _stats([f.timing_ms[name] for f in used if f.timing_ms]) for name in ("predict", "associate", "update", "map", "total")}
+    timing["extract"] = _stats(result.extract_ms)
+    matches = est.counts.get("camera_match")
+    return {
+        "detector": result.detector,
+        "frames": len(frames),
+        "frames_used": len(used),
+        "landmarks_in_map": _stats([f.n_landmarks for f in used], 1),
+        "landmarks_in_view": _stats([f.candidates for f in used], 1),
+        "matches_per_frame": _stats([f.n_matches for f in used], 1),
+        "landmarks_initialised": est.camera.initialized_total if est.camera is not None else 0,
+        "landmarks_deleted": dict(sorted(est.camera.deleted_total.items())) if est.camera is not None else {},
+        "depth_prior_sources": sources,
+        "rejected_matches": dict(sorted(matches.rejected.items())) if matches is not None else {},
+        "timing_ms": timing,
+    }
+
+
+def summary_lines(report: dict) -> list[str]:
+    """The few numbers a person looks at first."""
+    def fmt(key: str, unit: str = "", scale: float = 1.0, digits: int = 4) -> str:
+        value = report.get(key)
+        return "n/a" if value is None else f"{value * scale:.{digits}f}{unit}"
+
+    lines = [
+        f"dataset {report['dataset']}  variant {report['variant']}  sensors {','.join(report['sensor_set'])}",
+        f"  position RMSE {fmt('position_rmse_m', ' m')}   GPS RMSE {fmt('gps_rmse_m', ' m')}   ratio {fmt('position_rmse_over_gps', '', 1, 3)}",
+        f"  attitude RMSE {fmt('attitude_rmse_deg', ' deg', 1, 3)}   final drift {fmt('final_drift_m', ' m')} ({fmt('drift_percent', ' %', 1, 2)} of {fmt('distance_travelled_m', ' m', 1, 1)})",
+    ]
+    if "nees" in report:
+        n = report["nees"]
+        lo, hi = n["band_per_sample"]
+        verdict = "inside" if n["mean_in_band"] else "OUTSIDE"
+        lines.append(f"  NEES mean {n['nees_mean']:.2f} ({n['dof']} dof; 95% band {lo:.2f}-{hi:.2f}: {verdict}; {100 * n['fraction_in_band']:.0f}% of samples in band)")
+    if "position_reference" in report:
+        lines.append("  (no absolute position: scored with the start put on the truth)")
+    cam = report.get("camera")
+    if cam is not None:
+        t = cam["timing_ms"]
+        lines.append(
+            f"  camera ({cam['detector']}): {cam['frames_used']}/{cam['frames']} frames, {cam['matches_per_frame']['mean']} matches "
+            f"per frame, map {cam['landmarks_in_map']['mean']} landmarks (max {cam['landmarks_in_map']['max']}), "
+            f"{cam['landmarks_initialised']} initialised; extract {t['extract']['mean']} ms, filter {t['total']['mean']} ms per frame"
+        )
+    lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time")
+    for name, c in report["sensors"].items():
+        rej = ", ".join(f"{k} {v}" for k, v in c["rejected"].items()) or "none"
+        flagged = ", ".join(f"{k} {v}" for k, v in c.get("flagged", {}).items())
+        lines.append(f"  {name}: {c['used']} used of {c['received']}; rejected: {rej}" + (f"; flagged: {flagged}" if flagged else ""))
+    for fault in report.get("faults", []):
+        lines.append(f"  fault {fault['spec']}: {fault['samples_affected']} samples dropped or changed")
+    health = report.get("health") or {}
+    if health.get("resets"):
+        lines.append(f"  filter resets: {', '.join(f'{k} {v}' for k, v in health['resets'].items())} (see the events)")
+    return lines

@@ -1,0 +1,210 @@
+"""Replay: a dataset fed through the onboard runtime, recorded for the report.
+
+The same runtime as ``vtolpose run`` (fusion horizon, camera work off the loop, outputs when
+enabled), fed by the dataset instead of devices. At ``speed`` 0 (the default) it runs as fast
+as the machine allows in lock-step: camera work is awaited at the fusion horizon, so the result
+does not depend on the machine. The recorder keeps every fused pose (the TUM trajectory) and,
+at a lower rate, the pose covariance for the consistency (NEES) check.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.estimator.vision.camera_pipeline import FrameReport
+from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
+from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator.core.measurements import CameraFrame
+from vtolpose.service.replay.faults import Fault, FaultInjector
+from vtolpose.service.runtime.replay_feed import checked_sensors, run_replay
+from vtolpose.service.runtime.threads import limit_blas_threads
+from vtolpose.service.runtime.wiring import feature_options
+
+log = logging.getLogger(__name__)
+
+# Called after each frame with the image, its features and what the filter did with them.
+FrameCallback = Callable[[np.ndarray | None, FrameFeatures, FrameReport], None]
+
+
+@dataclass
+class Trajectory:
+    t_ns: np.ndarray
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+
+
+@dataclass
+class CovarianceSamples:
+    """Pose covariance ([δp, δθ], 6 × 6) sampled at a low rate, with the pose it belongs to."""
+
+    t_ns: np.ndarray
+    p: np.ndarray
+    q: np.ndarray
+    cov: np.ndarray
+
+
+class Recorder:
+    """Every fused pose, and its covariance at a lower rate (called on the runtime's loop)."""
+
+    def __init__(self, cov_period_ns: int, absolute_position: bool = True,
+                 on_progress: Callable[[int], None] | None = None) -> None:
+        self._rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self.cov_period_ns = cov_period_ns
+        # Without an absolute position source the start is the origin and the covariance is
+        # meaningful from the first step; with one, only once the position is initialised.
+        self.absolute_position = absolute_position
+        self.on_progress = on_progress
+        self._next_cov_t = 0
+        self._cov: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def record(self, pose: OutputPose) -> None:
+        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q))
+        if pose.t_ns >= self._next_cov_t and (pose.position_initialized or not self.absolute_position):
+            self._cov.append((pose.t_ns, pose.p, pose.q, pose.pose_cov))
+            self._next_cov_t = pose.t_ns + self.cov_period_ns
+        if self.on_progress is not None and len(self._rows) % 2000 == 0:
+            self.on_progress(pose.t_ns)
+
+    def trajectory(self) -> Trajectory:
+        if not self._rows:
+            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)))
+        t, p, v, q = zip(*self._rows)
+        return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q))
+
+    def covariance_samples(self) -> CovarianceSamples:
+        if not self._cov:
+            return CovarianceSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 6, 6)))
+        t, p, q, c = zip(*self._cov)
+        return CovarianceSamples(np.array(t, dtype=np.int64), np.array(p), np.array(q), np.array(c))
+
+
+@dataclass
+class ReplayResult:
+    estimator: Estimator
+    trajectory: Trajectory
+    covariances: CovarianceSamples
+    sensors: list[str]
+    wall_s: float
+    duration_s: float
+    notes: list[str] = field(default_factory=list)
+    frames: list[FrameReport] = field(default_factory=list)  # one per camera frame fused or rejected
+    extract_ms: list[float] = field(default_factory=list)  # feature extraction time per frame
+    detector: str | None = None
+    fusion_counts: dict = field(default_factory=dict)  # measurements refused by the fusion horizon
+    faults: FaultInjector | None = None  # the faults played on the stream, with what each did
+    health: dict = field(default_factory=dict)  # the estimator's health at the end (estimator.health)
+    failures: dict = field(default_factory=dict)  # isolated failures of outputs and the trajectory file
+
+
+class FrameProcessor:
+    """Camera work for the runtime: features in a worker thread, the update on the loop.
+
+    The returned closure runs in fusion order, at the frame's own time; it keeps the per-frame
+    report (and hands image, features and report to ``on_frame``, e.g. the overlay writer).
+    ``keep``: how many recent reports to keep (None: all, for a replay's report; a live service
+    flying for hours keeps a bounded window).
+    """
+
+    def __init__(self, options: FeatureOptions, expected_shape: tuple[int, int] | None,
+                 on_frame: FrameCallback | None = None, keep: int | None = None) -> None:
+        self.options = options
+        self.expected_shape = expected_shape
+        self.on_frame = on_frame
+        self.reports: deque[FrameReport] = deque(maxlen=keep)
+        self.extract_ms: deque[float] = deque(maxlen=keep)
+
+    def __call__(self, frame: CameraFrame) -> Callable[[Estimator], FrameReport]:
+        features = extract_features(frame.image, frame.t_ns, self.options, self.expected_shape)
+
+        def fuse(est: Estimator) -> FrameReport:
+            report = est.process_features(features)
+            self.reports.append(report)
+            self.extract_ms.append(features.extract_ms)
+            if self.on_frame is not None:
+                self.on_frame(frame.image, features, report)
+            return report
+
+        return fuse
+
+
+def replay(
+    dataset: Dataset,
+    cfg: dict[str, Any],
+    sensors: list[str] | None = None,
+    on_progress: Callable[[float, float], None] | None = None,
+    on_frame: FrameCallback | None = None,
+    speed: float | None = None,
+    trajectory_path: str | None = None,
+    faults: Sequence[Fault] = (),
+    fault_seed: int = 0,
+    on_fused: Callable[[OutputPose], None] | None = None,
+) -> ReplayResult:
+    """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0), ``faults`` played on its stream."""
+    sensors = checked_sensors(sensors or cfg["replay.sensors"])
+    notes: list[str] = []
+    has_gps = "gps" in sensors and dataset.gps() is not None
+    if "gps" in sensors and not has_gps:
+        notes.append("no GPS stream in the dataset: position is inertial dead reckoning from the origin and will drift")
+        log.warning("%s: %s", dataset.root, notes[-1])
+        sensors = [s for s in sensors if s != "gps"]
+    processor = None
+    if "camera" in sensors:
+        if _camera_usable(dataset, notes):
+            cam = dataset.calibration.camera
+            processor = FrameProcessor(feature_options(cfg), (cam.height, cam.width), on_frame)
+            limit_blas_threads(1)  # idle BLAS threads would spin on the core feature extraction needs
+        else:
+            sensors = [s for s in sensors if s != "camera"]
+    recorder = Recorder(int(1e9 / cfg["replay.nees_rate_hz"]), absolute_position=has_gps)
+    total = {"t0": None, "span": 0.0}
+    if on_progress is not None:
+        def progress(t_ns: int) -> None:
+            if total["t0"] is None:
+                total["t0"] = t_ns
+            on_progress((t_ns - total["t0"]) * 1e-9, total["span"])
+        recorder.on_progress = progress
+        imu_t = dataset.imu().t_ns
+        total["span"] = (int(imu_t[-1]) - int(imu_t[0])) * 1e-9
+    injector = FaultInjector(faults, fault_seed) if faults else None
+    wall0 = time.perf_counter()
+    summary, runtime = run_replay(
+        dataset, cfg, sensors=sensors, speed=speed, trajectory_path=trajectory_path,
+        camera_processor=processor, handle_signals=False, faults=injector,
+        on_fused=recorder.record if on_fused is None else lambda pose: (recorder.record(pose), on_fused(pose)),
+    )
+    wall = time.perf_counter() - wall0
+    bug = runtime.failures.first("handling")
+    if bug is not None:  # the live service carries on past it; an offline replay is a test and says so
+        raise bug
+    if on_progress is not None:
+        on_progress(total["span"], total["span"])
+    fusion_counts = {k: v for k, v in runtime.fusion.counts_report().items() if v["rejected"]}
+    return ReplayResult(
+        runtime.est, recorder.trajectory(), recorder.covariance_samples(), sensors, wall, summary.data_s, notes,
+        list(processor.reports) if processor else [], list(processor.extract_ms) if processor else [],
+        processor.options.detector if processor else None, fusion_counts, injector, summary.status.get("health", {}),
+        summary.status.get("failures", {}),
+    )
+
+
+def _camera_usable(dataset: Dataset, notes: list[str]) -> bool:
+    """Whether the dataset's camera can be used; if not, a note says why."""
+    if dataset.calibration.camera is None:
+        notes.append("no camera calibration in dataset.yaml: camera frames are not used")
+    elif not dataset.has_camera:
+        notes.append("no camera stream (mav0/cam0/data.csv) in the dataset: the camera is not used")
+    elif not dataset.camera_frames():
+        notes.append("the camera index lists no valid frames: the camera is not used")
+    else:
+        return True
+    log.warning("%s: %s", dataset.root, notes[-1])
+    return False

@@ -1,0 +1,143 @@
+"""From validated configuration to a running runtime: outputs, sources, signals.
+
+``vtolpose run`` (live or ``--replay``) and the replay command go through :func:`build_runtime`
+and :func:`serve`, so live and replayed data meet the same code from the fusion core outwards.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+from pathlib import Path
+from typing import Any, AsyncIterator, Callable, Sequence
+
+import yaml
+
+from vtolpose.config import ConfigError
+from vtolpose.config.outputs import zenoh_prefix
+from vtolpose.drivers.files.calibration_yaml import calibration_from_yaml
+from vtolpose.estimator.core.calibration import Calibration
+from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.fusion import FusionOptions, OutputPose
+from vtolpose.service.outputs.trajectory_file import TrajectoryFile
+from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
+from vtolpose.service.runtime.wiring import calibration_with_overrides, filter_options
+
+log = logging.getLogger(__name__)
+
+Origin = tuple[float, float, float] | None
+
+
+def fusion_options(cfg: dict[str, Any]) -> FusionOptions:
+    return FusionOptions(cfg["fusion.delay_s"], cfg["fusion.max_pending"], cfg["fusion.max_imu_buffer"])
+
+
+def load_calibration_file(path: str | Path) -> Calibration:
+    """A vehicle's calibration from a dataset.yaml-format file (``run.calibration_file``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"key 'run.calibration_file': file {path} not found")
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"key 'run.calibration_file': {path} is not valid YAML: {exc}") from None
+    return calibration_from_yaml(doc, str(path))
+
+
+def build_runtime(
+    cfg: dict[str, Any],
+    calibration: Calibration,
+    *,
+    origin: Callable[[], Origin] = lambda: None,
+    trajectory_path: str | Path | None = None,
+    camera_processor: CameraProcessor | None = None,
+    lockstep: bool = False,
+    measure_latency: bool = False,
+    live: bool = False,
+    on_fused: Callable[[OutputPose], None] | None = None,
+) -> Runtime:
+    """The estimator, fusion core, history and the outputs enabled in ``outputs.*``.
+
+    ``live``: apply ``run.realtime_priority`` (never to a replay, which would hog a core at it).
+    """
+    calibration = calibration_with_overrides(cfg, calibration)
+    estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
+    options = RuntimeOptions(
+        fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"], camera_workers=cfg["fusion.camera_workers"],
+        lockstep=lockstep, measure_latency=measure_latency, realtime_priority=cfg["run.realtime_priority"] if live else None,
+    )
+    path = trajectory_path or cfg["run.trajectory"]
+    runtime = Runtime(estimator, options, camera_processor=camera_processor,
+                      trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused)
+    runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
+    if cfg["outputs.mavlink.enabled"]:
+        from vtolpose.service.outputs.mavlink import MavlinkOutput, read_signing_key
+
+        key_file = cfg["outputs.mavlink.signing_key_file"]
+        try:
+            key = read_signing_key(key_file) if key_file else None
+        except ValueError as exc:
+            raise ConfigError(f"key 'outputs.mavlink.signing_key_file': {exc}") from None
+        runtime.outputs.append(MavlinkOutput(
+            cfg["outputs.mavlink.url"], cfg["vehicle.system_id"], cfg["outputs.mavlink.component_id"],
+            cfg["outputs.mavlink.rate_hz"], key, cfg["outputs.mavlink.require_signing"],
+        ))
+    if cfg["outputs.zenoh.enabled"]:
+        from vtolpose.service.outputs.zenoh import ZenohOutput
+        from vtolpose.service.outputs.zenoh_session import ZenohSettings
+
+        runtime.outputs.append(ZenohOutput(ZenohSettings.from_config(cfg), zenoh_prefix(cfg), runtime.history,
+                                           runtime.history_lock, lambda: runtime.origin()))
+    return runtime
+
+
+async def serve(
+    runtime: Runtime,
+    sources: Sequence[AsyncIterator],
+    duration_s: float | None = None,
+    handle_signals: bool = True,
+) -> RunSummary:
+    """Run until the sources end, ``duration_s`` passes, or SIGINT/SIGTERM; then shut down cleanly."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    installed = []
+    if handle_signals:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                loop.add_signal_handler(sig, stop.set)
+                installed.append(sig)
+            except (NotImplementedError, RuntimeError) as exc:  # not the main thread, or no signals here
+                log.debug("signal %s not handled here (%s): stop the run by its stop event", sig.name, exc)
+    try:
+        return await runtime.run(sources, stop, duration_s)
+    finally:
+        for sig in installed:
+            loop.remove_signal_handler(sig)
+
+
+def summary_lines(summary: RunSummary) -> list[str]:
+    lines = [
+        f"stopped by {summary.stopped_by} after {summary.wall_s:.1f} s: {summary.imu_samples} IMU samples "
+        f"({summary.data_s:.1f} s of data), {summary.poses_published} poses published, "
+        f"{summary.trajectory_lines} trajectory lines",
+    ]
+    if summary.latency_ms["p50"] == summary.latency_ms["p50"]:  # not NaN
+        lines.append("latency IMU in -> outputs out: p50 {p50:.3f} ms, p99 {p99:.3f} ms, max {max:.3f} ms".format(**summary.latency_ms))
+    status = summary.status
+    if status.get("rejected"):
+        lines.append(f"rejected by the filter: {status['rejected']}")
+    if status["fusion"]["rejected"]:
+        lines.append(f"refused by the fusion order: {status['fusion']['rejected']}")
+    if status.get("events"):
+        lines.append(f"runtime events: {status['events']}")
+    health = status.get("health") or {}
+    if health.get("resets"):
+        last = health["last_reset"]
+        lines.append(f"filter resets: {health['resets']}; the last: {last['reason']}")
+    if health.get("degraded"):
+        lines.append(f"degraded at the end: {', '.join(health['degraded'])}")
+    if status.get("failures"):
+        lines.append("isolated failures: " + "; ".join(f"{part} x{f['failures']} ({f['last']})"
+                                                    for part, f in status["failures"].items()))
+    return lines

@@ -1,0 +1,389 @@
+"""The onboard runtime: sources → fusion → outputs on one asyncio loop, for live runs and replays alike.
+
+Timing rules (spec "Fusion order"; issue 4):
+- An IMU sample is handled the moment it arrives: it goes into the fusion core, the pose
+  predicted to it is published (ODOMETRY, Zenoh) and stored in the history. Nothing on this
+  path waits for anything else.
+- Camera work (feature extraction) runs in a thread pool off the loop; its result becomes a
+  measurement queued at the frame's own timestamp, fused when the delayed horizon reaches it.
+  One frame at most per worker is in flight: a frame arriving while all workers are busy is
+  dropped and counted, never queued without bound.
+- In lock-step mode (a replay at full speed) the loop waits for a frame's features before the
+  horizon passes the frame, so a replay gives the same result however fast the machine is.
+Shutdown (SIGINT/SIGTERM, the end of a replay, a duration): sources are stopped, camera work
+finishes, the fusion core is flushed so the trajectory file is complete, links are closed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import logging
+import os
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from typing import Any, AsyncIterator, Callable, Protocol, Sequence
+
+import cv2
+
+from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
+from vtolpose.estimator.pose_history import PoseHistory
+from vtolpose.service.outputs.trajectory_file import TrajectoryFile
+from vtolpose.service.runtime.status import FailureBook, LatencyProbe, StatusTracker, pose_quality, stopped_within
+
+log = logging.getLogger(__name__)
+
+# Feature extraction for one frame, run on a worker thread. Returns the measurement to fuse at
+# the frame's time (e.g. ``lambda est: est.process_features(features)``) or None.
+CameraProcessor = Callable[[CameraFrame], Apply | None]
+
+
+class PoseOutput(Protocol):
+    """An output link. ``publish`` is on the hot path and must not block."""
+
+    name: str
+    def open(self) -> None: ...
+    def publish(self, pose: OutputPose) -> Any: ...
+    def publish_status(self, status: dict[str, Any]) -> None: ...
+    async def serve(self, stop: asyncio.Event) -> None: ...
+    def close(self) -> None: ...
+
+
+def set_thread_priority(priority: int | None) -> bool:
+    """SCHED_FIFO at ``priority`` for the calling thread (threads it starts inherit it), None: normal.
+
+    A flight computer runs its estimator above everything else so that other processes cannot
+    delay a pose; it needs CAP_SYS_NICE (in Docker: --cap-add SYS_NICE --ulimit rtprio=99).
+    Refused: a warning, and the run continues at normal priority.
+    """
+    try:
+        if priority is None:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        else:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (AttributeError, OSError) as exc:
+        if priority is not None:
+            log.warning("real-time priority %d refused (%s); running at normal priority", priority, exc)
+        return False
+
+
+CAMERA_NICE = 10  # camera worker threads: feature extraction yields a contended core to the pose path
+
+
+def background_thread_priority() -> None:
+    """For camera worker threads: normal scheduling (never the loop's SCHED_FIFO), niced so that the
+    loop wins a contended core. Raising one's own nice needs no privilege (Linux: per thread)."""
+    set_thread_priority(None)
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), CAMERA_NICE)
+    except (AttributeError, OSError) as exc:
+        log.debug("camera thread nice %d refused: %s", CAMERA_NICE, exc)
+
+
+@dataclass(slots=True)
+class RuntimeOptions:
+    fusion: FusionOptions = field(default_factory=FusionOptions)
+    history_s: float = 120.0
+    camera_workers: int = 1
+    lockstep: bool = False  # replay at full speed: wait for camera work at the horizon (deterministic)
+    status_period_s: float = 1.0
+    measure_latency: bool = False
+    realtime_priority: int | None = None  # SCHED_FIFO priority for the loop and the device readers
+
+
+@dataclass
+class RunSummary:
+    imu_samples: int
+    poses_published: int
+    trajectory_lines: int
+    wall_s: float
+    data_s: float
+    stopped_by: str
+    latency_ms: dict[str, float]
+    status: dict[str, Any]
+
+
+class Runtime:
+    """Owns the fusion core, the pose history and the outputs; see the module docstring for timing."""
+
+    def __init__(
+        self,
+        estimator: Estimator,
+        options: RuntimeOptions | None = None,
+        outputs: Sequence[PoseOutput] = (),
+        camera_processor: CameraProcessor | None = None,
+        trajectory: TrajectoryFile | None = None,
+        on_fused: Callable[[OutputPose], None] | None = None,
+    ) -> None:
+        self.options = opts = options or RuntimeOptions()
+        self.fused_hook = on_fused  # sees every fused pose (a replay's recorder)
+        # Stamps enter on the IMU clock: each sensor's calibrated offset is added here, before the
+        # fusion horizon orders them (so a late camera is fused at the time it really saw).
+        cal = estimator.calibration
+        self._gps_offset_ns = int(round(cal.gps.time_offset_s * 1e9))
+        self._camera_offset_ns = int(round(cal.camera.time_offset_s * 1e9)) if cal.camera is not None else 0
+        self.est = estimator
+        self.fusion = FusionCore(estimator, opts.fusion, on_fused=self._on_fused)
+        self.history = PoseHistory(opts.history_s)
+        self.history_lock = threading.Lock()  # queries read the history on Zenoh's threads
+        self.outputs = list(outputs)
+        self.camera_processor = camera_processor
+        self.trajectory = trajectory
+        self.status = StatusTracker()
+        self.failures = FailureBook()  # outputs, sources, the trajectory file: isolated, counted, reported
+        # Latency from a sample's hand-over by its source to both outputs returning, and the part of
+        # it spent in this loop's handling (the rest is waiting to be scheduled).
+        self.latency = LatencyProbe() if opts.measure_latency else None
+        self.handling = LatencyProbe() if opts.measure_latency else None
+        self.origin: Callable[[], tuple[float, float, float] | None] = lambda: None  # geodetic origin of NED
+        self.last_pose: OutputPose | None = None
+        self.recorder: Any | None = None  # set by `vtolpose run --record`
+        self.poses_published = 0
+        self._executor: ThreadPoolExecutor | None = None
+        self._camera_jobs: list[tuple[int, asyncio.Future]] = []
+        self._first_t: int | None = None
+        self._sources: Sequence[AsyncIterator] = ()
+
+    # ---------------------------------------------------------------------------- samples
+    def handle(self, sample: ImuSample | GpsFix | CameraFrame, arrived_ns: int | None = None) -> None:
+        """Dispatch one sample (synchronous: called on the loop for every sample)."""
+        if isinstance(sample, ImuSample):
+            self._on_imu(sample, arrived_ns)
+        elif isinstance(sample, GpsFix):
+            if self._gps_offset_ns:
+                sample = replace(sample, t_ns=sample.t_ns + self._gps_offset_ns)
+            self.status.saw("gps")
+            self.fusion.add_measurement(sample.t_ns, lambda est, fix=sample: est.process_gps(fix), "gps")
+        elif isinstance(sample, CameraFrame):
+            self._on_camera(sample)
+        else:
+            self.status.count("unknown_sample_type")
+
+    def _on_imu(self, sample: ImuSample, arrived_ns: int | None) -> None:
+        entered = time.perf_counter_ns() if self.latency is not None else 0
+        self.status.saw("imu")
+        if self._first_t is None:
+            self._first_t = sample.t_ns
+        fusion = self.fusion
+        if not fusion.add_imu(sample, fuse=False):
+            return
+        pose = fusion.output() if self.outputs else None
+        if pose is not None:
+            for out in self.outputs:
+                try:
+                    out.publish(pose)
+                except Exception as exc:  # a dead link degrades the service, never stops the others
+                    self.failures.record(f"output {out.name}", exc)
+            self.poses_published += 1
+            if self.latency is not None:
+                left = time.perf_counter_ns()
+                self.latency.add(left - (entered if arrived_ns is None else arrived_ns))
+                self.handling.add(left - entered)
+            self.last_pose = pose
+            row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
+            with self.history_lock:
+                self.history.add_predicted(pose.t_ns, row)
+        fusion.advance()  # the delayed filter's work, after the pose has left
+
+    def _on_fused(self, pose: OutputPose) -> None:
+        row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
+        with self.history_lock:
+            self.history.add_fused(pose.t_ns, row)
+        if self.trajectory is not None:
+            try:
+                self.trajectory.write(pose)
+            except Exception as exc:  # a full disk must not stop the pose going out
+                self.failures.record("trajectory file", exc)
+        if self.fused_hook is not None:
+            self.fused_hook(pose)
+
+    def _on_camera(self, frame: CameraFrame) -> None:
+        if self._camera_offset_ns:
+            frame = replace(frame, t_ns=frame.t_ns + self._camera_offset_ns)
+        self.status.saw("camera")
+        if self.camera_processor is None or self._executor is None:
+            self.status.count("camera_frames_unprocessed")
+            return
+        if len(self._camera_jobs) >= self.options.camera_workers and not self.options.lockstep:
+            self.status.count("camera_frames_dropped_busy")
+            return
+        future = asyncio.get_running_loop().run_in_executor(self._executor, self.camera_processor, frame)
+        future.add_done_callback(lambda f, t=frame.t_ns: self._camera_done(t, f))
+        self._camera_jobs.append((frame.t_ns, future))
+
+    def _camera_done(self, t_ns: int, future: asyncio.Future) -> None:
+        """On the loop, once a frame's work is finished: its measurement joins the fusion queue."""
+        self._camera_jobs = [(t, f) for t, f in self._camera_jobs if f is not future]
+        if future.cancelled():
+            return
+        exc = future.exception()
+        if exc is not None:
+            self.status.count("camera_processing_errors")
+            log.error("feature extraction failed for the frame at t_ns=%d: %s", t_ns, exc)
+            return
+        apply = future.result()
+        if apply is not None:
+            self.fusion.add_measurement(t_ns, apply, "camera")
+
+    async def _before_imu(self, t_ns: int) -> None:
+        """Lock-step: frames the horizon is about to pass must have their features queued first."""
+        due = t_ns - self.fusion.delay_ns
+        while waiting := [f for t, f in self._camera_jobs if t <= due]:
+            await asyncio.wait(waiting)
+            await asyncio.sleep(0)  # their done-callbacks queue the measurements
+
+    # ------------------------------------------------------------------------------- loop
+    async def _consume(self, source: AsyncIterator, name: str) -> None:
+        """Feed one source's samples; a source that fails is reported and ends, the others go on.
+
+        A sample whose handling raises is counted (``handling <kind>``) and skipped: the filter's
+        health check (estimator.health) catches a state such a failure left unsound.
+        """
+        lockstep = self.options.lockstep
+        try:
+            async for sample in source:
+                if lockstep and isinstance(sample, ImuSample) and self._camera_jobs:
+                    await self._before_imu(sample.t_ns)
+                try:
+                    self.handle(sample, getattr(source, "last_arrival_ns", None) if self.latency is not None else None)
+                except Exception as exc:
+                    self.failures.record(f"handling {type(sample).__name__}", exc)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # a dead sensor degrades the estimate and is reported
+            self.failures.record(f"source {name}", exc)
+
+    def status_document(self) -> dict[str, Any]:
+        links = {o.name: o.link_stats() if hasattr(o, "link_stats") else getattr(o, "stats", {}) for o in self.outputs}
+        with self.history_lock:
+            bounds = self.history.bounds()
+            held = len(self.history)
+        dropped = {getattr(src, "name", str(i)): src.dropped for i, src in enumerate(self._sources) if getattr(src, "dropped", 0)}
+        extra = {
+            "t_ns": self.last_pose.t_ns if self.last_pose is not None else None,
+            "source_overflows": dropped,  # samples a device thread had to drop because the loop fell behind
+            "history": {"poses": held, "from_t_ns": bounds[0] if bounds else None, "to_t_ns": bounds[1] if bounds else None},
+            "outputs": links,
+            "quality": pose_quality(self.last_pose) if self.last_pose is not None else 0,
+            "failures": self.failures.report(),  # isolated failures of outputs, sources, the trajectory file
+        }
+        if self.recorder is not None:  # a live run's flight recording (its own status, never an error here)
+            extra["recording"] = {"status": self.recorder.status, "rows": dict(self.recorder.rows)}
+        return self.status.snapshot(self.est, self.fusion, extra)
+
+    async def _status_loop(self, stop: asyncio.Event) -> None:
+        period = self.options.status_period_s
+        while not stop.is_set():
+            await stopped_within(stop, period)  # then one last status on the way out
+            try:
+                doc = self.status_document()
+            except Exception as exc:  # the status is a report: a bug in it must not stop the run
+                self.failures.record("status document", exc)
+                continue
+            for out in self.outputs:
+                try:
+                    out.publish_status(doc)
+                except Exception as exc:  # one output's failure must not silence the others
+                    self.failures.record(f"output {out.name} status", exc)
+            if self.trajectory is not None:
+                try:
+                    self.trajectory.flush()
+                except Exception as exc:
+                    self.failures.record("trajectory file", exc)
+
+    @staticmethod
+    async def _wait(feeders: set[asyncio.Task], waiter: asyncio.Task, duration_s: float | None) -> str:
+        """Why the run ends: a stop request, the duration, or every source exhausted (a failed one raises)."""
+        deadline = None if duration_s is None else time.perf_counter() + duration_s
+        while feeders:
+            timeout = None if deadline is None else max(deadline - time.perf_counter(), 0.0)
+            done, _ = await asyncio.wait(feeders | {waiter}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+            if waiter in done:
+                return "signal"
+            if not done:
+                return "duration"
+            for task in done:
+                feeders.discard(task)
+                task.result()
+        return "end of data"
+
+    async def run(self, sources: Sequence[AsyncIterator], stop: asyncio.Event | None = None,
+                  duration_s: float | None = None) -> RunSummary:
+        """Run until ``stop`` is set, every source is exhausted, or ``duration_s`` (wall) has passed."""
+        stop = stop or asyncio.Event()
+        wall0 = time.perf_counter()
+        self._sources = sources
+        # Camera work runs at normal scheduling, niced, even when the loop (and the threads it starts) is real-time.
+        self._executor = ThreadPoolExecutor(max_workers=self.options.camera_workers, thread_name_prefix="camera",
+                                            initializer=background_thread_priority)
+        # Paced (live) runs: OpenCV's own worker pool would run feature extraction on every core at
+        # normal priority beside the loop; one thread per camera worker keeps it in the niced workers
+        # (SIFT ~40 % slower per frame, well inside a frame period). Full-speed replays keep the pool.
+        opencv_threads = cv2.getNumThreads()
+        if not self.options.lockstep:
+            cv2.setNumThreads(1)
+        opened: list[PoseOutput] = []
+        # Without outputs nobody reads the present pose (an offline replay): no output predictor.
+        self.fusion.predict = bool(self.outputs)
+        try:
+            for out in self.outputs:
+                try:
+                    out.open()
+                except Exception as exc:  # zenoh.ZError, serial and socket errors: say which output
+                    raise OSError(f"the {out.name} output could not open: {exc}") from exc
+                opened.append(out)
+            # Everything built so far lives for the whole run: keep it out of the cyclic collector's
+            # full passes, whose pauses would otherwise land on the pose path.
+            gc.collect()
+            gc.freeze()
+            if self.options.realtime_priority is not None:
+                set_thread_priority(self.options.realtime_priority)
+            background = [asyncio.create_task(o.serve(stop), name=f"serve-{o.name}") for o in self.outputs]
+            background.append(asyncio.create_task(self._status_loop(stop), name="status"))
+            feeders = [asyncio.create_task(self._consume(s, getattr(s, "name", str(i))), name=f"source-{i}")
+                       for i, s in enumerate(sources)]
+            waiter = asyncio.create_task(stop.wait())
+            stopped_by = await self._wait(set(feeders), waiter, duration_s)
+            stop.set()
+            for task in feeders:
+                task.cancel()
+            await asyncio.gather(*feeders, return_exceptions=True)
+            if self._camera_jobs:
+                await asyncio.wait([f for _, f in self._camera_jobs], timeout=10.0)
+                await asyncio.sleep(0)  # their done-callbacks queue the measurements
+            self.fusion.flush()
+            for task, result in zip(background, await asyncio.gather(*background, return_exceptions=True)):
+                if isinstance(result, Exception):
+                    log.error("%s stopped with an error: %r", task.get_name(), result)
+            waiter.cancel()
+        finally:
+            stop.set()
+            for out in reversed(opened):
+                try:
+                    out.close()
+                except Exception as exc:  # closing one link must not keep the others open
+                    log.error("closing %s: %s", type(out).__name__, exc)
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            cv2.setNumThreads(opencv_threads)
+            gc.unfreeze()
+            if self.options.realtime_priority is not None:
+                set_thread_priority(None)
+            if self.trajectory is not None:
+                self.trajectory.close()
+        newest = self.fusion.newest_imu_t_ns
+        p50, p99, pmax = self.latency.percentiles_ms(50, 99, 100) if self.latency is not None else (float("nan"),) * 3
+        return RunSummary(
+            imu_samples=self.status.sensors["imu"].total if "imu" in self.status.sensors else 0,
+            poses_published=self.poses_published,
+            trajectory_lines=self.trajectory.lines if self.trajectory is not None else 0,
+            wall_s=time.perf_counter() - wall0,
+            data_s=(newest - self._first_t) * 1e-9 if newest is not None and self._first_t is not None else 0.0,
+            stopped_by=stopped_by,
+            latency_ms={"p50": p50, "p99": p99, "max": pmax},
+            status=self.status_document(),
+        )

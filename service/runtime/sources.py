@@ -1,0 +1,226 @@
+"""Sample sources for the runtime: async iterators of typed samples (ImuSample, GpsFix, CameraFrame).
+
+Live devices have blocking drivers (``open()``, ``read(timeout_s) -> readings``, ``close()``);
+:class:`ThreadedSource` reads one on its own thread and hands each sample to the event loop,
+so a slow device never blocks the loop. :class:`ReplaySource` plays a dataset's streams in
+time order, paced by a :class:`ReplayClock`; the runtime cannot tell the two apart.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections import deque
+from typing import Any, AsyncIterator, Callable, Sequence, Union
+
+import numpy as np
+
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
+
+log = logging.getLogger(__name__)
+
+Sample = Union[ImuSample, GpsFix, CameraFrame]
+
+
+class ReplayClock:
+    """Maps dataset time to wall time at ``speed`` × real time; speed 0 means no waiting at all."""
+
+    YIELD_EVERY = 256  # at full speed, let other tasks (status, links, queries) run this often
+
+    def __init__(self, speed: float) -> None:
+        if not speed >= 0.0:
+            raise ValueError(f"replay speed must be >= 0 (0 = as fast as possible), got {speed}")
+        self.speed = speed
+        self._origin: tuple[int, float] | None = None
+        self._n = 0
+
+    async def wait_until(self, t_ns: int) -> None:
+        self._n += 1
+        if self.speed == 0.0:
+            if self._n % self.YIELD_EVERY == 0:
+                await asyncio.sleep(0)
+            return
+        now = time.perf_counter()
+        if self._origin is None:
+            self._origin = (t_ns, now)
+        t0, wall0 = self._origin
+        delay = wall0 + (t_ns - t0) * 1e-9 / self.speed - now
+        if delay > 0:
+            await asyncio.sleep(delay)
+        elif self._n % self.YIELD_EVERY == 0:
+            await asyncio.sleep(0)
+
+
+def merged_order(*times: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(stream number, index) of every sample in time order; at equal times the lower stream number goes first."""
+    streams = [(k, np.asarray(t, dtype=np.int64)) for k, t in enumerate(times) if t is not None and len(t)]
+    all_t = np.concatenate([t for _, t in streams])
+    kinds = np.concatenate([np.full(len(t), k, np.int8) for k, t in streams])
+    index = np.concatenate([np.arange(len(t)) for _, t in streams])
+    order = np.lexsort((kinds, all_t))
+    return kinds[order], index[order]
+
+
+class ReplaySource:
+    """A dataset's IMU, GPS and (optionally) camera streams in time order, paced by ``clock``.
+
+    At equal times the IMU goes first, then GPS, then camera (the offline replay's order).
+    Camera frames are given as ``(t_ns, path)`` with a ``load(path) -> image | None``; when paced,
+    the next frame is loaded on a thread ahead of its time so that loading never delays the IMU.
+    ``last_arrival_ns`` is the ``perf_counter_ns`` at which the latest sample was handed out.
+    """
+
+    def __init__(
+        self,
+        dataset: Dataset,
+        sensors: Sequence[str],
+        clock: ReplayClock,
+        stop_after_s: float | None = None,
+        frames: Sequence[tuple[int, Any]] | None = None,
+        load: Callable[[Any], np.ndarray | None] | None = None,
+    ) -> None:
+        self.imu = dataset.imu()
+        self.gps = dataset.gps() if "gps" in sensors else None
+        if len(self.imu.t_ns) == 0:
+            raise ValueError(f"{dataset.root}: the IMU stream has no valid samples")
+        if frames and load is None:
+            raise ValueError("camera frames need a load(path) function")
+        self.frames = list(frames or [])
+        self.load = load
+        self.clock = clock
+        self.stop_after_ns = None if stop_after_s is None else int(stop_after_s * 1e9)
+        self.last_arrival_ns: int | None = None
+        self.unreadable_frames = 0
+        self.duration_s = (int(self.imu.t_ns[-1]) - int(self.imu.t_ns[0])) * 1e-9
+
+    async def _frame(self, k: int, ahead: dict[int, asyncio.Future]) -> CameraFrame | None:
+        t_ns, path = self.frames[k]
+        if self.clock.speed == 0.0:
+            image = self.load(path)  # as fast as possible: nothing to overlap with, keep it simple
+        else:
+            loop = asyncio.get_running_loop()
+            future = ahead.pop(k, None) or loop.run_in_executor(None, self.load, path)
+            if k + 1 < len(self.frames):
+                ahead[k + 1] = loop.run_in_executor(None, self.load, self.frames[k + 1][1])
+            image = await future
+        if image is None:
+            self.unreadable_frames += 1
+            return None
+        return CameraFrame(t_ns, image, k)
+
+    async def __aiter__(self) -> AsyncIterator[Sample]:
+        imu, gps = self.imu, self.gps
+        frame_t = np.array([t for t, _ in self.frames], dtype=np.int64) if self.frames else None
+        kinds, indices = merged_order(imu.t_ns, gps.t_ns if gps is not None else np.zeros(0, np.int64), frame_t)
+        imu_t = imu.t_ns.tolist()
+        t_end = imu_t[0] + self.stop_after_ns if self.stop_after_ns is not None else None
+        ahead: dict[int, asyncio.Future] = {}
+        for kind, i in zip(kinds.tolist(), indices.tolist()):
+            if kind == 0:
+                t = imu_t[i]
+                sample: Sample | None = ImuSample(t, imu.gyro[i], imu.accel[i])
+            elif kind == 1:
+                t = int(gps.t_ns[i])
+                sample = GpsFix(t, gps.p_ned[i], float(gps.sigma_h[i]), float(gps.sigma_v[i]))
+            else:
+                t = self.frames[i][0]
+            if t_end is not None and t > t_end:
+                return
+            await self.clock.wait_until(t)
+            if kind == 2:
+                sample = await self._frame(i, ahead)
+                if sample is None:
+                    continue
+            self.last_arrival_ns = time.perf_counter_ns()
+            yield sample
+
+
+class ThreadedSource:
+    """A blocking driver read on a dedicated thread, exposed as an async iterator of samples.
+
+    ``convert`` turns one driver reading into a sample (or None to skip it); ``tap`` sees every
+    raw reading on the reader thread (e.g. a flight recorder). If the loop falls behind by
+    ``max_queue`` samples, the oldest are dropped and counted rather than growing without bound.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        driver: Any,
+        convert: Callable[[Any], Sample | None],
+        read_timeout_s: float = 0.1,
+        tap: Callable[[Any], None] | None = None,
+        max_queue: int = 2000,
+    ) -> None:
+        self.name = name
+        self.driver = driver
+        self.convert = convert
+        self.read_timeout_s = read_timeout_s
+        self.tap = tap
+        self.dropped = 0
+        self.last_arrival_ns: int | None = None
+        self._queue: deque[tuple[Sample, int]] = deque(maxlen=max_queue)
+        self._wake: asyncio.Event | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _read_loop(self, loop: asyncio.AbstractEventLoop) -> None:
+        try:
+            while not self._stop.is_set():
+                started = time.monotonic()
+                readings = self.driver.read(self.read_timeout_s)
+                if not readings:
+                    if getattr(self.driver, "ended", False):  # a file source at its end
+                        return
+                    if time.monotonic() - started < 1e-3:  # a driver that does not block: do not spin
+                        time.sleep(min(self.read_timeout_s, 0.01))
+                    continue
+                if not isinstance(readings, list):
+                    readings = [readings]
+                for reading in readings:
+                    if self.tap is not None:
+                        self.tap(reading)
+                    sample = self.convert(reading)
+                    if sample is None:
+                        continue
+                    if len(self._queue) == self._queue.maxlen:
+                        self.dropped += 1
+                    self._queue.append((sample, time.perf_counter_ns()))
+                loop.call_soon_threadsafe(self._wake.set)
+        except Exception:  # a driver bug must not kill the process silently
+            log.exception("%s: reader thread stopped", self.name)
+        finally:
+            self.driver.close()
+            try:
+                loop.call_soon_threadsafe(self._wake.set)
+            except RuntimeError:  # the loop is already closed: nobody is waiting
+                log.debug("%s: reader ended after the loop closed", self.name)
+
+    async def __aiter__(self) -> AsyncIterator[Sample]:
+        loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
+        self._thread = threading.Thread(target=self._read_loop, args=(loop,), name=f"source-{self.name}", daemon=True)
+        self._thread.start()
+        try:
+            while True:
+                while self._queue:
+                    sample, self.last_arrival_ns = self._queue.popleft()
+                    yield sample
+                if not self._thread.is_alive():
+                    if self._queue:  # appended just before the thread ended
+                        continue
+                    return
+                self._wake.clear()
+                if not self._queue:
+                    await self._wake.wait()
+        finally:
+            self.close()
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop the reader thread; the driver is closed on it (ports released)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)

@@ -1,0 +1,203 @@
+"""What ``<prefix>/status`` says once a second: sensor rates and ages, map size, rejections, resets, load.
+
+Rates and ages are measured on the host's monotonic clock at arrival, so a stalled device shows
+as a growing age even while the others keep the estimator running.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.fusion import FusionCore, OutputPose
+
+
+log = logging.getLogger(__name__)
+
+# Quality: 100 at or below the "good" sigma, falling on a log scale to 1 at the "poor" one.
+_POS_SIGMA_GOOD_M, _POS_SIGMA_POOR_M = 0.1, 10.0
+_ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD = math.radians(0.5), math.radians(20.0)
+
+
+def pose_quality(pose: OutputPose) -> int:
+    """0 = invalid (no heading, no position, non-finite); else 1–100 from the largest position and attitude
+    sigmas, never above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
+    if not (pose.heading_aligned and pose.position_initialized):
+        return 0
+    d = pose.cov9.diagonal().tolist()
+    var_p, var_a = max(d[0:3]), max(d[6:9])
+    if not (math.isfinite(var_p) and math.isfinite(var_a)) or min(d[0:3] + d[6:9]) < 0.0:
+        return 0
+
+    def score(sigma: float, good: float, poor: float) -> float:
+        return 1.0 - min(max(math.log10(max(sigma, 1e-12) / good) / math.log10(poor / good), 0.0), 1.0)
+
+    q = min(score(math.sqrt(var_p), _POS_SIGMA_GOOD_M, _POS_SIGMA_POOR_M),
+            score(math.sqrt(var_a), _ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD))
+    return min(max(1, int(round(100.0 * q))), pose.quality_cap)
+
+
+def resident_memory_mb() -> float | None:
+    """Current resident set size of this process [MB] (Linux /proc), None where unavailable."""
+    try:
+        with open("/proc/self/statm", encoding="ascii") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+async def stopped_within(stop: asyncio.Event, seconds: float) -> bool:
+    """Sleep up to ``seconds``, ending early when ``stop`` is set; True if it was (periodic tasks)."""
+    try:
+        await asyncio.wait_for(stop.wait(), timeout=seconds)
+    except asyncio.TimeoutError:
+        return False
+    return True
+
+
+@dataclass
+class _Failures:
+    count: int = 0
+    last: str = ""
+    first: BaseException | None = None
+    logged_at: float | None = None
+    since_logged: int = 0
+
+
+class FailureBook:
+    """Failures of the parts around the estimator (an output, a source, the trajectory file), isolated.
+
+    A failing part must degrade the service, never stop it: each failure is counted under its
+    part's name; the first is logged with its traceback, later ones as one summary line per
+    ``period_s`` at most, so a link that fails 200 times a second cannot flood the log.
+    """
+
+    def __init__(self, period_s: float = 10.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.period_s = period_s
+        self.clock = clock
+        self.parts: dict[str, _Failures] = {}
+
+    def record(self, part: str, exc: BaseException) -> None:
+        f = self.parts.get(part)
+        if f is None:
+            f = self.parts[part] = _Failures(first=exc)
+        f.count += 1
+        f.last = f"{type(exc).__name__}: {exc}"
+        now = self.clock()
+        if f.logged_at is None:
+            log.error("%s failed; it is isolated and counted, the service continues", part, exc_info=exc)
+            f.logged_at = now
+        elif now - f.logged_at >= self.period_s:
+            log.error("%s: %d more failure(s) in the last %.0f s, latest %s", part, f.since_logged + 1, now - f.logged_at, f.last)
+            f.logged_at, f.since_logged = now, 0
+        else:
+            f.since_logged += 1
+
+    def first(self, prefix: str = "") -> BaseException | None:
+        """The first exception of any part whose name starts with ``prefix``."""
+        return next((f.first for name, f in self.parts.items() if name.startswith(prefix)), None)
+
+    def report(self) -> dict[str, dict[str, Any]]:
+        return {name: {"failures": f.count, "last": f.last} for name, f in sorted(self.parts.items())}
+
+
+@dataclass
+class _Sensor:
+    total: int = 0
+    since_report: int = 0
+    last_arrival: float | None = None
+
+
+@dataclass
+class StatusTracker:
+    """Counts arrivals per sensor; :meth:`snapshot` turns them into the status document."""
+
+    clock: Callable[[], float] = time.monotonic
+    sensors: dict[str, _Sensor] = field(default_factory=dict)
+    events: dict[str, int] = field(default_factory=dict)  # runtime-level counters (camera busy, errors)
+
+    def __post_init__(self) -> None:
+        self._last_wall = self.clock()
+        self._last_cpu = time.process_time()
+
+    def saw(self, sensor: str) -> None:
+        s = self.sensors.get(sensor)
+        if s is None:
+            s = self.sensors[sensor] = _Sensor()
+        s.total += 1
+        s.since_report += 1
+        s.last_arrival = self.clock()
+
+    def count(self, event: str, n: int = 1) -> None:
+        self.events[event] = self.events.get(event, 0) + n
+
+    def snapshot(self, est: Estimator, fusion: FusionCore, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        now, cpu = self.clock(), time.process_time()
+        dt = max(now - self._last_wall, 1e-9)
+        cpu_percent = 100.0 * (cpu - self._last_cpu) / dt
+        self._last_wall, self._last_cpu = now, cpu
+        sensors = {}
+        for name, s in sorted(self.sensors.items()):
+            sensors[name] = {
+                "rate_hz": round(s.since_report / dt, 2),
+                "age_s": None if s.last_arrival is None else round(now - s.last_arrival, 3),
+                "total": s.total,
+            }
+            s.since_report = 0
+        state = est.state
+        health = est.health.report(state.t_ns if state is not None else None)
+        rejected = {name: c["rejected"] for name, c in est.counts_report().items() if c["rejected"]}
+        late = {name: c["rejected"] for name, c in fusion.counts_report().items() if c["rejected"]}
+        doc = {
+            "sensors": sensors,
+            "initialized": state is not None,
+            "heading_aligned": est.heading_aligned,
+            "landmarks": int(state.n_landmarks) if state is not None else 0,
+            "rejected": rejected,
+            "fusion": {
+                "rejected": late,
+                "buffered_imu": fusion.buffered_imu,
+                "pending_measurements": fusion.pending_measurements,
+                "lag_s": None if fusion.fused_until_ns is None or fusion.newest_imu_t_ns is None
+                else round((fusion.newest_imu_t_ns - fusion.fused_until_ns) * 1e-9, 4),
+            },
+            "filter_resets": est.reset_counter,
+            "health": health,
+            "events": dict(self.events),
+            "cpu_percent": round(cpu_percent, 1),
+            "load_average": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
+            "memory_mb": None if (rss := resident_memory_mb()) is None else round(rss, 1),
+        }
+        if extra:
+            doc.update(extra)
+        return doc
+
+
+class LatencyProbe:
+    """Latencies [ns] of the last ``capacity`` published samples, for p50/p99 figures."""
+
+    def __init__(self, capacity: int = 100_000) -> None:
+        self._values = np.zeros(capacity, dtype=np.int64)
+        self._n = 0
+
+    def add(self, latency_ns: int) -> None:
+        self._values[self._n % self._values.size] = latency_ns
+        self._n += 1
+
+    def __len__(self) -> int:
+        return min(self._n, self._values.size)
+
+    def percentiles_ms(self, *q: float) -> list[float]:
+        values = self._values[: len(self)]
+        if values.size == 0:
+            return [float("nan")] * len(q)
+        return [float(x) * 1e-6 for x in np.percentile(values, q)]

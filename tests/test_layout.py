@@ -1,0 +1,103 @@
+"""The architecture the folders promise: one-way dependencies, no import cycles, a light client.
+
+Imports are read from the source (AST), so a module imported lazily inside a function counts
+as a dependency as much as one at the top: the direction must hold for both.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+CODE = ("config", "estimator", "drivers", "service")
+# Which top-level parts each may import (service → drivers → estimator; config beside them).
+ALLOWED = {
+    "estimator": {"estimator"},
+    "config": {"config"},
+    "drivers": {"drivers", "estimator", "config"},
+    "service": {"service", "drivers", "estimator", "config"},
+}
+
+
+def _modules() -> dict[str, Path]:
+    found = {}
+    for part in CODE:
+        for path in (REPO / part).rglob("*.py"):
+            rel = path.relative_to(REPO).with_suffix("")
+            parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+            found["vtolpose." + ".".join(parts)] = path
+    return found
+
+
+def _imports(path: Path, module: str, is_package: bool) -> set[str]:
+    """Every vtolpose module this file imports (``from pkg import name`` counts name if a module)."""
+    names = set()
+    package = module if is_package else module.rsplit(".", 1)[0]
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+            names.add(base)
+            names.update(f"{base}.{alias.name}" for alias in node.names)
+    return {n for n in names if n.startswith("vtolpose.")}
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    graph = {}
+    for name, path in modules.items():
+        deps = _imports(path, name, path.name == "__init__.py")
+        graph[name] = {d for d in deps if d in modules and d != name}
+    return graph
+
+
+def test_dependencies_point_one_way():
+    wrong = []
+    for module, deps in _graph().items():
+        part = module.split(".")[1]
+        wrong += [f"{module} imports {d}" for d in deps if d.split(".")[1] not in ALLOWED[part]]
+    assert wrong == []
+
+
+def test_no_import_cycles():
+    graph = _graph()
+    # A package's __init__ importing its own sub-modules is not a cycle unless they import it back.
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for dep in sorted(graph[node]):
+            if node.startswith(dep + "."):
+                continue  # a module naming its own package (parent __init__ runs first anyway)
+            if state.get(dep) == 1:
+                cycles.append(stack[stack.index(dep):] + [dep])
+            elif dep not in state:
+                visit(dep, stack + [dep])
+        state[node] = 2
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+    assert cycles == []
+
+
+def test_every_sub_package_says_what_it_owns():
+    for init in sorted(p for part in CODE for p in (REPO / part).rglob("__init__.py")):
+        doc = ast.get_docstring(ast.parse(init.read_text(encoding="utf-8")))
+        assert doc and len(doc) > 40, f"{init.relative_to(REPO)} has no docstring saying what it owns"
+
+
+def test_the_mapper_client_imports_without_opencv_or_the_estimator():
+    code = ("import sys; import vtolpose.client; "
+            "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('cv2', 'scipy') "
+            "or m.startswith(('vtolpose.estimator.filter', 'vtolpose.estimator.vision'))); print(heavy)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO.parent)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
