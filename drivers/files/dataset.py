@@ -187,6 +187,15 @@ def dataset_yaml_text(calibration: Calibration, name: str, description: str) -> 
     return yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120, allow_unicode=True)
 
 
+def refuse_existing_dataset(out: str | Path, overwrite: bool) -> None:
+    """FileExistsError when ``out`` already holds a dataset and replacing it was not asked for.
+
+    Called before any work (simulating, rendering, importing), so a refusal costs nothing.
+    """
+    if (Path(out) / "dataset.yaml").exists() and not overwrite:
+        raise FileExistsError(f"{out}: already holds a dataset (dataset.yaml); use --force to replace it")
+
+
 class DatasetWriter:
     """Writes the files of one dataset folder (created if needed)."""
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from vtolpose.drivers.files.dataset import DatasetWriter
+from vtolpose.drivers.files.dataset import DatasetWriter, refuse_existing_dataset
 from vtolpose.drivers.simulator.flight import SimulatedFlight
 from vtolpose.drivers.simulator.render import RenderOptions, render_frames
 from vtolpose.estimator.core.calibration import CameraCalibration
@@ -25,8 +25,7 @@ def write_flight(
     truth are byte for byte the same either way.
     """
     out = Path(out)
-    if (out / "dataset.yaml").exists() and not overwrite:
-        raise FileExistsError(f"{out}: already holds a dataset (dataset.yaml); use --force to replace it")
+    refuse_existing_dataset(out, overwrite)
     writer = DatasetWriter(out)
     name = f"{flight.scenario_name}-seed{flight.seed}"
     calibration = flight.calibration if camera is None else dataclasses.replace(flight.calibration, camera=camera)

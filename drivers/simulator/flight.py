@@ -8,7 +8,8 @@ seed gives identical arrays and a sensor added later (camera: stream 2) changes 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -38,8 +39,11 @@ class SimulationOptions:
     truth_rate_hz: float = 100.0
     epoch_ns: int = 1_000_000_000
     gravity: float = STANDARD_GRAVITY
+    rest_s: float | None = None  # time at rest before the motion; None: the scenario's own
 
     def __post_init__(self) -> None:
+        if self.rest_s is not None and not (np.isfinite(self.rest_s) and self.rest_s >= 0.0):
+            raise ValueError(f"rest_s must be zero or positive, got {self.rest_s}")
         if not (np.isfinite(self.truth_rate_hz) and self.truth_rate_hz > 0.0):
             raise ValueError(f"truth_rate_hz must be positive, got {self.truth_rate_hz}")
         if self.epoch_ns <= 0:
@@ -88,6 +92,8 @@ def simulate_flight(
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     options = options or SimulationOptions()
     world = make_scenario(scenario)
+    if options.rest_s is not None:
+        world = replace(world, static_s=options.rest_s)
     gps_model = options.gps or world.gps_model()
     trajectory = world.trajectory(duration_s, options.gravity)
     epoch = options.epoch_ns

@@ -13,7 +13,7 @@ from vtolpose.drivers.files.tum import write_tum
 from vtolpose.service.commands.common import write_json
 from vtolpose.service.replay.progress import Progress
 from vtolpose.service.replay.session import replay
-from vtolpose.service.replay.report import build_report, summary_lines
+from vtolpose.service.replay.report import build_report
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -39,14 +39,50 @@ def run(args: argparse.Namespace) -> int:
     flight = simulate_flight(args.scenario, args.duration, args.seed)
     write_flight(flight, data, overwrite=True)
     dataset = Dataset.open(data)
+    reports = {}
     for variant in ("thesis", "biases"):
         cfg = load_config(None, {"estimator": {"variant": variant}})
         progress = Progress(args.duration, f"replay ({variant})")
         result = replay(dataset, cfg, ["imu", "gps"], on_progress=lambda d, t: progress.update(d))
         progress.finish()
-        report = build_report(result, dataset, cfg)
+        reports[variant] = report = build_report(result, dataset, cfg)
         write_tum(out / f"trajectory-{variant}.txt", result.trajectory.t_ns, result.trajectory.p, result.trajectory.q)
         write_json(out / f"report-{variant}.json", report)
-        print("\n".join(summary_lines(report)))
+    print()
+    for line in comparison_lines(reports):
+        print(line)
     print(f"\ntrajectories and reports in {out}/ (score again with: vtolpose eval {out}/trajectory-biases.txt --truth {data})")
     return 0
+
+
+# (label, report key, format) of each row of the side-by-side table.
+ROWS = (
+    ("position RMSE [m]", "position_rmse_m", "{:.4f}"),
+    ("GPS RMSE [m]", "gps_rmse_m", "{:.4f}"),
+    ("position / GPS", "position_rmse_over_gps", "{:.2f}"),
+    ("attitude RMSE [deg]", "attitude_rmse_deg", "{:.3f}"),
+    ("NEES mean", "nees_mean", "{:.2f}"),
+    ("x real time", "realtime_factor", "{:.0f}"),
+)
+
+
+def comparison_lines(reports: dict[str, dict]) -> list[str]:
+    """The two state models side by side, and what the rows mean."""
+    names = list(reports)
+    first = reports[names[0]]
+    lines = [f"IMU + GPS (thesis Test 1) on {first['dataset']}, {first['duration_s']:.0f} s:",
+             f"  {'':<22}" + "".join(f"{n:>12}" for n in names)]
+    for label, key, form in ROWS:
+        cells = [form.format(r[key]) if r.get(key) is not None else "n/a" for r in reports.values()]
+        lines.append(f"  {label:<22}" + "".join(f"{c:>12}" for c in cells))
+    nees = first.get("nees")
+    if nees is not None:
+        lo, hi = nees["band_per_sample"]
+        inside = ", ".join(f"{n} {'inside' if r['nees']['mean_in_band'] else 'OUTSIDE'}" for n, r in reports.items())
+        lines.append(f"  NEES 95% band for {nees['dof']} dof: {lo:.2f}-{hi:.2f} ({inside})")
+    lines += [
+        "thesis: position, velocity, attitude (the thesis' state); biases: the same plus gyro and",
+        "accelerometer biases. Position / GPS below 1 means the fusion beats the GPS it was given;",
+        "a NEES inside its band means the filter's own uncertainty is honest.",
+    ]
+    return lines

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
+from pathlib import Path
 
 from vtolpose.drivers.files.euroc_import import default_mounting_path, import_euroc
+from vtolpose.service.text import field_lines
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -32,9 +33,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    src = Path(args.src)
+    if not src.is_dir():
+        raise FileNotFoundError(f"{src}: no such folder (expected an ASL/EuRoC folder holding mav0/)")
+    if not (src / "mav0").is_dir():
+        raise FileNotFoundError(f"{src}: not an ASL/EuRoC folder (it has no mav0/)")
     summary = import_euroc(
         args.src, args.out, gps_rate_hz=args.gps_rate, gps_sigma_m=args.gps_sigma, seed=args.seed,
         mounting=args.mounting, overwrite=args.force,
     )
-    print(json.dumps(summary, indent=2))
+    print(f"imported {args.src} into {args.out}")
+    for line in field_lines(summary):
+        print(line)
     return 0

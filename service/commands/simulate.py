@@ -6,7 +6,8 @@ import argparse
 import importlib.util
 import time
 
-from vtolpose.drivers.simulator import SCENARIOS, simulate_flight
+from vtolpose.drivers.files.dataset import refuse_existing_dataset
+from vtolpose.drivers.simulator import SCENARIOS, SimulationOptions, simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
 
@@ -32,15 +33,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DATASET", help="folder to write")
     p.add_argument("--force", action="store_true", help="replace an existing dataset in --out")
     p.add_argument("--no-camera", action="store_true", help="do not render camera frames")
+    p.add_argument("--rest", type=float, metavar="S", help="seconds at rest on the ground before the motion (default: "
+                   "the scenario's, 10 s); e.g. --rest 600 for a record that `calibrate imu` can use")
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    flight = simulate_flight(args.scenario, args.duration, args.seed)
+    refuse_existing_dataset(args.out, args.force)
+    flight = simulate_flight(args.scenario, args.duration, args.seed, SimulationOptions(rest_s=args.rest))
     camera = None
     if not args.no_camera:
         if importlib.util.find_spec("skimage") is None:
-            print("no camera frames: rendering needs scikit-image (pip install 'vtolpose[sim]'); use --no-camera to silence this")
+            print("no camera frames: rendering needs scikit-image (pip install scikit-image; from a checkout: pip install -e '.[sim]'); use --no-camera to silence this")
         else:
             camera = default_camera()
             print(f"rendering {int(args.duration * camera.rate_hz)} camera frames "

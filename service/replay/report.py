@@ -33,7 +33,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         "reset_counter": est.reset_counter,
         "sensors": est.counts_report(),
         "skipped_lines": dict(dataset.skipped),
-        "events": [{"t_s": round((t - int(traj.t_ns[0])) * 1e-9, 3) if len(traj.t_ns) else None, "message": m} for t, m in est.events],
+        "events": [{"t_s": round((t - result.data_t0_ns) * 1e-9, 3), "message": m} for t, m in est.events],
         "notes": list(result.notes),
     }
     if result.faults is not None:
@@ -45,7 +45,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
     if est.alignment is not None:
         a = est.alignment
         report["alignment"] = {
-            "t_s": round((a.t_ns - int(traj.t_ns[0])) * 1e-9, 3) if len(traj.t_ns) else None,
+            "t_s": round((a.t_ns - result.data_t0_ns) * 1e-9, 3),
             "sigma_roll_pitch_heading_deg": np.degrees(np.sqrt(np.diag(a.cov)[6:9])).tolist(),
             "residual_ratio": a.residual_ratio,
             "window_s": a.window_s,
@@ -153,6 +153,26 @@ def camera_summary(result: ReplayResult) -> dict | None:
     }
 
 
+# What each measurement count is, for a person reading the summary (the JSON keeps the short names).
+COUNT_LABELS = {
+    "imu": "IMU samples",
+    "gps": "GPS fixes",
+    "still": "still-period updates (zero velocity and gyro bias while at rest)",
+    "level": "levelling updates (gravity as a tilt reference while the heading is unknown)",
+    "camera_match": "camera matches",
+    "camera": "camera frames",
+}
+
+
+def event_lines(report: dict, limit: int = 20) -> list[str]:
+    """The estimator's events (start-up, alignment, resets), times from the first IMU sample."""
+    events = sorted(report.get("events", []), key=lambda e: e["t_s"])
+    lines = [f"  t={e['t_s']:8.3f} s  {e['message']}" for e in events[:limit]]
+    if len(events) > limit:
+        lines.append(f"  … {len(events) - limit} more in the report's events")
+    return (["events (seconds from the first IMU sample):"] + lines) if lines else []
+
+
 def summary_lines(report: dict) -> list[str]:
     """The few numbers a person looks at first."""
     def fmt(key: str, unit: str = "", scale: float = 1.0, digits: int = 4) -> str:
@@ -162,7 +182,9 @@ def summary_lines(report: dict) -> list[str]:
     lines = [
         f"dataset {report['dataset']}  variant {report['variant']}  sensors {','.join(report['sensor_set'])}",
         f"  position RMSE {fmt('position_rmse_m', ' m')}   GPS RMSE {fmt('gps_rmse_m', ' m')}   ratio {fmt('position_rmse_over_gps', '', 1, 3)}",
-        f"  attitude RMSE {fmt('attitude_rmse_deg', ' deg', 1, 3)}   final drift {fmt('final_drift_m', ' m')} ({fmt('drift_percent', ' %', 1, 2)} of {fmt('distance_travelled_m', ' m', 1, 1)})",
+        f"  attitude RMSE {fmt('attitude_rmse_deg', ' deg', 1, 3)}   final drift {fmt('final_drift_m', ' m')}"
+        + (f" ({fmt('drift_percent', ' %', 1, 2)} of {fmt('distance_travelled_m', ' m', 1, 1)} travelled)"
+           if report.get("distance_travelled_m") else ""),
     ]
     if "nees" in report:
         n = report["nees"]
@@ -181,9 +203,12 @@ def summary_lines(report: dict) -> list[str]:
         )
     lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time")
     for name, c in report["sensors"].items():
+        if not c["received"]:
+            continue  # e.g. no levelling updates when the heading was known from the start
         rej = ", ".join(f"{k} {v}" for k, v in c["rejected"].items()) or "none"
         flagged = ", ".join(f"{k} {v}" for k, v in c.get("flagged", {}).items())
-        lines.append(f"  {name}: {c['used']} used of {c['received']}; rejected: {rej}" + (f"; flagged: {flagged}" if flagged else ""))
+        label = COUNT_LABELS.get(name, name)
+        lines.append(f"  {label}: {c['used']} used of {c['received']}; rejected: {rej}" + (f"; flagged: {flagged}" if flagged else ""))
     for fault in report.get("faults", []):
         lines.append(f"  fault {fault['spec']}: {fault['samples_affected']} samples dropped or changed")
     health = report.get("health") or {}

@@ -22,6 +22,7 @@ from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import FusionOptions, OutputPose
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
+from vtolpose.service.text import describe
 from vtolpose.service.runtime.wiring import calibration_with_overrides, filter_options
 
 log = logging.getLogger(__name__)
@@ -126,15 +127,15 @@ def summary_lines(summary: RunSummary) -> list[str]:
         lines.append("latency IMU in -> outputs out: p50 {p50:.3f} ms, p99 {p99:.3f} ms, max {max:.3f} ms".format(**summary.latency_ms))
     status = summary.status
     if status.get("rejected"):
-        lines.append(f"rejected by the filter: {status['rejected']}")
+        lines.append(f"rejected by the filter: {describe(status['rejected'])}")
     if status["fusion"]["rejected"]:
-        lines.append(f"refused by the fusion order: {status['fusion']['rejected']}")
+        lines.append(f"refused by the fusion order: {describe(status['fusion']['rejected'])}")
     if status.get("events"):
-        lines.append(f"runtime events: {status['events']}")
+        lines.append(f"runtime events: {describe(status['events'])}")
     health = status.get("health") or {}
     if health.get("resets"):
         last = health["last_reset"]
-        lines.append(f"filter resets: {health['resets']}; the last: {last['reason']}")
+        lines.append(f"filter resets: {describe(health['resets'])}; the last: {last['reason']}")
     if health.get("degraded"):
         lines.append(f"degraded at the end: {', '.join(health['degraded'])}")
     if status.get("failures"):
