@@ -505,3 +505,20 @@ def test_a_world_readable_key_file_is_refused_naming_the_key(tmp_path):
     key.chmod(0o640)  # the owner's group may read it (a service group)
     cfg = load_config(None, {"outputs": {"mavlink": {"enabled": True, "endpoints": endpoints}}})
     assert [e.name for e in MavlinkOutput.from_config(cfg).endpoints] == ["flight_controller", "gcs"]
+
+
+def test_a_flight_controller_of_another_kind_than_configured_is_named(caplog):
+    port = free_udp_port()
+    fc = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=7, source_component=1)
+    out = MavlinkOutput([endpoint(f"udpout:127.0.0.1:{port}", autopilot="px4")], autopilot="px4")
+    out.open()
+    try:
+        out.heartbeat()
+        assert receive(fc, "HEARTBEAT") is not None
+        fc.mav.heartbeat_send(mav.MAV_TYPE_HELICOPTER, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, mav.MAV_STATE_STANDBY)
+        settle(out, lambda: out.link_stats()["received"] >= 1)
+        assert out.link_stats()["endpoints"]["fc"]["peer_autopilot"] == "ardupilot"
+        assert "says it is ardupilot, but outputs.mavlink.autopilot is px4" in caplog.text
+    finally:
+        out.close()
+        fc.close()
