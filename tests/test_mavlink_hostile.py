@@ -212,3 +212,23 @@ def test_with_signing_required_only_signed_peers_become_receivers(tmp_path):
         assert (stats["refused_unsigned"], stats["refused_bad_signature"], stats["received"]) == (1, 1, 1)
     finally:
         out.close()
+
+
+def test_a_silent_peer_gives_its_place_only_when_a_newcomer_needs_it():
+    from vtolpose.drivers.links.mavlink_transport import UdpTransport
+
+    now = [0.0]
+    udp = UdpTransport(f"udpin:127.0.0.1:{free_udp_port()}", max_peers=2, peer_timeout_s=10.0, clock=lambda: now[0])
+    try:
+        udp.confirm_peer(("10.0.0.1", 1))
+        udp.confirm_peer(("10.0.0.2", 2))
+        now[0] = 60.0  # both silent for a minute (a flood hid their heartbeats): still served
+        udp.service()
+        assert udp.peers == [("10.0.0.1", 1), ("10.0.0.2", 2)]
+        udp.confirm_peer(("10.0.0.1", 1))  # one speaks again
+        udp.confirm_peer(("10.0.0.3", 3))  # a newcomer takes the silent one's place, not the other's
+        assert udp.peers == [("10.0.0.1", 1), ("10.0.0.3", 3)] and udp.counts["peers_expired"] == 1
+        udp.confirm_peer(("10.0.0.4", 4))
+        assert len(udp.peers) == 2 and udp.counts["peers_refused_full"] == 1
+    finally:
+        udp.close()

@@ -5,8 +5,9 @@ the peer they came from, so reading can be done in slices of bounded work and a 
 never block the caller: a stream transport keeps at most ``MAX_PENDING`` unsent bytes and drops
 whole frames beyond that (counted). A listening UDP transport sends to the peers that have sent
 valid MAVLink (the caller says which, :meth:`UdpTransport.confirm_peer`), at most ``max_peers`` of
-them; a peer silent for ``peer_timeout_s`` is dropped. A sending UDP transport only takes datagrams
-from the address it sends to. Stream transports reopen a lost device or connection with back-off.
+them; a peer silent for ``peer_timeout_s`` gives its place to a newcomer. A sending UDP transport only
+takes datagrams from the address it sends to. Stream transports open (and reopen a lost device or
+connection) in the background with back-off.
 """
 
 from __future__ import annotations
@@ -93,19 +94,22 @@ class UdpTransport:
         if address in self._peers:
             self._peers[address] = now
             return
-        self.expire(now)
+        if len(self._peers) >= self.max_peers:
+            self._expire(now)
         if len(self._peers) >= self.max_peers:
             self.counts["peers_refused_full"] += 1
             return
         self._peers[address] = now
         log.info("MAVLink peer %s joined", address)
 
-    def expire(self, now: float | None = None) -> None:
-        now = self._clock() if now is None else now
+    def _expire(self, now: float) -> None:
+        """Make room: drop the peers silent for longer than ``peer_timeout_s``. Only a newcomer's need
+        drops a peer, so a flood that hides a peer's messages for a while does not cut it off."""
         for address, seen in list(self._peers.items()):
             if now - seen > self.peer_timeout_s:
                 del self._peers[address]
                 self.counts["peers_expired"] += 1
+                log.info("MAVLink peer %s dropped (silent %.0f s)", address, now - seen)
 
     @property
     def peers(self) -> list[Any]:
@@ -123,7 +127,7 @@ class UdpTransport:
         return sent
 
     def service(self) -> None:
-        self.expire()
+        """Nothing to keep up: peers are dropped only when a newcomer needs the place."""
 
     def close(self) -> None:
         self.sock.close()

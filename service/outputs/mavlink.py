@@ -108,6 +108,7 @@ class Endpoint:
         self.paused_until = 0.0  # reading rests until then after a slice ran out of budget
         self.peer_autopilot: str | None = None
         self.timesync_offset_ms: float | None = None
+        self._reached = 0
 
     def open(self) -> None:
         self.transport = open_transport(self.spec.url, self._max_peers, self._peer_timeout_s)
@@ -121,15 +122,18 @@ class Endpoint:
 
     def write(self, buf: bytes) -> None:
         """pymavlink's encoder writes here."""
-        self.transport.send(buf)
+        self._reached = self.transport.send(buf)
 
     def send(self, msg: Any, counter: str) -> None:
+        """Encode (sign) and send ``msg``; ``counter`` counts it when it reached at least one peer."""
         if self.transport is None:
             return
         if self._tx.signing.sign_outgoing:  # never behind the clock, even after a restart
             self._tx.signing.timestamp = max(self._tx.signing.timestamp, signing_timestamp())
+        self._reached = 0
         self._tx.send(msg)
-        self.stats[counter] += 1
+        if self._reached:
+            self.stats[counter] += 1
 
     def read(self, on_message: Callable[["Endpoint", Any], None], budget_s: float = READ_BUDGET_S) -> bool:
         """Handle waiting messages for at most ``budget_s``; True when it stopped with data left."""
