@@ -73,17 +73,12 @@ def build_runtime(
                       trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused)
     runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
     if cfg["outputs.mavlink.enabled"]:
-        from vtolpose.service.outputs.mavlink import MavlinkOutput, read_signing_key
+        from vtolpose.service.outputs.mavlink import MavlinkOutput
 
-        key_file = cfg["outputs.mavlink.signing_key_file"]
         try:
-            key = read_signing_key(key_file) if key_file else None
-        except ValueError as exc:
-            raise ConfigError(f"key 'outputs.mavlink.signing_key_file': {exc}") from None
-        runtime.outputs.append(MavlinkOutput(
-            cfg["outputs.mavlink.url"], cfg["vehicle.system_id"], cfg["outputs.mavlink.component_id"],
-            cfg["outputs.mavlink.rate_hz"], key, cfg["outputs.mavlink.require_signing"],
-        ))
+            runtime.outputs.append(MavlinkOutput.from_config(cfg))
+        except ValueError as exc:  # an unusable signing key file: the message names its key
+            raise ConfigError(str(exc)) from None
     if cfg["outputs.zenoh.enabled"]:
         from vtolpose.service.outputs.zenoh import ZenohOutput
         from vtolpose.service.outputs.zenoh_session import ZenohSettings

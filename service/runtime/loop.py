@@ -33,7 +33,8 @@ from vtolpose.estimator.fusion import Apply, FusionCore, FusionOptions, OutputPo
 from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
 from vtolpose.estimator.pose_history import PoseHistory
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
-from vtolpose.service.runtime.status import FailureBook, LatencyProbe, StatusTracker, pose_quality, stopped_within
+from vtolpose.service.runtime.status import (FailureBook, LatencyProbe, StatusTracker, pose_problem, pose_quality,
+                                             stopped_within)
 
 log = logging.getLogger(__name__)
 
@@ -270,6 +271,7 @@ class Runtime:
             "history": {"poses": held, "from_t_ns": bounds[0] if bounds else None, "to_t_ns": bounds[1] if bounds else None},
             "outputs": links,
             "quality": pose_quality(self.last_pose) if self.last_pose is not None else 0,
+            "pose_problem": pose_problem(self.last_pose) if self.last_pose is not None else "no pose yet",
             "failures": self.failures.report(),  # isolated failures of outputs, sources, the trajectory file
         }
         if self.recorder is not None:  # a live run's flight recording (its own status, never an error here)

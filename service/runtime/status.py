@@ -27,15 +27,28 @@ _POS_SIGMA_GOOD_M, _POS_SIGMA_POOR_M = 0.1, 10.0
 _ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD = math.radians(0.5), math.radians(20.0)
 
 
+def pose_problem(pose: OutputPose) -> str | None:
+    """Why ``pose`` must not be used for navigation, or None: no position yet, heading not aligned,
+    a covariance that is not finite (or a negative variance), or the filter's health capping it to 0."""
+    if not pose.position_initialized:
+        return "no position"
+    if not pose.heading_aligned:
+        return "heading not aligned"
+    d = pose.cov9.diagonal().tolist()
+    if not all(math.isfinite(x) and x >= 0.0 for x in d[0:3] + d[6:9]):
+        return "covariance not finite"
+    if pose.quality_cap <= 0:
+        return "health"
+    return None
+
+
 def pose_quality(pose: OutputPose) -> int:
-    """0 = invalid (no heading, no position, non-finite); else 1–100 from the largest position and attitude
-    sigmas, never above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
-    if not (pose.heading_aligned and pose.position_initialized):
+    """0 = invalid (:func:`pose_problem`); else 1–100 from the largest position and attitude sigmas, never
+    above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
+    if pose_problem(pose) is not None:
         return 0
     d = pose.cov9.diagonal().tolist()
     var_p, var_a = max(d[0:3]), max(d[6:9])
-    if not (math.isfinite(var_p) and math.isfinite(var_a)) or min(d[0:3] + d[6:9]) < 0.0:
-        return 0
 
     def score(sigma: float, good: float, poor: float) -> float:
         return 1.0 - min(max(math.log10(max(sigma, 1e-12) / good) / math.log10(poor / good), 0.0), 1.0)
