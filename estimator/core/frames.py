@@ -51,3 +51,37 @@ def q_ned_frd_to_enu_flu(q_ned_frd: np.ndarray) -> np.ndarray:
 def q_enu_flu_to_ned_frd(q_enu_flu: np.ndarray) -> np.ndarray:
     """Attitude body(FLU)→ENU into body(FRD)→NED."""
     return quat_normalize(quat_mul(quat_mul(Q_ENU_NED, q_enu_flu), Q_FLU_FRD))
+
+
+def _block_rotate(cov: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``T cov Tᵀ`` with ``T = diag(r, r)``: both 3-blocks of a 6 × 6 (or stacked ``[..., 6, 6]``) covariance."""
+    cov = np.asarray(cov, dtype=float)
+    t = np.zeros((6, 6))
+    t[0:3, 0:3] = r
+    t[3:6, 3:6] = r
+    return t @ cov @ t.T
+
+
+def pose_covariance_ned_to_enu(cov: np.ndarray) -> np.ndarray:
+    """World-frame pose covariance over ``[δp, δθ]`` from NED to ENU axes.
+
+    The estimator's attitude error is a rotation about the *world* axes (``R_true = Exp(δθ) R``),
+    which is what ROS's pose covariance means by rotation about the fixed axes of the parent
+    frame; so both blocks simply turn with the world axes, and cross terms come along.
+    """
+    return _block_rotate(cov, R_ENU_NED)
+
+
+def body_covariance_frd_to_flu(cov: np.ndarray) -> np.ndarray:
+    """Body-frame covariance over ``[linear, angular]`` (a twist) from FRD to FLU axes."""
+    return _block_rotate(cov, R_FLU_FRD)
+
+
+def pose_ned_frd_to_enu_flu(p_ned: np.ndarray, q_ned_frd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A pose (position in NED, attitude body FRD→NED) as REP 103 wants it: ENU position, FLU→ENU attitude."""
+    return ned_to_enu(p_ned), q_ned_frd_to_enu_flu(q_ned_frd)
+
+
+def pose_enu_flu_to_ned_frd(p_enu: np.ndarray, q_enu_flu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of :func:`pose_ned_frd_to_enu_flu` (for poses read from ROS data)."""
+    return enu_to_ned(p_enu), q_enu_flu_to_ned_frd(q_enu_flu)
