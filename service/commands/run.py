@@ -13,7 +13,7 @@ from vtolpose.service.replay.faults import add_fault_options, injector_from
 
 log = logging.getLogger(__name__)
 LIVE_FRAME_REPORTS = 1000  # recent per-frame reports a long run keeps (memory stays flat)
-FOXGLOVE_CONFIG_PORT = "config"  # --foxglove without a port: outputs.foxglove.port
+FOXGLOVE_CONFIG_PORT = -1  # --foxglove without a port: outputs.foxglove.port
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

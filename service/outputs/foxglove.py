@@ -10,8 +10,8 @@ Topics: ``/tf`` (map → base_link), ``/pose``, ``/path`` (the last ``path_point
 map panel) and ``/gps/local`` (the fixes in ``map``), ``/landmarks`` (the EKF-SLAM map as points),
 ``/camera/image`` with ``/camera/overlay`` (features, predicted landmarks with their search
 gates, accepted matches, new landmarks, a status line) and ``/status`` (the status document).
-Poses are shown at ``rate_hz`` of sensor time and the path at 2 Hz, so a viewer costs the pose
-path a few encodes per second, not one per IMU sample. Messages carry sensor time as their log
+Poses are shown at ``rate_hz`` of sensor time and the path at 2 Hz. All encoding happens on a
+background thread (:class:`ViewWorker`): the runtime's loop only queues what it hands over. Messages carry sensor time as their log
 time, so a replay at any speed shows the flight's own clock. The server listens only on the
 configured host (127.0.0.1 by default).
 """
@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import queue
+import threading
 from collections import deque
 from typing import Any, Callable
 
@@ -30,7 +32,7 @@ import pymap3d
 from foxglove import channels as ch
 from foxglove.messages import (
     CircleAnnotation, Color, CompressedImage, CubePrimitive, FrameTransform, FrameTransforms, ImageAnnotations,
-    LocationFix, LocationFixPositionCovarianceType, Point2, Point3, PointsAnnotation, PointsAnnotationType, Pose,
+    LocationFix, LocationFixPositionCovarianceType, Point2, PointsAnnotation, PointsAnnotationType, Pose,
     PoseInFrame, PosesInFrame, Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, TextAnnotation, Timestamp, Vector3,
 )
 
@@ -42,6 +44,7 @@ from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.vision.camera_pipeline import FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.vision.landmarks import landmark_points
+from vtolpose.service.runtime.loop import background_thread_priority
 
 log = logging.getLogger(__name__)
 
@@ -92,8 +95,7 @@ def covariance_ellipsoid(cov_enu: np.ndarray, k2: float = CHI2_3DOF_95) -> tuple
 class FoxgloveScene:
     """The view's channels on one foxglove-sdk context, fed on the runtime's loop."""
 
-    def __init__(self, context: foxglove.Context, origin: Callable[[], Origin], landmarks: Landmarks | None,
-                 rate_hz: float, path_points: int) -> None:
+    def __init__(self, context: foxglove.Context, origin: Callable[[], Origin], rate_hz: float, path_points: int) -> None:
         c = dict(context=context)
         self.tf = ch.FrameTransformsChannel("/tf", **c)
         self.pose_channel = ch.PoseInFrameChannel("/pose", **c)
@@ -106,12 +108,11 @@ class FoxgloveScene:
         self.overlay = ch.ImageAnnotationsChannel("/camera/overlay", **c)
         self.status_channel = foxglove.Channel("/status", context=context)
         self.origin = origin
-        self.landmarks = landmarks
         self.period_ns = int(1e9 / rate_hz)
         self._next_pose_ns: int | None = None
         self._next_path_ns: int | None = None
         self._path: deque[Pose] = deque(maxlen=path_points)
-        self._gps: deque[Point3] = deque(maxlen=GPS_SHOWN)
+        self._gps: deque[np.ndarray] = deque(maxlen=GPS_SHOWN)  # ENU
         self.last_t_ns = 0
         self.counts = {"poses": 0, "gps": 0, "frames": 0, "status": 0}
 
@@ -158,31 +159,78 @@ class FoxgloveScene:
                 timestamp=ts, frame_id="gps", latitude=float(lat), longitude=float(lon), altitude=float(alt),
                 position_covariance=np.diag([fix.sigma_h**2, fix.sigma_h**2, fix.sigma_v**2]).reshape(9).tolist(),
                 position_covariance_type=LocationFixPositionCovarianceType.DiagonalKnown), log_time=t)
-        e, n, u = ned_to_enu(fix.p_ned)
-        self._gps.append(Point3(x=float(e), y=float(n), z=float(u)))
+        self._gps.append(ned_to_enu(fix.p_ned))
         size = _vec(np.full(3, 0.3))
         self.gps_local.log(SceneUpdate(entities=[SceneEntity(
             timestamp=ts, frame_id="map", id="gps_fixes",
-            spheres=[SpherePrimitive(pose=Pose(position=Vector3(x=p.x, y=p.y, z=p.z), orientation=Quaternion(w=1.0)),
-                                     size=size, color=CYAN) for p in self._gps])]), log_time=t)
+            spheres=[SpherePrimitive(pose=Pose(position=_vec(p), orientation=Quaternion(w=1.0)), size=size, color=CYAN)
+                     for p in self._gps])]), log_time=t)
         self.counts["gps"] += 1
 
-    def frame(self, image: np.ndarray | None, features: FrameFeatures, report: FrameReport) -> None:
-        """The camera picture (JPEG), its overlay, and the landmark map after this frame."""
+    def frame(self, image: np.ndarray | None, features: FrameFeatures, report: FrameReport,
+              landmarks_ned: np.ndarray | None) -> None:
+        """The camera picture (JPEG), its overlay, and the landmark map after this frame (if given)."""
         t, ts = report.t_ns, stamp(report.t_ns)
         if image is not None:
             ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 85])
             if ok:
                 self.image.log(CompressedImage(timestamp=ts, frame_id="camera", data=jpeg.tobytes(), format="jpeg"), log_time=t)
         self.overlay.log(overlay(features, report, ts), log_time=t)
-        if self.landmarks is not None:
-            ids, points = self.landmarks()
+        if landmarks_ned is not None:
             cube = _vec(np.full(3, 0.15))
             cubes = [CubePrimitive(pose=Pose(position=_vec(p), orientation=Quaternion(w=1.0)), size=cube, color=MAGENTA)
-                     for p in ned_to_enu(points)]
+                     for p in ned_to_enu(landmarks_ned)]
             self.landmark_channel.log(SceneUpdate(entities=[SceneEntity(
                 timestamp=ts, frame_id="map", id="landmarks", cubes=cubes)]), log_time=t)
         self.counts["frames"] += 1
+
+
+class ViewWorker:
+    """Encoding and writing for a view or a recording on one background thread, fed by a bounded queue.
+
+    The runtime's loop only hands over immutable poses, samples and frame results, so the pose
+    path never waits for JPEG/PNG, JSON, protobuf or the file. The thread runs niced like the camera
+    workers. A full queue drops the item and counts it; a failing item is counted and logged once.
+    """
+
+    def __init__(self, name: str, capacity: int = 4096) -> None:
+        self.name = name
+        self.queue: queue.Queue = queue.Queue(capacity)
+        self.stats = {"queued": 0, "dropped_full": 0, "failures": 0, "last_failure": None}
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._thread.start()
+
+    def submit(self, work: Callable[..., None], *args: Any) -> None:
+        try:
+            self.queue.put_nowait((work, args))
+            self.stats["queued"] += 1
+        except queue.Full:
+            self.stats["dropped_full"] += 1
+
+    def _run(self) -> None:
+        background_thread_priority()
+        while True:
+            work, args = self.queue.get()
+            if work is None:
+                return
+            try:
+                work(*args)
+            except Exception as exc:  # one bad item must not end the view or the recording
+                if not self.stats["failures"]:
+                    log.exception("%s: %s failed", self.name, getattr(work, "__name__", work))
+                self.stats["failures"] += 1
+                self.stats["last_failure"] = repr(exc)
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """Finish what is queued, then end the thread."""
+        if self._thread is None:
+            return
+        self.queue.put((None, ()), timeout=timeout_s)
+        self._thread.join(timeout_s)
+        self._thread = None
 
 
 def _p2(uv: np.ndarray) -> Point2:
@@ -223,36 +271,41 @@ class FoxgloveOutput:
     def __init__(self, host: str, port: int, rate_hz: float, path_points: int,
                  origin: Callable[[], Origin] = lambda: None, landmarks: Landmarks | None = None) -> None:
         self.host, self.port = host, port
+        self.landmarks = landmarks
         self.context = foxglove.Context()
-        self.scene = FoxgloveScene(self.context, origin, landmarks, rate_hz, path_points)
+        self.scene = FoxgloveScene(self.context, origin, rate_hz, path_points)
+        self.worker = ViewWorker("foxglove-view")
         self.server: Any = None
 
     def open(self) -> None:
         self.server = foxglove.start_server(name="vtolpose", host=self.host, port=self.port, context=self.context)
         self.port = self.server.port
+        self.worker.start()
         log.info("Foxglove live view: open ws://%s:%d in Foxglove", self.host, self.port)
 
     @property
     def stats(self) -> dict[str, Any]:
-        return {"port": self.port, **self.scene.counts}
+        return {"port": self.port, **self.scene.counts, **self.worker.stats}
 
     def publish(self, pose: OutputPose) -> None:
-        self.scene.pose(pose)
+        self.worker.submit(self.scene.pose, pose)
 
     def publish_status(self, status: dict[str, Any]) -> None:
-        self.scene.status(status)
+        self.worker.submit(self.scene.status, status)
 
     def on_sample(self, sample: Any) -> None:
         if isinstance(sample, GpsFix):
-            self.scene.gps(sample)
+            self.worker.submit(self.scene.gps, sample)
 
     def on_frame(self, image: np.ndarray | None, features: FrameFeatures, report: FrameReport) -> None:
-        self.scene.frame(image, features, report)
+        points = self.landmarks()[1] if self.landmarks is not None else None  # read here, on the filter's loop
+        self.worker.submit(self.scene.frame, image, features, report, points)
 
     async def serve(self, stop: asyncio.Event) -> None:
         await stop.wait()
 
     def close(self) -> None:
+        self.worker.stop()
         if self.server is not None:
             self.server.stop()
             self.server = None

@@ -11,7 +11,9 @@ Written by foxglove-sdk's MCAP writer (zstd chunks, with an index, so Foxglove s
   back in WGS84 around the NED origin) and ``/camera/image_raw/compressed``
   (``sensor_msgs/CompressedImage``, lossless PNG).
 
-Log times are sensor times. The file must not exist yet: a recording is never overwritten. The
+Log times are sensor times. Encoding and writing run on a background thread (``ViewWorker``), so
+the recording never delays a pose; a sample it had to drop (queue full) is counted in the status.
+The file must not exist yet: a recording is never overwritten. The
 NED origin goes into the file's ``vtolpose`` metadata record when it closes.
 """
 
@@ -25,6 +27,7 @@ from typing import Any, Callable
 
 import cv2
 import foxglove
+from foxglove.mcap import MCAPWriteOptions
 import numpy as np
 import pymap3d
 
@@ -33,7 +36,7 @@ from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.vision.camera_pipeline import FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.service.outputs import ros2_msgs
-from vtolpose.service.outputs.foxglove import FoxgloveScene, Landmarks, Origin
+from vtolpose.service.outputs.foxglove import FoxgloveScene, Landmarks, Origin, ViewWorker
 from vtolpose.service.outputs.zenoh import pose_message
 
 log = logging.getLogger(__name__)
@@ -58,62 +61,73 @@ class McapOutput:
         if self.path.exists():
             raise FileExistsError(f"{self.path}: already exists; an MCAP recording is never overwritten, choose a new file")
         self.origin = origin
+        self.landmarks = landmarks
         self.context = foxglove.Context()
-        self.scene = FoxgloveScene(self.context, origin, landmarks, rate_hz, path_points)
+        self.scene = FoxgloveScene(self.context, origin, rate_hz, path_points)
+        self.worker = ViewWorker("mcap-recorder")
         self.poses = foxglove.Channel(POSE_TOPIC, context=self.context)
         self.imu = _ros_channel(self.context, IMU_TOPIC, ros2_msgs.IMU)
         self.gps = _ros_channel(self.context, GPS_TOPIC, ros2_msgs.NAV_SAT_FIX)
         self.camera = _ros_channel(self.context, IMAGE_TOPIC, ros2_msgs.COMPRESSED_IMAGE)
         self.writer: Any = None
         self._seq = 0
-        self.stats = {"estimates": 0, "imu": 0, "gps": 0, "frames": 0}
+        self.counts = {"estimates": 0, "imu": 0, "gps": 0, "frames": 0}
 
     def open(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.writer = foxglove.open_mcap(self.path, context=self.context)
+        # One compression thread, the writer's own: zstd on every core would starve the niced camera workers.
+        self.writer = foxglove.open_mcap(self.path, context=self.context,
+                                         writer_options=MCAPWriteOptions(compression_threads=0))
+        self.worker.start()
         log.info("recording estimates, raw samples and the view into %s", self.path)
 
+    @property
+    def stats(self) -> dict[str, Any]:
+        return {**self.counts, **self.worker.stats}
+
+    # Called on the runtime's loop: hand over, never encode here.
     def publish(self, pose: OutputPose) -> None:
-        if self.writer is None:
-            return
-        self._seq += 1
-        self.poses.log(json.dumps(pose_message(pose, self._seq, self.origin())), log_time=pose.t_ns)
-        self.stats["estimates"] += 1
-        self.scene.pose(pose)
+        if self.writer is not None:
+            self._seq += 1
+            self.worker.submit(self._estimate, pose, self._seq, self.origin())
 
     def publish_status(self, status: dict[str, Any]) -> None:
         if self.writer is not None:
-            self.scene.status(status)
+            self.worker.submit(self.scene.status, status)
 
     def on_sample(self, sample: Any) -> None:
         """A raw sample as the runtime received it (before any calibrated time offset)."""
-        if self.writer is None:
-            return
+        if self.writer is not None:
+            self.worker.submit(self._raw, sample, self.origin())
+
+    def on_frame(self, image: np.ndarray | None, features: FrameFeatures, report: FrameReport) -> None:
+        if self.writer is not None:
+            points = self.landmarks()[1] if self.landmarks is not None else None  # read on the filter's loop
+            self.worker.submit(self.scene.frame, image, features, report, points)
+
+    # On the worker thread.
+    def _estimate(self, pose: OutputPose, seq: int, origin: Origin) -> None:
+        self.poses.log(json.dumps(pose_message(pose, seq, origin)), log_time=pose.t_ns)
+        self.counts["estimates"] += 1
+        self.scene.pose(pose)
+
+    def _raw(self, sample: Any, origin: Origin) -> None:
         if isinstance(sample, ImuSample):
             self.imu.log(ros2_msgs.serialize(ros2_msgs.imu(sample, "base_link"), ros2_msgs.IMU), log_time=sample.t_ns)
-            self.stats["imu"] += 1
+            self.counts["imu"] += 1
         elif isinstance(sample, GpsFix):
-            self._gps_fix(sample)
+            if origin is not None:  # a NavSatFix needs latitude and longitude; without an origin there are none
+                lat, lon, alt = (float(x) for x in pymap3d.ned2geodetic(*sample.p_ned, *origin))
+                msg = ros2_msgs.nav_sat_fix(sample.t_ns, "gps", lat, lon, alt, sample.sigma_h, sample.sigma_v)
+                self.gps.log(ros2_msgs.serialize(msg, ros2_msgs.NAV_SAT_FIX), log_time=sample.t_ns)
+                self.counts["gps"] += 1
             self.scene.gps(sample)
         elif isinstance(sample, CameraFrame):
             ok, png = cv2.imencode(".png", sample.image)
             if ok:
                 msg = ros2_msgs.compressed_image(sample.t_ns, "camera", png.tobytes(), "png")
                 self.camera.log(ros2_msgs.serialize(msg, ros2_msgs.COMPRESSED_IMAGE), log_time=sample.t_ns)
-                self.stats["frames"] += 1
-
-    def _gps_fix(self, fix: GpsFix) -> None:
-        origin = self.origin()
-        if origin is None:  # a NavSatFix needs latitude and longitude; without an origin there are none
-            return
-        lat, lon, alt = (float(x) for x in pymap3d.ned2geodetic(*fix.p_ned, *origin))
-        msg = ros2_msgs.nav_sat_fix(fix.t_ns, "gps", lat, lon, alt, fix.sigma_h, fix.sigma_v)
-        self.gps.log(ros2_msgs.serialize(msg, ros2_msgs.NAV_SAT_FIX), log_time=fix.t_ns)
-        self.stats["gps"] += 1
-
-    def on_frame(self, image: np.ndarray | None, features: FrameFeatures, report: FrameReport) -> None:
-        if self.writer is not None:
-            self.scene.frame(image, features, report)
+                self.counts["frames"] += 1
 
     async def serve(self, stop: asyncio.Event) -> None:
         await stop.wait()
@@ -121,6 +135,7 @@ class McapOutput:
     def close(self) -> None:
         if self.writer is None:
             return
+        self.worker.stop()
         origin = self.origin()
         self.writer.write_metadata("vtolpose", {
             "frame": "poses in /vtolpose/pose: local NED, body FRD; everything else REP 103 (map ENU, base_link FLU)",
