@@ -180,10 +180,10 @@ class Ros2Output:
     def publish(self, pose: OutputPose) -> None:
         if self._odom is None or self._tf is None or not pose.position_initialized:
             return
-        t_ns = pose.t_ns + self._stamp_offset_ns
-        self._odom.put(ros2_msgs.odometry(pose, self.frames, t_ns))
+        ros = ros2_msgs.ros_pose(pose, pose.t_ns + self._stamp_offset_ns)
+        self._odom.put(ros2_msgs.odometry(ros, self.frames))
         self.stats["odometry_published"] += 1
-        self._tf.put(ros2_msgs.transforms(pose, self.frames, t_ns))
+        self._tf.put(ros2_msgs.transforms(ros, self.frames))
         self.stats["tf_published"] += 1
 
     def publish_status(self, status: dict[str, Any]) -> None:

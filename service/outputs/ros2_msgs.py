@@ -67,17 +67,30 @@ def header(t_ns: int, frame_id: str) -> object:
 
 
 def _vector(v: np.ndarray, kind: str = "geometry_msgs/msg/Vector3") -> object:
-    x, y, z = (float(c) for c in v)
+    x, y, z = v.tolist()
     return _T[kind](x=x, y=y, z=z)
 
 
 def _quaternion(q_wxyz: np.ndarray) -> object:
-    w, x, y, z = (float(c) for c in q_wxyz)
+    w, x, y, z = q_wxyz.tolist()
     return _T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)
 
 
-def odometry(pose: OutputPose, frames: RosFrames, t_ns: int) -> object:
-    """``nav_msgs/Odometry``: pose of ``body`` in ``world`` (ENU/FLU) and the twist in ``body``.
+@dataclass(frozen=True, slots=True)
+class RosPose:
+    """One estimate in REP 103 terms, converted once for every message made from it."""
+
+    t_ns: int
+    p: np.ndarray  # ENU
+    q: np.ndarray  # FLU -> ENU, w first
+    pose_cov: np.ndarray  # 6 × 6 over [δp, δθ], ENU
+    linear: np.ndarray  # body velocity, FLU
+    angular: np.ndarray  # body rate, FLU
+    twist_cov: np.ndarray  # 6 × 6 over [linear, angular], FLU
+
+
+def ros_pose(pose: OutputPose, t_ns: int) -> RosPose:
+    """The estimate in ENU/FLU.
 
     Pose covariance: the estimator's ``[δp, δθ]`` turned into ENU (its attitude error is about
     the world axes, as ROS's "fixed axis" rotation covariance is). Twist covariance: the body
@@ -87,16 +100,25 @@ def odometry(pose: OutputPose, frames: RosFrames, t_ns: int) -> object:
     p_enu, q_enu = pose_ned_frd_to_enu_flu(pose.p, pose.q)
     _, twist_cov_frd = odometry_covariances(pose)
     v_body = quat_to_rot(pose.q).T @ pose.v
+    return RosPose(t_ns, p_enu, q_enu, pose_covariance_ned_to_enu(pose.pose_cov), frd_to_flu(v_body),
+                   frd_to_flu(pose.omega_b), body_covariance_frd_to_flu(twist_cov_frd))
+
+
+def odometry(pose: RosPose, frames: RosFrames) -> object:
+    """``nav_msgs/Odometry``: pose of ``body`` in ``world`` (ENU/FLU) and the twist in ``body``."""
     P = _T["geometry_msgs/msg/Pose"]
     return _T[ODOMETRY](
-        header=header(t_ns, frames.world), child_frame_id=frames.body,
+        header=header(pose.t_ns, frames.world), child_frame_id=frames.body,
         pose=_T["geometry_msgs/msg/PoseWithCovariance"](
-            pose=P(position=_vector(p_enu, "geometry_msgs/msg/Point"), orientation=_quaternion(q_enu)),
-            covariance=pose_covariance_ned_to_enu(pose.pose_cov).reshape(36)),
+            pose=P(position=_vector(pose.p, "geometry_msgs/msg/Point"), orientation=_quaternion(pose.q)),
+            covariance=pose.pose_cov.reshape(36)),
         twist=_T["geometry_msgs/msg/TwistWithCovariance"](
-            twist=_T["geometry_msgs/msg/Twist"](linear=_vector(frd_to_flu(v_body)), angular=_vector(frd_to_flu(pose.omega_b))),
-            covariance=body_covariance_frd_to_flu(twist_cov_frd).reshape(36)),
+            twist=_T["geometry_msgs/msg/Twist"](linear=_vector(pose.linear), angular=_vector(pose.angular)),
+            covariance=pose.twist_cov.reshape(36)),
     )
+
+
+_IDENTITY_Q = np.array([1.0, 0.0, 0.0, 0.0])
 
 
 def _transform(t_ns: int, parent: str, child: str, p: np.ndarray, q_wxyz: np.ndarray) -> object:
@@ -105,14 +127,13 @@ def _transform(t_ns: int, parent: str, child: str, p: np.ndarray, q_wxyz: np.nda
         transform=_T["geometry_msgs/msg/Transform"](translation=_vector(p), rotation=_quaternion(q_wxyz)))
 
 
-def transforms(pose: OutputPose, frames: RosFrames, t_ns: int) -> object:
+def transforms(pose: RosPose, frames: RosFrames) -> object:
     """``tf2_msgs/TFMessage``: ``world → odom`` (identity: one estimator is both the map and the
     odometry source) and ``odom → body`` with the pose; without an odom frame, ``world → body``."""
-    p_enu, q_enu = pose_ned_frd_to_enu_flu(pose.p, pose.q)
     parent = frames.odom or frames.world
-    items = [_transform(t_ns, parent, frames.body, p_enu, q_enu)]
+    items = [_transform(pose.t_ns, parent, frames.body, pose.p, pose.q)]
     if frames.odom is not None:
-        items.insert(0, _transform(t_ns, frames.world, frames.odom, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])))
+        items.insert(0, _transform(pose.t_ns, frames.world, frames.odom, np.zeros(3), _IDENTITY_Q))
     return _T[TF_MESSAGE](transforms=items)
 
 
