@@ -3,7 +3,6 @@ point; positions round-trip to NED around the dataset's origin, quality comes fr
 
 import json
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import numpy as np
 import pymap3d

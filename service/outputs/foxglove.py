@@ -11,7 +11,7 @@ map panel) and ``/gps/local`` (the fixes in ``map``), ``/landmarks`` (the EKF-SL
 ``/camera/image`` with ``/camera/overlay`` (features, predicted landmarks with their search
 gates, accepted matches, new landmarks, a status line) and ``/status`` (the status document).
 Poses are shown at ``rate_hz`` of sensor time and the path at 2 Hz. All encoding happens on a
-background thread (:class:`ViewWorker`): the runtime's loop only queues what it hands over. Messages carry sensor time as their log
+background thread (:class:`~vtolpose.service.outputs.view_worker.ViewWorker`): the runtime's loop only queues what it hands over. Messages carry sensor time as their log
 time, so a replay at any speed shows the flight's own clock. The server listens only on the
 configured host (127.0.0.1 by default).
 """
@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import queue
-import threading
 from collections import deque
 from typing import Any, Callable
 
@@ -44,7 +42,7 @@ from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.vision.camera_pipeline import FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.vision.landmarks import landmark_points
-from vtolpose.service.runtime.loop import background_thread_priority
+from vtolpose.service.outputs.view_worker import ViewWorker
 
 log = logging.getLogger(__name__)
 
@@ -183,54 +181,6 @@ class FoxgloveScene:
             self.landmark_channel.log(SceneUpdate(entities=[SceneEntity(
                 timestamp=ts, frame_id="map", id="landmarks", cubes=cubes)]), log_time=t)
         self.counts["frames"] += 1
-
-
-class ViewWorker:
-    """Encoding and writing for a view or a recording on one background thread, fed by a bounded queue.
-
-    The runtime's loop only hands over immutable poses, samples and frame results, so the pose
-    path never waits for JPEG/PNG, JSON, protobuf or the file. The thread runs niced like the camera
-    workers. A full queue drops the item and counts it; a failing item is counted and logged once.
-    """
-
-    def __init__(self, name: str, capacity: int = 4096) -> None:
-        self.name = name
-        self.queue: queue.Queue = queue.Queue(capacity)
-        self.stats = {"queued": 0, "dropped_full": 0, "failures": 0, "last_failure": None}
-        self._thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
-        self._thread.start()
-
-    def submit(self, work: Callable[..., None], *args: Any) -> None:
-        try:
-            self.queue.put_nowait((work, args))
-            self.stats["queued"] += 1
-        except queue.Full:
-            self.stats["dropped_full"] += 1
-
-    def _run(self) -> None:
-        background_thread_priority()
-        while True:
-            work, args = self.queue.get()
-            if work is None:
-                return
-            try:
-                work(*args)
-            except Exception as exc:  # one bad item must not end the view or the recording
-                if not self.stats["failures"]:
-                    log.exception("%s: %s failed", self.name, getattr(work, "__name__", work))
-                self.stats["failures"] += 1
-                self.stats["last_failure"] = repr(exc)
-
-    def stop(self, timeout_s: float = 30.0) -> None:
-        """Finish what is queued, then end the thread."""
-        if self._thread is None:
-            return
-        self.queue.put((None, ()), timeout=timeout_s)
-        self._thread.join(timeout_s)
-        self._thread = None
 
 
 def _p2(uv: np.ndarray) -> Point2:

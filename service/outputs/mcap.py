@@ -36,7 +36,8 @@ from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.vision.camera_pipeline import FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.service.outputs import ros2_msgs
-from vtolpose.service.outputs.foxglove import FoxgloveScene, Landmarks, Origin, ViewWorker
+from vtolpose.service.outputs.foxglove import FoxgloveScene, Landmarks, Origin
+from vtolpose.service.outputs.view_worker import ViewWorker
 from vtolpose.service.outputs.zenoh import pose_message
 
 log = logging.getLogger(__name__)
