@@ -32,7 +32,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "Examples:\n"
         "  vtolpose replay data/book --sensors imu,gps --variant thesis --out traj.txt --report report.json\n"
         "  vtolpose replay data/landfill --speed 1 --mavlink udpout:127.0.0.1:14540 --zenoh   (a live-like feed)\n"
-        "  vtolpose replay data/landfill --sensors imu,camera,gps --fault gps-off:60:30 --report r.json",
+        "  vtolpose replay data/landfill --sensors imu,camera,gps --fault gps-off:60:30 --report r.json\n"
+        "  vtolpose replay data/book --sensors imu,camera,gps --speed 1 --foxglove --mcap book.mcap",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("dataset", metavar="DATASET", help="dataset folder (see README, Dataset layout)")

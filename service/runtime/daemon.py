@@ -85,7 +85,48 @@ def build_runtime(
 
         runtime.outputs.append(ZenohOutput(ZenohSettings.from_config(cfg), zenoh_prefix(cfg), runtime.history,
                                            runtime.history_lock, lambda: runtime.origin()))
+    add_interop_outputs(runtime, cfg, camera_processor)
     return runtime
+
+
+def add_interop_outputs(runtime: Runtime, cfg: dict[str, Any], camera_processor: CameraProcessor | None) -> None:
+    """ROS 2 over Zenoh, the Foxglove view and the MCAP recording (``outputs.ros2|foxglove|mcap``); the
+    latter two also see raw samples (``Runtime.sample_taps``) and camera frames (the processor's ``on_frame``)."""
+    origin = lambda: runtime.origin()  # noqa: E731 - read late: a live GPS fixes its origin at its first fix
+    if cfg["outputs.ros2.enabled"]:
+        from vtolpose.service.outputs.ros2 import Ros2Output
+        from vtolpose.service.outputs.zenoh_session import ZenohSettings
+
+        zenoh_out = next((o for o in runtime.outputs if o.name == "zenoh"), None)  # opened before this one
+        runtime.outputs.append(Ros2Output(cfg, ZenohSettings.from_config(cfg),
+                                          lambda: zenoh_out.session if zenoh_out is not None else None))
+    viewers: list[Any] = []
+    if cfg["outputs.foxglove.enabled"] or cfg["outputs.mcap.file"]:
+        from vtolpose.service.outputs.foxglove import FoxgloveOutput, estimator_landmarks
+
+        view = dict(rate_hz=cfg["outputs.foxglove.rate_hz"], path_points=cfg["outputs.foxglove.path_points"],
+                    origin=origin, landmarks=lambda: estimator_landmarks(runtime.est))
+        if cfg["outputs.foxglove.enabled"]:
+            viewers.append(FoxgloveOutput(cfg["outputs.foxglove.host"], cfg["outputs.foxglove.port"], **view))
+        if cfg["outputs.mcap.file"]:
+            from vtolpose.service.outputs.mcap import McapOutput
+
+            viewers.append(McapOutput(cfg["outputs.mcap.file"], **view))
+    runtime.outputs += viewers
+    runtime.sample_taps += [v.on_sample for v in viewers]
+    if viewers and camera_processor is not None and hasattr(camera_processor, "on_frame"):
+        before = camera_processor.on_frame  # e.g. the replay's overlay pictures
+
+        def on_frame(*frame: Any) -> None:
+            if before is not None:
+                before(*frame)
+            for viewer in viewers:
+                try:
+                    viewer.on_frame(*frame)
+                except Exception as exc:  # a viewer's failure must not fail the camera update it watches
+                    runtime.failures.record(f"output {viewer.name} frame", exc)
+
+        camera_processor.on_frame = on_frame
 
 
 async def serve(

@@ -144,6 +144,7 @@ class Runtime:
         self.origin: Callable[[], tuple[float, float, float] | None] = lambda: None  # geodetic origin of NED
         self.last_pose: OutputPose | None = None
         self.recorder: Any | None = None  # set by `vtolpose run --record`
+        self.sample_taps: list[Callable[[Any], None]] = []  # see every raw sample as it arrives (MCAP, Foxglove)
         self.poses_published = 0
         self._executor: ThreadPoolExecutor | None = None
         self._camera_jobs: list[tuple[int, asyncio.Future]] = []
@@ -153,6 +154,11 @@ class Runtime:
     # ---------------------------------------------------------------------------- samples
     def handle(self, sample: ImuSample | GpsFix | CameraFrame, arrived_ns: int | None = None) -> None:
         """Dispatch one sample (synchronous: called on the loop for every sample)."""
+        for tap in self.sample_taps:
+            try:
+                tap(sample)
+            except Exception as exc:  # a viewer's or recorder's failure must not cost the estimator a sample
+                self.failures.record("sample tap", exc)
         if isinstance(sample, ImuSample):
             self._on_imu(sample, arrived_ns)
         elif isinstance(sample, GpsFix):
