@@ -9,6 +9,7 @@ import time
 from vtolpose.drivers.simulator import SCENARIOS, simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
+from vtolpose.service.commands.lidar_options import add_lidar_options, lidar_from_args
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -32,6 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DATASET", help="folder to write")
     p.add_argument("--force", action="store_true", help="replace an existing dataset in --out")
     p.add_argument("--no-camera", action="store_true", help="do not render camera frames")
+    add_lidar_options(p)
     p.set_defaults(run=run)
 
 
@@ -45,9 +47,11 @@ def run(args: argparse.Namespace) -> int:
             camera = default_camera()
             print(f"rendering {int(args.duration * camera.rate_hz)} camera frames "
                   f"({camera.width} x {camera.height} at {camera.rate_hz:g} Hz) ...")
+    lidar = lidar_from_args(args, flight)
     started = time.perf_counter()
-    out = write_flight(flight, args.out, overwrite=args.force, camera=camera)
+    out = write_flight(flight, args.out, overwrite=args.force, camera=camera, lidar=lidar)
     print(f"wrote {out}: {flight.description}")
     frames = f", camera frames in {time.perf_counter() - started:.1f} s" if camera is not None else ", no camera"
-    print(f"  imu {len(flight.imu.t_ns)} samples, gps {len(flight.gps.t_ns)} fixes, truth {len(flight.truth.t_ns)} poses{frames}")
+    scans = f", lidar {len(lidar)} returns ({lidar.spec.model})" if lidar is not None else ""
+    print(f"  imu {len(flight.imu.t_ns)} samples, gps {len(flight.gps.t_ns)} fixes, truth {len(flight.truth.t_ns)} poses{frames}{scans}")
     return 0
