@@ -186,3 +186,14 @@ def test_map_command_errors_say_what_is_missing(mapped_dataset, tmp_path, capsys
     write_flight(simulate_flight("landfill", 5.0, 1), bare)
     assert main(["map", str(bare), "--true-poses"]) == 1
     assert "no LIDAR returns" in capsys.readouterr().err
+
+
+def test_demo_maps_the_flight_with_true_poses_and_each_filter(tmp_path, capsys):
+    assert main(["-q", "demo", "--scenario", "landfill", "--duration", "45", "--lidar", "--out", str(tmp_path / "d")]) == 0
+    out = capsys.readouterr().out
+    table = out[out.index("LIDAR map"):].splitlines()
+    rows = {line.split("  ")[1].strip(): line.split() for line in table[2:5]}
+    assert list(rows) == ["true poses", "filter (thesis)", "filter (biases)"]
+    rmse = {label: float(cells[-5]) for label, cells in rows.items()}  # columns: cells RMSE bias volume error error%
+    assert rmse["true poses"] < 0.05
+    assert min(rmse["filter (thesis)"], rmse["filter (biases)"]) > 2 * rmse["true poses"]  # the poses cost more than the grid
