@@ -173,6 +173,10 @@ def test_map_command_scores_truth_and_an_offset_trajectory(mapped_dataset, tmp_p
     assert (tmp_path / "fig-height.png").stat().st_size > 10_000 and (tmp_path / "fig-error.png").is_file()
     out = capsys.readouterr().out
     assert "what the map's error comes from" in out and "volume above 0 m" in out
+    # A mapper's own calibration: a LIDAR clock offset and a boresight error each cost the true-pose map.
+    for option in (["--time-offset", "0.2"], ["--boresight", "1,0,0"]):
+        assert main(["-q", "map", str(mapped_dataset), "--true-poses", "--report", str(report), *option]) == 0
+        assert json.loads(report.read_text())["map"]["height_rmse_m"] > 3 * truth["height_rmse_m"], option
 
 
 def test_map_command_errors_say_what_is_missing(mapped_dataset, tmp_path, capsys):
@@ -182,6 +186,8 @@ def test_map_command_errors_say_what_is_missing(mapped_dataset, tmp_path, capsys
     assert "which returns to map" in capsys.readouterr().err
     assert main(["map", str(mapped_dataset), "--true-poses", "--explain"]) == 1
     assert "--explain" in capsys.readouterr().err
+    assert main(["map", str(mapped_dataset), "--true-poses", "--boresight", "1,0"]) == 1
+    assert "ROLL,PITCH,YAW" in capsys.readouterr().err
     bare = tmp_path / "bare"
     write_flight(simulate_flight("landfill", 5.0, 1), bare)
     assert main(["map", str(bare), "--true-poses"]) == 1

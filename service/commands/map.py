@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from vtolpose.client import PoseClient
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.lidar import LIDAR_CSV
 from vtolpose.estimator.mapping.survey import height_error, score_map
 from vtolpose.service.commands.common import write_json
-from vtolpose.service.mapping.mapper import map_returns, pose_errors, true_ground
+from vtolpose.service.mapping.mapper import map_returns, pose_errors, true_ground, with_boresight
 from vtolpose.service.mapping.poses import ZenohPoses, file_window, truth_window, window_poses
 from vtolpose.service.mapping.report import MappedFlight, attribution_sources, map_and_score, score_lines, table_lines
 
@@ -43,6 +45,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cell", type=float, default=1.0, metavar="M", help="map cell size in metres (default 1; the book rig wants ~0.02)")
     p.add_argument("--base", type=float, default=0.0, metavar="M",
                    help="height of the volume's base level, metres up from the origin (default 0)")
+    p.add_argument("--time-offset", type=float, default=0.0, metavar="S",
+                   help="added to the LIDAR's stamps to put them on the poses' clock (default 0)")
+    p.add_argument("--boresight", metavar="ROLL,PITCH,YAW",
+                   help="turn the scanner's mounting by these angles [deg] about the body axes (a boresight correction)")
     p.add_argument("--png", metavar="PREFIX", help="write PREFIX-height.png and, with a true ground, PREFIX-error.png")
     p.add_argument("--report", metavar="R.json", help="write the figures as JSON")
     p.add_argument("--explain", action="store_true",
@@ -67,9 +73,21 @@ def _dataset_path(args: argparse.Namespace) -> str:
     return path
 
 
+def _angles(text: str) -> tuple[float, float, float]:
+    try:
+        angles = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        angles = ()
+    if len(angles) != 3 or not all(map(np.isfinite, angles)):
+        raise ValueError(f"--boresight {text!r}: expected ROLL,PITCH,YAW in degrees, e.g. 0.5,0,0")
+    return angles
+
+
 def run(args: argparse.Namespace) -> int:
     if not (args.cell > 0.0):
         raise ValueError(f"--cell {args.cell}: must be a positive number of metres")
+    if not np.isfinite(args.time_offset):
+        raise ValueError(f"--time-offset {args.time_offset}: must be a finite number of seconds")
     if args.explain and not args.trajectory:
         raise ValueError("--explain splits a trajectory's cost: use it with --trajectory")
     dataset = Dataset.open(_dataset_path(args))
@@ -77,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
     if returns is None:
         raise FileNotFoundError(f"{dataset.root / LIDAR_CSV}: the dataset has no LIDAR returns "
                                 "(simulate one with `vtolpose simulate ... --lidar`)")
+    if args.boresight:
+        returns = with_boresight(returns, *_angles(args.boresight))
+    offset_ns = int(round(args.time_offset * 1e9))
     ground = true_ground(returns)
     if args.explain and ground is None:
         raise ValueError(f"{dataset.root}: --explain needs the true ground of a simulated dataset")
@@ -87,14 +108,16 @@ def run(args: argparse.Namespace) -> int:
         label = f"live poses from {args.prefix} over Zenoh"
         with PoseClient(args.prefix, connect=args.connect, timeout_s=args.timeout) as client:
             source = ZenohPoses(client, wait_s=args.wait)
-            live = map_returns(returns, source, args.cell)
+            live = map_returns(returns, source, args.cell, offset_ns)
             source.close()
         flight = MappedFlight(label, live, score_map(live.grid.snapshot(), args.base, ground))
         print(f"{label}: {source.queries} trajectory queries for {live.scans} scans")
     elif args.true_poses:
-        flight = map_and_score("true poses", returns, window_poses(truth_window(dataset)), args.cell, args.base, ground)
+        flight = map_and_score("true poses", returns, window_poses(truth_window(dataset)), args.cell, args.base, ground,
+                               offset_ns)
     else:
-        flight = map_and_score(args.trajectory, returns, window_poses(file_window(args.trajectory)), args.cell, args.base, ground)
+        flight = map_and_score(args.trajectory, returns, window_poses(file_window(args.trajectory)), args.cell, args.base,
+                               ground, offset_ns)
     placed = flight.run
     print(f"map from {flight.label}: {placed.scans_placed} of {placed.scans} scans placed "
           f"({placed.returns_placed} returns) in {placed.wall_s:.2f} s; {placed.scans_outside} scans outside the poses"
@@ -104,8 +127,9 @@ def run(args: argparse.Namespace) -> int:
     doc: dict = {"dataset": str(dataset.root), "lidar": spec.model, "map": flight.as_dict()}
     if args.explain:
         estimate, truth = file_window(args.trajectory), truth_window(dataset)
-        errors = pose_errors(estimate, truth, returns.t_ns)
-        maps = [flight if label == "trajectory" else map_and_score(label, returns, source, args.cell, args.base, ground)
+        errors = pose_errors(estimate, truth, returns.t_ns + offset_ns)
+        maps = [flight if label == "trajectory" else map_and_score(label, returns, source, args.cell, args.base, ground,
+                                                                   offset_ns)
                 for label, source in attribution_sources(estimate, truth).items()]
         print("\nwhat the map's error comes from (each map scored against the true ground):")
         for line in table_lines(maps):

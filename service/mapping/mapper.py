@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -12,8 +13,8 @@ import numpy as np
 from vtolpose.client import OutsideHistory, PoseWindow
 from vtolpose.drivers.files.lidar import LidarReturns
 from vtolpose.drivers.simulator import make_scenario
-from vtolpose.estimator.core.rotation import rotation_angle
-from vtolpose.estimator.mapping.geometry import place_returns
+from vtolpose.estimator.core.rotation import quat_from_euler, quat_to_rot, rotation_angle
+from vtolpose.estimator.mapping.geometry import LidarMount, place_returns
 from vtolpose.estimator.mapping.height_grid import HeightGrid
 from vtolpose.estimator.mapping.survey import GroundFunction
 from vtolpose.service.mapping.poses import PoseSource
@@ -42,16 +43,19 @@ class MapRun:
                 "scans_not_reached": self.scans_not_reached, "wall_s": round(self.wall_s, 3)}
 
 
-def map_returns(returns: LidarReturns, poses: PoseSource, cell_m: float,
+def map_returns(returns: LidarReturns, poses: PoseSource, cell_m: float, time_offset_ns: int = 0,
                 on_scan: Callable[[int, int], None] | None = None) -> MapRun:
-    """Place every scan's returns with ``poses`` (one call per scan) and grid them at ``cell_m``."""
+    """Place every scan's returns with ``poses`` (one call per scan) and grid them at ``cell_m``.
+
+    ``time_offset_ns`` is added to the LIDAR's stamps to put them on the poses' clock.
+    """
     run = MapRun(HeightGrid(cell_m))
     mount = returns.spec.mount
     bounds = returns.scan_bounds()
     run.scans = len(bounds)
     started = time.perf_counter()
     for k, (a, b) in enumerate(bounds.tolist()):
-        t = returns.t_ns[a:b]
+        t = returns.t_ns[a:b] + time_offset_ns
         try:
             p, q = poses(t)
         except OutsideHistory:
@@ -69,6 +73,13 @@ def map_returns(returns: LidarReturns, poses: PoseSource, cell_m: float,
             on_scan(k + 1, run.scans)
     run.wall_s = time.perf_counter() - started
     return run
+
+
+def with_boresight(returns: LidarReturns, roll_deg: float, pitch_deg: float, yaw_deg: float) -> LidarReturns:
+    """The returns with their scanner turned by a boresight correction (Z-Y-X angles about the body axes)."""
+    turn = quat_to_rot(quat_from_euler(*np.radians([roll_deg, pitch_deg, yaw_deg])))
+    mount = LidarMount(turn @ returns.spec.mount.R_BL, returns.spec.mount.t_BL)
+    return dataclasses.replace(returns, spec=dataclasses.replace(returns.spec, mount=mount))
 
 
 def true_ground(returns: LidarReturns) -> GroundFunction | None:

@@ -28,8 +28,8 @@ class MappedFlight:
 
 
 def map_and_score(label: str, returns: LidarReturns, poses: PoseSource, cell_m: float, base_up_m: float,
-                  ground: GroundFunction | None) -> MappedFlight:
-    run = map_returns(returns, poses, cell_m)
+                  ground: GroundFunction | None, time_offset_ns: int = 0) -> MappedFlight:
+    run = map_returns(returns, poses, cell_m, time_offset_ns)
     return MappedFlight(label, run, score_map(run.grid.snapshot(), base_up_m, ground))
 
 
