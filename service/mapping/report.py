@@ -52,9 +52,9 @@ def score_lines(score: MapScore) -> list[str]:
     """One map's figures for people."""
     lines = [f"  {score.cells} cells of {score.cell_m:g} m ({score.area_m2:.0f} m²), {score.returns} returns "
              f"({score.returns_per_cell:.1f} per cell), coverage {100 * score.coverage:.1f} % inside the outline",
-             f"  volume above {score.base_up_m:g} m: {score.volume_m3:.1f} m³"]
+             f"  volume above {score.base_up_m:g} m: {score.volume_m3:.6g} m³"]
     if score.true_volume_m3 is not None:
-        lines[-1] += (f" (true {score.true_volume_m3:.1f} m³, error {score.volume_error_m3:+.1f} m³ = "
+        lines[-1] += (f" (true {score.true_volume_m3:.6g} m³, error {score.volume_error_m3:+.4g} m³ = "
                       f"{_num(score.volume_error_percent, '+.2f')} %)")
         lines.append(f"  height vs true ground: RMSE {score.height_rmse_m:.3f} m, bias {score.height_bias_m:+.3f} m, "
                      f"95 % of cells within {score.height_error_p95_m:.3f} m")
@@ -69,9 +69,9 @@ def table_lines(maps: list[MappedFlight]) -> list[str]:
     for m in maps:
         s = m.score
         lines.append(f"  {m.label:<{width}}  {s.cells:>7d}  {_num(s.height_rmse_m, '7.3f')}  {_num(s.height_bias_m, '+7.3f')}  "
-                     f"{s.volume_m3:>11.0f}  {_num(s.volume_error_m3, '+9.0f')}  {_num(s.volume_error_percent, '+7.2f')}")
+                     f"{s.volume_m3:>11.6g}  {_num(s.volume_error_m3, '+9.4g')}  {_num(s.volume_error_percent, '+7.2f')}")
     truth = next((m.score.true_volume_m3 for m in maps if m.score.true_volume_m3 is not None), None)
     if truth is not None:
-        lines.append(f"  (true volume above {maps[0].score.base_up_m:g} m over the covered cells: {truth:.0f} m³; "
+        lines.append(f"  (true volume above {maps[0].score.base_up_m:g} m over the covered cells: {truth:.6g} m³; "
                      "each map is scored on its own cells)")
     return lines
