@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
-from dataclasses import dataclass, field
-from typing import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -35,7 +33,6 @@ class MapRun:
     scans_not_reached: int = 0
     wall_s: float = 0.0
     stopped: str | None = None  # why the run ended before the last scan
-    notes: list[str] = field(default_factory=list)
 
     def counts(self) -> dict:
         return {"scans": self.scans, "scans_placed": self.scans_placed, "returns_placed": self.returns_placed,
@@ -43,8 +40,7 @@ class MapRun:
                 "scans_not_reached": self.scans_not_reached, "wall_s": round(self.wall_s, 3)}
 
 
-def map_returns(returns: LidarReturns, poses: PoseSource, cell_m: float, time_offset_ns: int = 0,
-                on_scan: Callable[[int, int], None] | None = None) -> MapRun:
+def map_returns(returns: LidarReturns, poses: PoseSource, cell_m: float, time_offset_ns: int = 0) -> MapRun:
     """Place every scan's returns with ``poses`` (one call per scan) and grid them at ``cell_m``.
 
     ``time_offset_ns`` is added to the LIDAR's stamps to put them on the poses' clock.
@@ -69,8 +65,6 @@ def map_returns(returns: LidarReturns, poses: PoseSource, cell_m: float, time_of
             break
         run.returns_placed += run.grid.add(place_returns(p, q, mount, returns.angle[a:b], returns.range_m[a:b]))
         run.scans_placed += 1
-        if on_scan is not None:
-            on_scan(k + 1, run.scans)
     run.wall_s = time.perf_counter() - started
     return run
 
@@ -79,7 +73,7 @@ def with_boresight(returns: LidarReturns, roll_deg: float, pitch_deg: float, yaw
     """The returns with their scanner turned by a boresight correction (Z-Y-X angles about the body axes)."""
     turn = quat_to_rot(quat_from_euler(*np.radians([roll_deg, pitch_deg, yaw_deg])))
     mount = LidarMount(turn @ returns.spec.mount.R_BL, returns.spec.mount.t_BL)
-    return dataclasses.replace(returns, spec=dataclasses.replace(returns.spec, mount=mount))
+    return replace(returns, spec=replace(returns.spec, mount=mount))
 
 
 def true_ground(returns: LidarReturns) -> GroundFunction | None:
