@@ -122,14 +122,13 @@ def cast_rays(origin: np.ndarray, direction: np.ndarray, ground: GroundFunction,
             step = np.where(closing[active] > 0.0, clearance / closing[active], march.max_step_m)
         step = np.clip(step, march.min_step_m, march.max_step_m)
         lo[active[carry]] = ta[carry]
+        # The last step stops at max_range, which is checked once more; a ray checked there is done.
         t[active[carry]] = np.minimum(ta[carry] + step[carry], max_range_m)
-        # A ray at max_range after a clamped step still gets its check there; one already checked there is done.
         active = active[carry]
-        bracketed = reached
-        if bracketed.size:
-            at_start = hi[bracketed] == 0.0
-            hit[bracketed[at_start]] = 0.0
-            refine = bracketed[~at_start]
+        if reached.size:
+            at_start = hi[reached] == 0.0
+            hit[reached[at_start]] = 0.0
+            refine = reached[~at_start]
             a, b = lo[refine], hi[refine]
             o, d = origin[refine], direction[refine]
             for _ in range(march.bisections):
@@ -161,8 +160,8 @@ def simulate_lidar(flight: SimulatedFlight, spec: LidarSpec | None = None, march
     epoch = int(flight.truth.t_ns[0])
     end = epoch + int(round(flight.duration_s * 1e9))
     times, scan_ids = scan_times_ns(spec, flight.duration_s, epoch)
-    beams_l = beam_vectors(spec.angles()) @ spec.mount.R_BL.T  # beam directions in the body
     angles = spec.angles()
+    beams_b = beam_vectors(angles) @ spec.mount.R_BL.T  # beam directions in the body
     rng = _rng(flight.seed, STREAM_LIDAR)
     parts: list[tuple[np.ndarray, ...]] = []
     for first in range(0, len(scan_ids), scans_per_chunk):
@@ -172,7 +171,7 @@ def simulate_lidar(flight: SimulatedFlight, spec: LidarSpec | None = None, march
         k = flight.trajectory.kinematics((flat_t - epoch) * 1e-9)
         R_WB = k.rotation()
         origin = k.p + R_WB @ spec.mount.t_BL
-        beams = np.tile(beams_l, (len(t), 1))
+        beams = np.tile(beams_b, (len(t), 1))
         direction = np.einsum("nij,nj->ni", R_WB, beams)
         true_range = cast_rays(origin, direction, flight.scenario.ground_height, spec.max_range_m, march)
         measured = true_range + spec.range_sigma(np.where(np.isfinite(true_range), true_range, 0.0)) * noise.reshape(-1)
