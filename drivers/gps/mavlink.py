@@ -28,6 +28,7 @@ the report), however many addresses send.
 from __future__ import annotations
 
 import logging
+import math
 import select
 import time
 from collections import Counter, deque
@@ -164,7 +165,9 @@ class MavlinkGps:
         if fd is None:  # a stream link that is not open (yet)
             time.sleep(max(0.0, min(wait_s, CONNECT_POLL_S)))
             return False
-        return bool(select.select([fd], [], [], max(0.0, wait_s))[0])
+        poller = select.poll()  # not select(): a daemon's descriptors may number past FD_SETSIZE
+        poller.register(fd, select.POLLIN)
+        return bool(poller.poll(max(0, math.ceil(wait_s * 1000))))
 
     def _slice(self, transport: Any, out: list[GpsReading], budget_s: float) -> float:
         """Handle waiting frames until ``budget_s`` of this thread's own CPU time is spent (time spent
