@@ -202,6 +202,45 @@ def test_prediction_covariance_grows_with_the_horizon_as_the_error_model_says(fl
     assert growth_of_position[0] > 0.0 and np.all(np.diff(growth_of_position) > 0.0)
 
 
+def test_the_published_pose_is_capped_while_the_gps_is_stale(flight):
+    """The pose that leaves (the prediction, not the fused state) follows the documented health rule:
+    quality ceiling 100 while GPS fixes are being used, ``stale_quality_cap`` once none was used for
+    ``gps_stale_s`` (config/default.yaml, estimator/health.py), judged at the filter's time."""
+    cfg = load_config()
+    stale_ns, stale_cap = cfg["estimator.health.gps_stale_s"] * 1e9, cfg["estimator.health.stale_quality_cap"]
+    assert stale_cap < 100
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY))
+    t0 = flight.imu.t_ns[0]
+    fixes = [f for f in gps_fixes(flight) if f.t_ns < t0 + 25e9]  # the receiver goes quiet at 25 s
+    used_at: list[int] = []
+
+    def fuse(est, fix):
+        outcome = est.process_gps(fix)
+        if outcome is not None and outcome.accepted:
+            used_at.append(fix.t_ns)
+
+    caps, k = [], 0
+    for s in imu_samples(flight):
+        while k < len(fixes) and fixes[k].t_ns <= s.t_ns:
+            core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: fuse(est, f), "gps")
+            k += 1
+        core.add_imu(s)
+        pose = core.output()
+        if pose is not None and pose.position_initialized:
+            caps.append((pose.fused_t_ns, pose.quality_cap))
+    assert core.est.reset_counter == 0 and len(used_at) > 150
+    used = np.array(used_at)
+    in_use, stale = [], []
+    for t, cap in caps:
+        since_used = t - used[np.searchsorted(used, t, side="right") - 1]
+        if since_used < stale_ns - 50_000_000:
+            in_use.append(cap)
+        elif since_used > stale_ns + 50_000_000:
+            stale.append(cap)
+    assert len(in_use) > 1000 and set(in_use) == {100}
+    assert len(stale) > 1000 and set(stale) == {stale_cap}
+
+
 def test_publishing_first_fuses_nothing_until_advance(flight):
     core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY))
     samples = imu_samples(flight)
