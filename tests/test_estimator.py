@@ -140,10 +140,18 @@ def test_gps_rejected_for_seconds_means_the_filter_is_lost_and_resets(book):
 
 
 def test_no_gps_still_runs_on_inertial_dead_reckoning(book):
+    """Without GPS the IMU alone carries the state through 35 s of motion: attitude within a degree,
+    velocity within what an integrated accelerometer drifts (not gravity integrated the wrong way)."""
     est, t, p, q, _ = run(book, gps=[])
     assert est.initialized and not est.position_initialized
     assert est.state.is_finite()
     assert est.counts["gps"].received == 0
+    assert est.counts["still"].used >= 3  # the still start was recognised as still
+    s, truth = est.state, book.truth
+    i = min(int(np.searchsorted(truth.t_ns, s.t_ns)), len(truth.t_ns) - 1)
+    assert abs(s.t_ns - truth.t_ns[i]) <= 10_000_000 and s.t_ns > truth.t_ns[0] + 40e9
+    assert np.degrees(rotation_angle(s.q, truth.q[i])) < 1.5
+    assert abs(s.v[2] - truth.v[i, 2]) < 0.3 and np.linalg.norm(s.v - truth.v[i]) < 1.5
 
 
 def test_a_non_finite_fix_is_counted(book):
