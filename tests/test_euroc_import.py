@@ -38,10 +38,10 @@ def seconds(ds_t: np.ndarray, t0: int) -> np.ndarray:
 
 def test_junk_lines_are_skipped_counted_and_warned_once(imported) -> None:
     _, summary, records = imported
-    assert summary["imu_lines_skipped"] == 7 and summary["leica_lines_skipped"] == 0
+    assert summary["imu_lines_skipped"] == 7 and summary["truth_lines_skipped"] == 0
     imu_warnings = [m for m in records if "imu0/data.csv" in m]
     assert len(imu_warnings) == 1 and "skipped 7" in imu_warnings[0]
-    assert summary["imu_samples"] == 36820 and summary["leica_fixes"] == 3099
+    assert summary["imu_samples"] == 36820 and summary["truth_samples"] == 3099 and summary["truth_source"] == "leica0"
 
 
 def test_imu_times_exact_and_evenly_spaced(imported) -> None:
@@ -195,7 +195,7 @@ def test_leica_stamps_are_moved_onto_the_imu_clock(imported, euroc_mh01: Path) -
     truth = Dataset.open(out).truth()
     raw_first = int((euroc_mh01 / "mav0/leica0/data.csv").read_text().splitlines()[1].split(",")[0])
     assert truth.t_ns[0] == raw_first - 142_000_000
-    assert summary["leica_time_offset_s"] == pytest.approx(-0.142)
+    assert summary["truth_time_offset_s"] == pytest.approx(-0.142)
 
 
 def test_missing_source_files_are_named(tmp_path: Path) -> None:

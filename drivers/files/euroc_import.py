@@ -185,6 +185,7 @@ def import_euroc(
         "truth_source": found.source,
         "truth_file": str(found.path),
         "truth_samples": int(truth.t_ns.size),
+        "truth_lines_skipped": found.skipped,
         "truth_has_attitude": truth.q is not None,
         "truth_time_offset_s": found.time_offset_s,
         "duration_s": float((imu.t_ns[-1] - imu.t_ns[0]) * 1e-9),

@@ -86,6 +86,7 @@ class EurocTruth:
     source: str  # one of TRUTH_SOURCES
     path: Path
     time_offset_s: float  # added to the source's stamps
+    skipped: int = 0  # malformed lines of the source file, skipped and counted
 
 
 def _pose_truth(t_ns: np.ndarray, p_r: np.ndarray, q_r: np.ndarray, frames: Frames, mount: Mount,
@@ -120,20 +121,21 @@ def read_truth(mav: Path, frames: Frames, leica_offset_s: float, truth_file: Pat
         # Biases are in the source's axes (the IMU's, for EuRoC's estimate): into body FRD.
         to_body = frames.R_BI @ frames.imu.R_BS.T @ mount.R_BS
         series.bias_g, series.bias_a = v[:, 10:13] @ to_body.T, v[:, 13:16] @ to_body.T
-        return EurocTruth(series, frames.point_b(mount), "state_groundtruth_estimate0", gt / "data.csv", 0.0)
+        return EurocTruth(series, frames.point_b(mount), "state_groundtruth_estimate0", gt / "data.csv", 0.0,
+                          data.skipped)
     leica = mav / "leica0"
     if (leica / "data.csv").is_file():
         data = _read(leica / "data.csv", 3, LEICA_HEADER)
         mount = read_mount(leica / "sensor.yaml")
         t_ns = data.t_ns + int(round(leica_offset_s * NS_PER_S))
         return EurocTruth(TruthSeries(t_ns, data.values @ frames.R_WL.T), frames.point_b(mount), "leica0",
-                          leica / "data.csv", leica_offset_s)
+                          leica / "data.csv", leica_offset_s, data.skipped)
     vicon = mav / "vicon0"
     if (vicon / "data.csv").is_file():
         data = _read(vicon / "data.csv", 7, VICON_HEADER)
         mount = read_mount(vicon / "sensor.yaml")
         series = _pose_truth(data.t_ns, data.values[:, 0:3], _unit(data.values[:, 3:7], vicon / "data.csv"), frames, mount)
-        return EurocTruth(series, frames.point_b(mount), "vicon0", vicon / "data.csv", 0.0)
+        return EurocTruth(series, frames.point_b(mount), "vicon0", vicon / "data.csv", 0.0, data.skipped)
     raise FileNotFoundError(
         f"{mav}: no truth found (looked for state_groundtruth_estimate0/data.csv, leica0/data.csv, vicon0/data.csv); "
         "give a TUM file with --truth")
