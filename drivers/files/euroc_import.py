@@ -111,6 +111,13 @@ def simulated_gps(truth: TruthSeries, rate_hz: float, sigma_m: float, seed: int)
     return GpsSeries(truth.t_ns[idx], truth.p[idx] + noise, model.sigma_h, model.sigma_v)
 
 
+def within(gps: GpsSeries, imu_t_ns: np.ndarray) -> GpsSeries:
+    """The fixes inside the IMU recording: a receiver is not heard before the vehicle's IMU starts or after it
+    stops (the truth often runs on for a second or two, and a fix there would look like a dead IMU)."""
+    keep = (gps.t_ns >= imu_t_ns[0]) & (gps.t_ns <= imu_t_ns[-1])
+    return GpsSeries(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep], gps.origin_lla)
+
+
 def import_euroc(
     src: str | Path,
     out: str | Path,
@@ -147,7 +154,7 @@ def import_euroc(
     frames = Frames(setup.R_BI, setup.R_WL, read_mount(mav / "imu0" / "sensor.yaml"))
     found = read_truth(mav, frames, setup.leica_time_offset_s, Path(truth_file) if truth_file is not None else None)
     truth, point_b = found.series, found.point_b
-    gps = None if gps_rate_hz is None else simulated_gps(truth, gps_rate_hz, gps_sigma_m, seed)
+    gps = None if gps_rate_hz is None else within(simulated_gps(truth, gps_rate_hz, gps_sigma_m, seed), imu.t_ns)
     cam_dir = mav / "cam0"
     use_camera = camera and (cam_dir / "data.csv").is_file() and (cam_dir / "sensor.yaml").is_file()
 
@@ -158,7 +165,7 @@ def import_euroc(
         truth_point_b=point_b,
     )
     gps_text = (f"GPS = truth track subsampled to {gps_rate_hz:g} Hz + Gaussian noise sigma_xy={gps_sigma_m:g} m, "
-                f"sigma_z=sqrt(2) sigma_xy, seed {seed}" if gps is not None else "no GPS")
+                f"sigma_z=sqrt(2) sigma_xy, seed {seed}, kept within the IMU recording" if gps is not None else "no GPS")
     shift = f" shifted by {found.time_offset_s * 1e3:+.0f} ms onto the IMU clock" if found.time_offset_s else ""
     description = (f"EuRoC {src.name} imported by vtolpose (vtolpose.drivers.files.euroc_import): real IMU in sensor axes, "
                    f"truth from {found.path.name if found.source == 'file' else found.source}{shift} "
