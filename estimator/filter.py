@@ -4,10 +4,12 @@ Feed it samples in timestamp order (late measurements are ordered by ``vtolpose.
 ask it for the pose. Bad samples are counted per sensor and reason, never raised: the
 caller always gets the best estimate the good data allow.
 
-Start-up has three paths. A still IMU gives roll, pitch and gyro bias (thesis 5.2); the
-heading then comes from the dataset or operator, or stays unknown — the filter then works in
-a frame of arbitrary yaw, levelled by gravity, until the in-motion alignment places it. A
-vehicle that is moving from the start is initialised by the in-motion alignment directly.
+Start-up never waits for the motion: a still IMU gives roll, pitch and gyro bias (thesis 5.2),
+and a vehicle that is not still within ``init.max_wait_s`` starts from the mean specific
+force with wider sigmas. The heading comes from the dataset or operator, or is unknown: the
+filter then works in a frame of arbitrary yaw, levelled by gravity, publishes that its heading
+is unknown (a variance for a heading anywhere on the circle), and a bank of heading
+hypotheses (``inertial/heading_bank.py``) places it from GPS once the motion shows it.
 """
 
 from __future__ import annotations
@@ -20,16 +22,18 @@ import numpy as np
 from vtolpose.estimator.core.calibration import Calibration, ImuNoise
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
-from vtolpose.estimator.gnss.gps_update import GpsUpdater, gps_sigmas
+from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
 from vtolpose.estimator.health import GapWidener, HealthMonitor, HealthOptions
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts
-from vtolpose.estimator.inertial.motion_alignment import MotionAligner, MotionAlignment, MotionAlignOptions
+from vtolpose.estimator.inertial.heading_bank import (
+    UNKNOWN_HEADING_VAR, YAW, HeadingBank, HeadingBankOptions, with_bias_states,
+)
 from vtolpose.estimator.inertial.propagator import ImuPropagator
-from vtolpose.estimator.inertial.startup import state_from_alignment, state_from_static
+from vtolpose.estimator.inertial.startup import state_from_static
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
@@ -42,7 +46,7 @@ class FilterOptions:
     variant: str = "biases"
     heading_source: str = "auto"  # auto: the dataset's known heading if any, else align from GPS
     heading_deg: float | None = None  # an operator-entered heading overrides both
-    gps_gate: float | None = 7.81  # χ², 3 dof, 95 % (spec); None disables the gate
+    gps_gate: float | None = 16.27  # χ², 3 dof, 99.9 %: an outlier test, not a tenth of the good fixes; None: no gate
     gps_sigma_floor_m: float = 0.005
     gps_reset_after_s: float = 3.0  # every fix rejected for this long: the filter is lost, reset
     max_imu_gap_s: float = 0.1
@@ -52,7 +56,7 @@ class FilterOptions:
     level_sigma: float = 2.0  # m/s²: the vehicle's own accelerations, averaged out over many updates
     noise: ImuNoise | None = None  # overrides the calibration's noise when given
     init: InitOptions = field(default_factory=InitOptions)
-    align: MotionAlignOptions = field(default_factory=MotionAlignOptions)
+    align: HeadingBankOptions = field(default_factory=HeadingBankOptions)
     still: StillnessOptions = field(default_factory=StillnessOptions)
     camera: CameraOptions = field(default_factory=CameraOptions)
     health: HealthOptions = field(default_factory=HealthOptions)
@@ -89,19 +93,19 @@ class Estimator:
         self.state: FilterState | None = None
         self.propagator: ImuPropagator | None = None
         self.heading_aligned = False
-        self.alignment: MotionAlignment | None = None  # the in-motion alignment used, if any
+        self.heading_placement: dict | None = None  # how the bank placed the heading (time, sigma, fixes)
         self.position_initialized = False
         self.reset_counter = 0
         self.events: list[tuple[int, str]] = []  # (t_ns, message): start-up, alignment, resets
         heading, self._heading_sigma = self._known_heading()
         self._heading_known = heading is not None
         self._initializer = StaticInitializer(opts.init, calibration.imu.gravity, heading or 0.0)
-        self._aligner = MotionAligner(opts.align, calibration.imu.gravity, calibration.gps.lever_arm_b)
+        self._bank: HeadingBank | None = None  # heading hypotheses while the heading is unknown
+        self._bank_gps = GpsUpdater(calibration.gps.lever_arm_b, None, opts.gps_sigma_floor_m)  # no gate: every fix weighs
         self._stillness = StillnessDetector(opts.still)
         self._leveller: GravityLeveller | None = None
         self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, 0
         self._fixed_bias_var = np.zeros(3)  # thesis variant: variance of its calibrated gyro bias
-        self._fixes_before_start = 0
         self._pending_fix: GpsFix | None = None
         self._last_fix: GpsFix | None = None  # the latest usable fix (a reset re-initialises from it)
         self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
@@ -153,11 +157,9 @@ class Estimator:
         self._gyro = gyro
         delta = self._downsampler.add(t_ns, gyro, accel)
         if self.state is None:
-            if delta is not None:
-                self._aligner.add_delta(delta)
-            # Moving from the start: with GPS the in-motion alignment will do; without it,
-            # start from the accelerometer alone after max_wait_s rather than never.
-            init = self._initializer.add(t_ns, gyro, accel, allow_moving=self._fixes_before_start == 0)
+            # Not still within max_wait_s (rotors turning, carried, flying): start from the
+            # accelerometer alone rather than wait for a rest or a manoeuvre that may never come.
+            init = self._initializer.add(t_ns, gyro, accel)
             if init is not None:
                 self._downsampler.flush()  # the filter starts at this sample
                 self._start_still(init)
@@ -178,13 +180,24 @@ class Estimator:
     def _propagate(self, delta: ImuDelta) -> None:
         extra = 0.0
         if not self.heading_aligned:
-            self._aligner.add_delta(delta)  # every step, so that its window has no gaps
+            if self._bank is not None:
+                self._bank.propagate(delta)
             # An unknown heading misplaces the horizontal acceleration by up to twice its size;
             # at rest that is nothing, so the filter can still tell it is at rest.
             extra = max(self.options.unaligned_accel_noise, 2.0 * self._horizontal_accel)
         a_w = self.propagator.propagate(self.state, delta, extra)
         self._horizontal_accel = math.hypot(a_w[0], a_w[1])
         self.state.t_ns = delta.t1_ns
+        if not self.heading_aligned:
+            self._forget_heading()
+
+    def _forget_heading(self) -> None:
+        """While the heading is unknown its error is uncorrelated with everything and may be anything:
+        the variance of a heading uniform on the circle (what the outputs publish; no update touches it)."""
+        cov = self.state.cov
+        cov[YAW, :] = 0.0
+        cov[:, YAW] = 0.0
+        cov[YAW, YAW] = UNKNOWN_HEADING_VAR
 
     def imu_discontinuity(self, lost_s: float) -> None:
         """``lost_s`` of IMU data before the next sample were refused (stamped in the past: a backward
@@ -255,6 +268,9 @@ class Estimator:
         if clear_map and self.camera is not None and self.state is not None:
             self.camera.clear(self.state)
         self.reset_counter += 1
+        self._bank = None  # its hypotheses followed the old estimate: they start again at the next fix
+        if not self.heading_aligned and self.state is not None:
+            self._forget_heading()
         self.health.record_reset(t_ns, kind, reason)
         self.events.append((t_ns, f"reset #{self.reset_counter}: {reason}"))
 
@@ -279,31 +295,40 @@ class Estimator:
         state = state_from_static(self.layout, init, opts.init, self._heading_sigma)
         self._fixed_bias_var = np.full(3, init.sigma_gyro_bias**2)
         self.heading_aligned = self._heading_known
-        how = "still" if init.static else "moving, accelerometer only (no still window, no GPS)"
+        how = "still" if init.static else f"not still within {opts.init.max_wait_s:g} s: from the mean specific force"
         self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
-        self._aligner.set_bias_prior(init.gyro_bias, max(init.sigma_gyro_bias, 1e-3), np.zeros(3), opts.init.sigma_accel_bias)
-        if self._pending_fix is not None and (init.t_ns - self._pending_fix.t_ns) < 1e9:
+        if not self.heading_aligned:
+            self._forget_heading()
+            self._bank = self._new_bank(state, None)
+        # A fix from before the start places a still vehicle; a moving one waits for the next fix.
+        if init.static and self._pending_fix is not None and (init.t_ns - self._pending_fix.t_ns) < 1e9:
             self._init_position(self._pending_fix)
         self._pending_fix = None
 
-    def _apply_alignment(self, alignment: MotionAlignment) -> None:
-        """Start (or re-place an unaligned filter) from an in-motion alignment."""
-        sd = np.degrees(np.sqrt(np.diag(alignment.cov)[6:9]))
-        message = (
-            f"aligned in motion from {alignment.n_fixes} GPS fixes over {alignment.window_s:.1f} s: attitude sigma "
-            f"{sd[0]:.2f}/{sd[1]:.2f}/{sd[2]:.2f} deg, residuals {alignment.residual_ratio:.2f}x the GPS noise"
-        )
-        state = state_from_alignment(self.layout, alignment)
-        self._fixed_bias_var = np.diag(alignment.cov)[9:12].copy()
-        if self.state is None:
-            self._begin(state, self.calibration.imu.gravity, message)
-        else:
-            self.state = state
-            self.events.append((state.t_ns, message))
-        self.alignment = alignment
+    def _new_bank(self, state: FilterState, velocity_sigma: float | None) -> HeadingBank:
+        """Hypotheses around ``state``; they always carry bias states (the thesis model takes its fixed
+        biases from them, measured in flight, when the heading is placed)."""
+        start = with_bias_states(state, np.sqrt(self._fixed_bias_var), self.options.init.sigma_accel_bias)
+        return HeadingBank(self.options.align, start, self.propagator, self._bank_gps, velocity_sigma)
+
+    def _place_heading(self, placed: FilterState, fix_t_ns: int) -> None:
+        """The bank has found the heading: its best hypothesis becomes the robot state. Landmarks
+        placed in the frame of arbitrary yaw go with it."""
+        bank = self._bank
+        if self.camera is not None:
+            self.camera.clear(self.state)
+        state, n = self.state, self.layout.robot_dim
+        state.p, state.v, state.q, state.b_g, state.b_a = placed.p, placed.v, placed.q, placed.b_g, placed.b_a
+        state.cov = placed.cov[:n, :n].copy()
+        self._fixed_bias_var = np.diagonal(placed.cov)[9:12].copy()  # the thesis model keeps b_g at this
         self.heading_aligned = True
-        self.position_initialized = True
-        self._pending_fix = None
+        self._bank = None
+        heading, sigma = bank.heading()
+        self.heading_placement = {"t_ns": fix_t_ns, "sigma_deg": math.degrees(sigma), "fixes": bank.fixes,
+                                  "hypotheses": len(bank.members), "best_weight": float(bank.weights.max())}
+        sd = np.degrees(np.sqrt(np.diag(state.cov)[6:9]))
+        self.events.append((fix_t_ns, f"heading placed from {bank.fixes} GPS fixes by {len(bank.members)} hypotheses: "
+                            f"{math.degrees(heading):.1f} deg, attitude sigma {sd[0]:.2f}/{sd[1]:.2f}/{sd[2]:.2f} deg"))
 
     # -------------------------------------------------------------------------------- GPS
     def process_gps(self, fix: GpsFix) -> UpdateOutcome | None:
@@ -319,16 +344,7 @@ class Estimator:
         if state is not None and fix.t_ns < state.t_ns:
             counts.reject("older_than_filter")
             return None
-        if not self.heading_aligned:
-            sigma_h, sigma_v = gps_sigmas(fix, self.options.gps_sigma_floor_m)
-            alignment = self._aligner.add_fix(fix.t_ns, p, sigma_h, sigma_v)
-            if alignment is not None:
-                self._apply_alignment(alignment)
-                self._propagate_to(fix.t_ns)
-                counts.used += 1
-                return UpdateOutcome(True, 0.0, 3, "in-motion alignment")
         if state is None:
-            self._fixes_before_start += 1
             self._pending_fix = fix
             counts.reject("before_start")
             return None
@@ -347,7 +363,21 @@ class Estimator:
             counts.reject(outcome.reason.replace(" ", "_"))
         if self.health.measured("gps", fix.t_ns, outcome.accepted, gated=True):
             self._reset_from_gps(fix)
+        if not self.heading_aligned:
+            self._search_heading(fix)
         return outcome
+
+    def _search_heading(self, fix: GpsFix) -> None:
+        """Feed the heading hypotheses. After a reset they start again from the filter's state, but
+        its velocity was carried by an accelerometer turned by an unknown heading: they take it
+        with a moving start's sigma and their position from the next fix."""
+        if self._bank is None:
+            self._bank = self._new_bank(self.state, self.options.init.sigma_velocity_moving)
+            return
+        self._bank.update(fix)
+        placed = self._bank.placed()
+        if placed is not None:
+            self._place_heading(placed, fix.t_ns)
 
     def _held_until_aligned(self) -> np.ndarray:
         held = np.zeros(self.state.dim, dtype=bool)
@@ -355,12 +385,7 @@ class Estimator:
         return held
 
     def _init_position(self, fix: GpsFix) -> None:
-        state = self.state
-        sigma_h, sigma_v = gps_sigmas(fix, self.options.gps_sigma_floor_m)
-        state.p = np.asarray(fix.p_ned, dtype=float) - state.R @ self.calibration.gps.lever_arm_b
-        state.cov[0:3, :] = 0.0
-        state.cov[:, 0:3] = 0.0
-        state.cov[0:3, 0:3] = np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
+        place_at_fix(self.state, fix, self.calibration.gps.lever_arm_b, self.options.gps_sigma_floor_m)
         self.position_initialized = True
         self.events.append((fix.t_ns, "position initialised from GPS"))
 

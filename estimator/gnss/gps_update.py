@@ -25,6 +25,16 @@ def gps_sigmas(fix: GpsFix, floor_m: float) -> tuple[float, float]:
     return sigma_h, max(sigma_v, floor_m)
 
 
+def place_at_fix(state: FilterState, fix: GpsFix, lever_arm_b: np.ndarray, sigma_floor_m: float) -> None:
+    """Position from a fix alone: the antenna at the fix, the IMU a lever arm away; position variance
+    the fix's, uncorrelated with the rest (a first fix, or a re-initialisation)."""
+    sigma_h, sigma_v = gps_sigmas(fix, sigma_floor_m)
+    state.p = np.asarray(fix.p_ned, dtype=float) - state.R @ np.asarray(lever_arm_b, dtype=float)
+    state.cov[0:3, :] = 0.0
+    state.cov[:, 0:3] = 0.0
+    state.cov[0:3, 0:3] = np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
+
+
 class GpsModel:
     """Measurement function and its analytic Jacobian (tested against central differences)."""
 

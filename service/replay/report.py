@@ -29,7 +29,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         "estimates": int(len(traj.t_ns)),
         "initialised": est.initialized,
         "heading_aligned": est.heading_aligned,
-        "heading_source": "in-motion alignment" if est.alignment is not None else "known" if est.heading_aligned else "unknown",
+        "heading_source": "heading bank" if est.heading_placement is not None else "known" if est.heading_aligned else "unknown",
         "reset_counter": est.reset_counter,
         "sensors": est.counts_report(),
         "skipped_lines": dict(dataset.skipped),
@@ -42,15 +42,11 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         report["health"] = result.health
     if result.failures:
         report["failures"] = result.failures
-    if est.alignment is not None:
-        a = est.alignment
-        report["alignment"] = {
-            "t_s": round((a.t_ns - int(traj.t_ns[0])) * 1e-9, 3) if len(traj.t_ns) else None,
-            "sigma_roll_pitch_heading_deg": np.degrees(np.sqrt(np.diag(a.cov)[6:9])).tolist(),
-            "residual_ratio": a.residual_ratio,
-            "window_s": a.window_s,
-            "fixes": a.n_fixes,
-        }
+    if est.heading_placement is not None:
+        placed = dict(est.heading_placement)
+        t_placed = placed.pop("t_ns")
+        report["heading_placement"] = {"t_s": round((t_placed - int(traj.t_ns[0])) * 1e-9, 3) if len(traj.t_ns) else None,
+                                       **placed}
     if est.state is not None:
         report["final_biases"] = {"gyro_rad_s": est.state.b_g.tolist(), "accel_m_s2": est.state.b_a.tolist()}
     camera = camera_summary(result)
