@@ -390,8 +390,11 @@ class Estimator:
         self.events.append((fix.t_ns, "position initialised from GPS"))
 
     def _reset_from_gps(self, fix: GpsFix) -> None:
-        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong."""
+        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong — and a
+        heading the filter found itself may be what is wrong with it: that is searched for again."""
         state = self.state
+        if self.heading_placement is not None and self.heading_aligned:
+            self.heading_aligned = False  # _reset forgets it and restarts the hypotheses
         self._init_position(fix)
         state.cov[3:6, :] = 0.0
         state.cov[:, 3:6] = 0.0
@@ -489,6 +492,8 @@ class Estimator:
         # The mean rate of a still IMU is its bias; its variance is what the samples' scatter says,
         # never less than the white-noise density allows over the chunk.
         r = np.maximum(chunk.gyro_var_of_mean, self.noise.gyro_noise_density**2 / chunk.duration_s)
+        if self._bank is not None:
+            self._bank.at_rest(chunk.gyro_mean, r, sigma)
         if self.layout.estimates_biases:
             if held is not None:
                 held = held.copy()

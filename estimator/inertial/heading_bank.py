@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, innovation_covariance
+from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update, innovation_covariance
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import quat_mul, rotvec_quat, yaw_of
 from vtolpose.estimator.core.state import FilterState, StateLayout
@@ -149,6 +149,13 @@ class HeadingBank:
         w = self.log_weights + log_like
         self.log_weights = w - _logsumexp(w)
         self.fixes += 1
+
+    def at_rest(self, gyro_mean: np.ndarray, gyro_var: np.ndarray, zupt_sigma: float) -> None:
+        """A still chunk (``inertial/stillness``): zero velocity and the gyro bias, in every hypothesis
+        alike (neither says anything about the heading, so the weights stay)."""
+        for member in self.members:
+            ekf_update(member, slice(3, 6), np.eye(3), -member.v, np.eye(3) * zupt_sigma**2)
+            ekf_update(member, slice(9, 12), np.eye(3), gyro_mean - member.b_g, np.diag(gyro_var))
 
     def heading(self) -> tuple[float, float]:
         """The mixture's heading [rad] and its sigma [rad] (its spread by weight plus each hypothesis' own)."""
