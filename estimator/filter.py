@@ -38,6 +38,7 @@ from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
+_POSE = np.r_[0:3, 6:9]  # [δp, δθ] within [δp, δv, δθ]
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
 
 
@@ -111,7 +112,8 @@ class Estimator:
         self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
         self._gap = GapWidener(opts.health, opts.max_imu_gap_s)
         self._downsampler = ImuDownsampler(opts.max_filter_rate_hz)
-        self._horizontal_accel = 0.0
+        self._horizontal_accel = np.zeros(2)  # horizontal acceleration, averaged (see _propagate)
+        self._accel_at_rest = np.zeros(2)  # what it read at the last still chunk
         self._last_imu_t: int | None = None
         self._lost_before_next_s = 0.0  # refused IMU data the next sample must account for (imu_discontinuity)
         self._gyro = np.zeros(3)
@@ -183,21 +185,34 @@ class Estimator:
             if self._bank is not None:
                 self._bank.propagate(delta)
             # An unknown heading misplaces the horizontal acceleration by up to twice its size;
-            # at rest that is nothing, so the filter can still tell it is at rest.
-            extra = max(self.options.unaligned_accel_noise, 2.0 * self._horizontal_accel)
+            # at rest that is nothing, so the filter can still tell it is at rest. The vehicle's
+            # acceleration, that is: vibration (zero mean, tens of hertz) is in the IMU noise
+            # already, so it is averaged over init.average_s first.
+            # At rest it reads what the tilt and accelerometer bias errors make of gravity, not motion:
+            # that reading, kept from the last still chunk, is taken off.
+            extra = max(self.options.unaligned_accel_noise, 2.0 * math.hypot(*(self._horizontal_accel - self._accel_at_rest)))
         a_w = self.propagator.propagate(self.state, delta, extra)
-        self._horizontal_accel = math.hypot(a_w[0], a_w[1])
+        keep = self.options.init.average_s / (self.options.init.average_s + delta.dt)
+        self._horizontal_accel = keep * self._horizontal_accel + (1.0 - keep) * a_w[:2]
         self.state.t_ns = delta.t1_ns
-        if not self.heading_aligned:
-            self._forget_heading()
 
     def _forget_heading(self) -> None:
-        """While the heading is unknown its error is uncorrelated with everything and may be anything:
-        the variance of a heading uniform on the circle (what the outputs publish; no update touches it)."""
+        """The heading becomes unknown: the filter's frame gets an arbitrary yaw, a gauge rather than an
+        error (landmarks, if any, share it), so its variance starts from zero. What the heading may be —
+        anywhere on the circle — is what :meth:`published_cov9` says."""
         cov = self.state.cov
         cov[YAW, :] = 0.0
         cov[:, YAW] = 0.0
-        cov[YAW, YAW] = UNKNOWN_HEADING_VAR
+
+    def published_cov9(self) -> np.ndarray:
+        """Covariance of [δp, δv, δθ] as the outputs publish it: the filter's, except that an unknown
+        heading has the variance of a heading uniform on the circle, uncorrelated with the rest."""
+        cov9 = self.state.cov[:9, :9].copy()
+        if not self.heading_aligned:
+            cov9[YAW, :] = 0.0
+            cov9[:, YAW] = 0.0
+            cov9[YAW, YAW] = UNKNOWN_HEADING_VAR
+        return cov9
 
     def imu_discontinuity(self, lost_s: float) -> None:
         """``lost_s`` of IMU data before the next sample were refused (stamped in the past: a backward
@@ -269,8 +284,6 @@ class Estimator:
             self.camera.clear(self.state)
         self.reset_counter += 1
         self._bank = None  # its hypotheses followed the old estimate: they start again at the next fix
-        if not self.heading_aligned and self.state is not None:
-            self._forget_heading()
         self.health.record_reset(t_ns, kind, reason)
         self.events.append((t_ns, f"reset #{self.reset_counter}: {reason}"))
 
@@ -298,7 +311,6 @@ class Estimator:
         how = "still" if init.static else f"not still within {opts.init.max_wait_s:g} s: from the mean specific force"
         self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
         if not self.heading_aligned:
-            self._forget_heading()
             self._bank = self._new_bank(state, None)
         # A fix from before the start places a still vehicle; a moving one waits for the next fix.
         if init.static and self._pending_fix is not None and (init.t_ns - self._pending_fix.t_ns) < 1e9:
@@ -355,8 +367,10 @@ class Estimator:
             counts.used += 1
             self.health.measured("gps", fix.t_ns, used=True)
             return UpdateOutcome(True, 0.0, 3, "position initialised")
-        held = None if self.heading_aligned else self._held_until_aligned()
-        outcome = self.gps.update(state, fix, held=held)
+        if self.heading_aligned:
+            outcome = self.gps.update(state, fix)
+        else:
+            outcome = self.gps.update_heading_unknown(state, fix, self._held_until_aligned())
         if outcome.accepted:
             counts.used += 1
         else:
@@ -394,7 +408,8 @@ class Estimator:
         heading the filter found itself may be what is wrong with it: that is searched for again."""
         state = self.state
         if self.heading_placement is not None and self.heading_aligned:
-            self.heading_aligned = False  # _reset forgets it and restarts the hypotheses
+            self.heading_aligned = False  # and _reset restarts the hypotheses
+            self._forget_heading()
         self._init_position(fix)
         state.cov[3:6, :] = 0.0
         state.cov[:, 3:6] = 0.0
@@ -419,8 +434,14 @@ class Estimator:
             self.health.measured("camera", t_ns, used=False)  # alive (frames arrive), not usable
             return FrameReport(t_ns, False, reason, n_features=len(features))
         self._propagate_to(t_ns)
-        held = None if self.heading_aligned else self._held_until_aligned()
-        report = self.camera.process(self.state, features, t_ns, self.heading_aligned, self.position_initialized, held)
+        # Before the heading is known, landmarks live in the frame of arbitrary yaw with the rest of the
+        # camera geometry (consistent with itself, so only the heading is held) and go when it is placed:
+        # at rest on the pad the camera holds the pose from the first frames.
+        held = None
+        if not self.heading_aligned:
+            held = np.zeros(self.state.dim, dtype=bool)
+            held[YAW] = True
+        report = self.camera.process(self.state, features, t_ns, True, self.position_initialized, held)
         if report.accepted:
             counts.used += 1
         else:
@@ -482,13 +503,16 @@ class Estimator:
         counts = self.counts["still"]
         counts.received += 1
         state = self.state
-        held = None if self.heading_aligned else self._held_until_aligned()
+        # Zero velocity holds in any frame, that of arbitrary yaw included: it may correct tilt and
+        # biases before the heading is known (the heading itself is uncorrelated with them then).
+        held = None
         sigma = self.options.still.zupt_sigma
         zupt = ekf_update(state, slice(3, 6), np.eye(3), -state.v, np.eye(3) * sigma**2, chi2_gate(3, 0.999), held)
         if not zupt.accepted:
             counts.reject(f"zupt_{zupt.reason.replace(' ', '_')}")
             return
         counts.used += 1
+        self._accel_at_rest = self._horizontal_accel.copy()
         # The mean rate of a still IMU is its bias; its variance is what the samples' scatter says,
         # never less than the white-noise density allows over the chunk.
         r = np.maximum(chunk.gyro_var_of_mean, self.noise.gyro_noise_density**2 / chunk.duration_s)
@@ -518,7 +542,7 @@ class Estimator:
             v=state.v.copy(),
             q=state.q.copy(),
             omega_b=self._gyro - state.b_g,
-            pose_cov=state.pose_covariance(),
+            pose_cov=self.published_cov9()[np.ix_(_POSE, _POSE)],
             vel_cov=state.cov[3:6, 3:6].copy(),
             heading_aligned=self.heading_aligned,
             reset_counter=self.reset_counter,

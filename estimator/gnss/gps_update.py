@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update
+from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update, innovation_covariance, normalized_innovation
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import skew
 from vtolpose.estimator.core.state import FilterState
@@ -69,3 +69,18 @@ class GpsUpdater:
         return ekf_update(
             state, GPS_COLS, self.model.jacobian(state), self.residual(state, fix), self.noise(fix), self.gate, held
         )
+
+    def update_heading_unknown(self, state: FilterState, fix: GpsFix, held_horizontal: np.ndarray) -> UpdateOutcome:
+        """While the filter's frame has an arbitrary yaw: gated on all three axes, then the height fused
+        into everything (its relation to tilt and biases does not depend on the heading) and the
+        horizontal position into what ``held_horizontal`` leaves free (there it does)."""
+        H, residual, R = self.model.jacobian(state), self.residual(state, fix), self.noise(fix)
+        nis = normalized_innovation(innovation_covariance(state, GPS_COLS, H, R), residual)
+        if nis is None or not np.all(np.isfinite(residual)):
+            return UpdateOutcome(False, float("nan"), 3, "singular innovation covariance" if nis is None else "non-finite residual")
+        if self.gate is not None and nis > self.gate:
+            return UpdateOutcome(False, nis, 3, "chi2 gate")
+        ekf_update(state, GPS_COLS, H[2:], residual[2:], R[2:, 2:])
+        horizontal = self.residual(state, fix)[:2]
+        ekf_update(state, GPS_COLS, self.model.jacobian(state)[:2], horizontal, R[:2, :2], None, held_horizontal)
+        return UpdateOutcome(True, nis, 3)

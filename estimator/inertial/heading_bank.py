@@ -159,21 +159,27 @@ class HeadingBank:
 
     def heading(self) -> tuple[float, float]:
         """The mixture's heading [rad] and its sigma [rad] (its spread by weight plus each hypothesis' own)."""
-        weights = self.weights
-        headings = np.array([yaw_of(m.q) for m in self.members])
-        variances = np.array([m.cov[YAW, YAW] for m in self.members])
-        mean, var = circular_spread(headings, weights, variances)
+        mean, var = circular_spread(self._headings(), self.weights, self._variances())
         return mean, math.sqrt(var)
 
     def placed(self) -> FilterState | None:
-        """The best hypothesis, with the mixture's heading variance, once that is below ``place_sigma_deg``."""
+        """The best hypothesis once the mixture's sigma is below ``place_sigma_deg``, its heading variance the
+        mixture's about *its* heading (the others' weight still counts against it)."""
         _, sigma = self.heading()
         if sigma > math.radians(self.options.place_sigma_deg):
             return None
-        best = self.members[int(np.argmax(self.log_weights))]
-        state = best.copy()
-        state.cov[YAW, YAW] = max(state.cov[YAW, YAW], sigma**2)
+        k = int(np.argmax(self.log_weights))
+        headings = self._headings()
+        offset = np.angle(np.exp(1j * (headings - headings[k])))
+        state = self.members[k].copy()
+        state.cov[YAW, YAW] = max(state.cov[YAW, YAW], float(self.weights @ (self._variances() + offset**2)))
         return state
+
+    def _headings(self) -> np.ndarray:
+        return np.array([yaw_of(m.q) for m in self.members])
+
+    def _variances(self) -> np.ndarray:
+        return np.array([m.cov[YAW, YAW] for m in self.members])
 
 
 def _logsumexp(x: np.ndarray) -> float:
