@@ -15,6 +15,7 @@ hypotheses (``inertial/heading_bank.py``) places it from GPS once the motion sho
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,12 +34,13 @@ from vtolpose.estimator.inertial.heading_bank import (
     UNKNOWN_HEADING_VAR, YAW, HeadingBank, HeadingBankOptions, with_bias_states,
 )
 from vtolpose.estimator.inertial.propagator import ImuPropagator
-from vtolpose.estimator.inertial.startup import state_from_static
+from vtolpose.estimator.inertial.startup import state_from_static, velocity_from_fixes
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
 _POSE = np.r_[0:3, 6:9]  # [δp, δθ] within [δp, δv, δθ]
+VELOCITY_FIT_S = 1.0  # the fixes before the start that give its velocity (a constant acceleration holds that long)
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
 
 
@@ -107,7 +109,7 @@ class Estimator:
         self._leveller: GravityLeveller | None = None
         self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, 0
         self._fixed_bias_var = np.zeros(3)  # thesis variant: variance of its calibrated gyro bias
-        self._pending_fix: GpsFix | None = None
+        self._fixes_before_start: deque[GpsFix] = deque(maxlen=64)  # the GPS heard while the IMU window fills
         self._last_fix: GpsFix | None = None  # the latest usable fix (a reset re-initialises from it)
         self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
         self._gap = GapWidener(opts.health, opts.max_imu_gap_s)
@@ -164,7 +166,7 @@ class Estimator:
             init = self._initializer.add(t_ns, gyro, accel)
             if init is not None:
                 self._downsampler.flush()  # the filter starts at this sample
-                self._start_still(init)
+                self._start(init)
             return True
         if delta is not None:
             self._propagate(delta)
@@ -303,19 +305,31 @@ class Estimator:
         self._level_t0 = state.t_ns
         self.events.append((state.t_ns, message))
 
-    def _start_still(self, init: InitialAttitude) -> None:
+    def _start(self, init: InitialAttitude) -> None:
+        """Start from the IMU window; the GPS heard meanwhile gives the velocity. A window that looks
+        still to the IMU is also what steady straight flight (or a steady turn) looks like: if the
+        fixes say the vehicle moves, it is no still start."""
         opts = self.options
+        window = [f for f in self._fixes_before_start if init.t_ns - f.t_ns < VELOCITY_FIT_S * 1e9]
+        self._fixes_before_start.clear()
+        velocity = velocity_from_fixes(window, init.t_ns, opts.gps_sigma_floor_m)
+        moving = velocity is not None and chi2_gate(3, 0.999) < float(velocity[0] @ np.linalg.solve(velocity[1], velocity[0]))
+        if init.static and moving:
+            init = self._initializer.as_moving(init)
         state = state_from_static(self.layout, init, opts.init, self._heading_sigma)
+        if velocity is not None and not init.static:
+            state.v = velocity[0]
+            state.cov[3:6, 3:6] = velocity[1]
         self._fixed_bias_var = np.full(3, init.sigma_gyro_bias**2)
         self.heading_aligned = self._heading_known
-        how = "still" if init.static else f"not still within {opts.init.max_wait_s:g} s: from the mean specific force"
+        how = ("still" if init.static else "moving (GPS)" if moving
+               else f"not still within {opts.init.max_wait_s:g} s: from the mean specific force")
         self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
         if not self.heading_aligned:
             self._bank = self._new_bank(state, None)
-        # A fix from before the start places a still vehicle; a moving one waits for the next fix.
-        if init.static and self._pending_fix is not None and (init.t_ns - self._pending_fix.t_ns) < 1e9:
-            self._init_position(self._pending_fix)
-        self._pending_fix = None
+        # The last fix places a still vehicle; a moving one waits for the next fix.
+        if init.static and window and (init.t_ns - window[-1].t_ns) < 1e9:
+            self._init_position(window[-1])
 
     def _new_bank(self, state: FilterState, velocity_sigma: float | None) -> HeadingBank:
         """Hypotheses around ``state``; they always carry bias states (the thesis model takes its fixed
@@ -357,7 +371,7 @@ class Estimator:
             counts.reject("older_than_filter")
             return None
         if state is None:
-            self._pending_fix = fix
+            self._fixes_before_start.append(fix)
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)

@@ -107,6 +107,11 @@ class StaticInitializer:
             return None
         return self._solve(t_ns, g, a, g_means, static)
 
+    def as_moving(self, init: InitialAttitude) -> InitialAttitude:
+        """``init`` judged again as a moving start (the GPS says the "still" window was steady motion)."""
+        g, a = np.array(self._gyro), np.array(self._accel)
+        return self._solve(init.t_ns, g, a, block_means(np.array(self._t), g, self.options.average_s), False)
+
     def _solve(self, t_ns: int, g: np.ndarray, a: np.ndarray, g_means: np.ndarray, static: bool) -> InitialAttitude:
         opts = self.options
         f_mean = a.mean(axis=0)
