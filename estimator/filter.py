@@ -189,10 +189,10 @@ class Estimator:
             # An unknown heading misplaces the horizontal acceleration by up to twice its size;
             # at rest that is nothing, so the filter can still tell it is at rest. The vehicle's
             # acceleration, that is: vibration (zero mean, tens of hertz) is in the IMU noise
-            # already, so it is averaged over init.average_s first.
-            # At rest it reads what the tilt and accelerometer bias errors make of gravity, not motion:
-            # that reading, kept from the last still chunk, is taken off.
-            extra = max(self.options.unaligned_accel_noise, 2.0 * math.hypot(*(self._horizontal_accel - self._accel_at_rest)))
+            # already, so it is averaged over init.average_s first, and what the tilt and bias
+            # errors make of gravity (the reading at the last still chunk) is taken off.
+            accel = self._horizontal_accel - self._accel_at_rest
+            extra = max(self.options.unaligned_accel_noise, 2.0 * math.hypot(accel[0], accel[1]))
         a_w = self.propagator.propagate(self.state, delta, extra)
         keep = self.options.init.average_s / (self.options.init.average_s + delta.dt)
         self._horizontal_accel = keep * self._horizontal_accel + (1.0 - keep) * a_w[:2]
@@ -519,9 +519,8 @@ class Estimator:
         state = self.state
         # Zero velocity holds in any frame, that of arbitrary yaw included: it may correct tilt and
         # biases before the heading is known (the heading itself is uncorrelated with them then).
-        held = None
         sigma = self.options.still.zupt_sigma
-        zupt = ekf_update(state, slice(3, 6), np.eye(3), -state.v, np.eye(3) * sigma**2, chi2_gate(3, 0.999), held)
+        zupt = ekf_update(state, slice(3, 6), np.eye(3), -state.v, np.eye(3) * sigma**2, chi2_gate(3, 0.999))
         if not zupt.accepted:
             counts.reject(f"zupt_{zupt.reason.replace(' ', '_')}")
             return
@@ -533,10 +532,7 @@ class Estimator:
         if self._bank is not None:
             self._bank.at_rest(chunk.gyro_mean, r, sigma)
         if self.layout.estimates_biases:
-            if held is not None:
-                held = held.copy()
-                held[self.layout.BG] = False
-            ekf_update(state, self.layout.BG, np.eye(3), chunk.gyro_mean - state.b_g, np.diag(r), None, held)
+            ekf_update(state, self.layout.BG, np.eye(3), chunk.gyro_mean - state.b_g, np.diag(r))
         else:
             # Thesis model: the bias is a calibration constant; refine it as a per-axis
             # weighted mean, the older value aged by the bias random walk.
