@@ -22,7 +22,7 @@ def initial_covariance(layout: StateLayout, init: InitialAttitude, opts: InitOpt
     accelerations "confirm" a wrong tilt. When g was taken from the same window, the bias
     component along gravity is already absorbed and gets a small variance. ``sigma_yaw`` is
     zero when the heading is unknown: the filter then works in a frame of arbitrary yaw
-    until the in-motion alignment places it.
+    until the heading bank places it.
     """
     n = layout.robot_dim
     cov = np.zeros((n, n))
