@@ -160,3 +160,20 @@ def test_a_flight_that_never_accelerates_horizontally_never_claims_a_heading(nev
     tilt = np.degrees(rotation_angle(run.q[on], run.truth_q[on]))  # includes the arbitrary heading ...
     heading = np.degrees(heading_error(run)[on])
     assert np.all(np.abs(tilt - heading) < 2.0)  # ... which is all of the difference
+
+
+def test_the_replay_report_scores_attitude_once_the_heading_is_placed(tmp_path) -> None:
+    from vtolpose.config import load_config
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.drivers.simulator import simulate_flight
+    from vtolpose.drivers.simulator.export import write_flight
+    from vtolpose.service.replay.report import build_report, summary_lines
+    from vtolpose.service.replay.session import replay
+
+    write_flight(simulate_flight("book", 30.0, 2), tmp_path / "book")
+    dataset = Dataset.open(tmp_path / "book")
+    cfg = load_config(None, {"estimator": {"heading": {"source": "gps"}}})  # the dataset's heading unused
+    report = build_report(replay(dataset, cfg, ["imu", "gps"]), dataset, cfg)
+    assert report["heading_source"] == "heading bank" and report["heading_placement"]["sigma_deg"] < 10.0
+    assert report["attitude_rmse_with_heading_deg"] < 2.0 < report["attitude_rmse_deg"]  # before: any heading
+    assert "once the heading is placed" in summary_lines(report)[2]
