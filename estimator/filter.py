@@ -27,6 +27,7 @@ from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts
+from vtolpose.estimator.core.rotation import quat_from_euler, yaw_of
 from vtolpose.estimator.inertial.motion_alignment import MotionAligner, MotionAlignment, MotionAlignOptions
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.inertial.startup import state_from_alignment, state_from_static
@@ -104,6 +105,7 @@ class Estimator:
         self._fixes_before_start = 0
         self._pending_fix: GpsFix | None = None
         self._last_fix: GpsFix | None = None  # the latest usable fix (a reset re-initialises from it)
+        self._gps_reset_t: int | None = None  # the last reset for rejected fixes (a second one soon after re-aligns)
         self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
         self._gap = GapWidener(opts.health, opts.max_imu_gap_s)
         self._downsampler = ImuDownsampler(opts.max_filter_rate_hz)
@@ -365,14 +367,39 @@ class Estimator:
         self.events.append((fix.t_ns, "position initialised from GPS"))
 
     def _reset_from_gps(self, fix: GpsFix) -> None:
-        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong."""
-        state = self.state
+        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong.
+
+        The first time, position and velocity are taken from GPS. If the fixes are still refused
+        right after that, the attitude is wrong too (a damaged gyro reading turned it): attitude,
+        heading and biases are found again by the in-motion alignment, as at a start without a heading.
+        """
+        state, after_s = self.state, self.options.gps_reset_after_s
+        again = self._gps_reset_t is not None and (fix.t_ns - self._gps_reset_t) * 1e-9 <= 2.0 * after_s
+        self._gps_reset_t = fix.t_ns
         self._init_position(fix)
         state.cov[3:6, :] = 0.0
         state.cov[:, 3:6] = 0.0
         state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
-        self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {self.options.gps_reset_after_s:g} s; "
-                    "position and velocity re-initialised from GPS")
+        what = "position and velocity re-initialised from GPS"
+        if again and self.heading_aligned:  # (once re-aligning, its window must not be restarted)
+            self._realign()
+            what += "; still refused after the last reset: attitude and heading re-aligned in motion"
+        self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {after_s:g} s; {what}")
+
+    def _realign(self) -> None:
+        """The attitude starts again level at its last heading, as a moving start does (a helicopter in
+        cruise is within a few degrees of level; a corrupted attitude may be upside down, beyond what an
+        update can pull back); gravity then levels it and the in-motion alignment finds the heading."""
+        opts, cal, state = self.options, self.calibration, self.state
+        state.q = quat_from_euler(0.0, 0.0, float(yaw_of(state.q)))
+        self.heading_aligned = False
+        self._aligner = MotionAligner(opts.align, cal.imu.gravity, cal.gps.lever_arm_b)
+        self._aligner.set_bias_prior(np.zeros(3), opts.init.sigma_gyro_bias, np.zeros(3), opts.init.sigma_accel_bias)
+        sigma = math.radians(opts.init.sigma_attitude_moving_deg)
+        state.cov[6:9, :] = 0.0
+        state.cov[:, 6:9] = 0.0
+        state.cov[6:9, 6:9] = np.eye(3) * sigma**2
+        self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, state.t_ns
 
     # ------------------------------------------------------------------------------ camera
     def process_features(self, features: FrameFeatures) -> FrameReport:

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from vtolpose.config.yaml_limits import UnsafeYaml, load_bounded, read_bounded
 from vtolpose.estimator.core.calibration import (
     STANDARD_GRAVITY,
     Calibration,
@@ -42,9 +43,12 @@ class CalibrationError(ValueError):
 
 
 def load_yaml_file(path: Path) -> Any:
-    """The document in a small YAML file; CalibrationError names the file when it cannot be read as one."""
+    """The document in a small YAML file; CalibrationError names the file when it cannot be read as one
+    (including a file too large, or aliases that would expand without bound: ``vtolpose.config.yaml_limits``)."""
     try:
-        return yaml.safe_load(path.read_text(encoding="utf-8"))
+        return load_bounded(read_bounded(path))
+    except UnsafeYaml as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
     except UnicodeDecodeError as exc:
         raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     except yaml.YAMLError as exc:
@@ -60,7 +64,10 @@ class YamlReader:
         self.source = source
 
     def fail(self, key: str, expected: str, got: Any) -> CalibrationError:
-        return CalibrationError(f"{self.source}: {key}: expected {expected}, got {got!r}")
+        shown = repr(got)
+        if len(shown) > 120:  # never echo a huge value in full
+            shown = f"{shown[:120]}… ({len(shown)} characters)"
+        return CalibrationError(f"{self.source}: {key}: expected {expected}, got {shown}")
 
     def mapping(self, value: Any, key: str, allowed: set[str], required: tuple[str, ...] = ()) -> dict:
         if value is None:

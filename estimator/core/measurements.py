@@ -6,6 +6,7 @@ Times are integer nanoseconds on one monotonic clock; values are SI and already 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,6 +19,23 @@ class ImuSample:
     t_ns: int
     gyro: np.ndarray
     accel: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class ImuRange:
+    """The largest angular rate [rad/s] and specific force [m/s^2] the IMU measures on any axis.
+
+    A reading beyond it is no motion but a damaged sample (a flipped bit, a unit error, a corrupt
+    row): integrated for even one step it can turn the attitude over, so it is refused instead.
+    """
+
+    gyro: float
+    accel: float
+
+    def exceeded(self, gyro: np.ndarray, accel: np.ndarray) -> bool:
+        """True for a finite reading beyond the range (a non-finite one is counted as such elsewhere)."""
+        g, a = max(map(abs, gyro.tolist())), max(map(abs, accel.tolist()))
+        return (g > self.gyro or a > self.accel) and math.isfinite(g + a)
 
 
 @dataclass(frozen=True, slots=True)

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
 from vtolpose.drivers.files.tum import TUM_HEADER, tum_line
 from vtolpose.estimator.fusion import OutputPose
+
+log = logging.getLogger(__name__)
 
 
 class TrajectoryFile:
@@ -19,6 +22,7 @@ class TrajectoryFile:
         self._file.write(TUM_HEADER + "\n")
         self.lines = 0
         self.skipped = 0
+        self.error: str | None = None  # why the end of the file could not be written (a full disk), if so
 
     def write(self, pose: OutputPose) -> None:
         w, x, y, z = pose.q.tolist()
@@ -33,5 +37,13 @@ class TrajectoryFile:
         self._file.flush()
 
     def close(self) -> None:
-        if not self._file.closed:
-            self._file.close()
+        """Write what is buffered and close. A write error here (a full disk) is logged and kept in
+        ``error``, never raised: it must not turn the clean stop of a run into a failure."""
+        if self._file.closed:
+            return
+        try:
+            self._file.close()  # closed even when its last flush fails
+        except OSError as exc:
+            self.error = exc.strerror or str(exc)
+            log.error("trajectory file %s: its last lines could not be written (%s); %d lines were given to it",
+                      self.path, self.error, self.lines)
