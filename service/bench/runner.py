@@ -28,6 +28,7 @@ from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.camera import bench_camera_update, bench_features, bench_replay_camera
+from vtolpose.service.bench.zenoh_queries import bench_zenoh_queries
 from vtolpose.service.replay.session import replay
 
 Row = tuple[str, float, str, str]
@@ -89,11 +90,12 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "soak-camera": bench_soak_camera,
     "fault-targets": bench_fault_targets,
     "fault-table": bench_fault_table,
+    "zenoh-queries": bench_zenoh_queries,
 }
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table")
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "zenoh-queries")
 
 
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:

@@ -90,11 +90,11 @@ def build_runtime(
             cfg["outputs.mavlink.rate_hz"], key, cfg["outputs.mavlink.require_signing"],
         ))
     if cfg["outputs.zenoh.enabled"]:
-        from vtolpose.service.outputs.zenoh import ZenohOutput
+        from vtolpose.service.outputs.zenoh import QueryLimits, ZenohOutput
         from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
         runtime.outputs.append(ZenohOutput(ZenohSettings.from_config(cfg), zenoh_prefix(cfg), runtime.history,
-                                           runtime.history_lock, lambda: runtime.origin()))
+                                           runtime.history_lock, lambda: runtime.origin(), QueryLimits.from_config(cfg)))
     return runtime
 
 
