@@ -1,0 +1,103 @@
+"""Memory of a paced run: does anything grow once the pose history is full?
+
+A landfill flight is replayed in real time (``--speed 1``) through the runtime with both outputs
+on, for ``minutes``. Resident memory (RSS, less what tracemalloc itself holds) and the memory
+Python allocated (tracemalloc, one frame per allocation) are sampled every minute; at the end the
+allocation sites that grew most since the history filled are listed. Figures: growth per minute
+over the first and the second half of the time after the fill.
+
+What it showed (issue 18): RSS grows about 1.5 MB/min for roughly ten minutes after the history
+fills, then stays flat. That is the pose history's array: it doubles to a larger buffer once (np.zeros,
+whose pages the kernel maps only when written), and each new row then touches fresh memory until
+the write position reaches the buffer's end and slides back. Bounded by the buffer (13 MB at
+125 Hz and 120 s); not a leak.
+
+Run: ``vtolpose bench --only memory-paced`` (an hour) or
+``python -m vtolpose.service.bench.memory_paced MINUTES``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+from typing import Callable
+
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.service.runtime.replay_feed import replay_async
+from vtolpose.service.runtime.status import resident_memory_mb
+
+Row = tuple[str, float, str, str]
+
+
+def _free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _slope(samples: list[tuple[float, float]]) -> float:
+    """Growth per minute between the first and the last sample."""
+    (t0, m0), (t1, m1) = samples[0], samples[-1]
+    return (m1 - m0) / max((t1 - t0) / 60.0, 1e-9)
+
+
+def bench_memory_paced(minutes: float = 60.0, echo: Callable[[str], None] = print) -> list[Row]:
+    """RSS and Python allocations per minute of a paced replay with both outputs, after the history fills."""
+    cfg = load_config(None, {"outputs": {
+        "mavlink": {"enabled": True, "url": f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"},
+        "zenoh": {"enabled": True, "listen": [f"tcp/127.0.0.1:{_free_port()}"]}}})
+    fill_s = cfg["outputs.zenoh.history_s"] + 30.0
+    rss: list[tuple[float, float]] = []
+    traced: list[tuple[float, float]] = []
+    top: list[str] = []
+
+    async def probe(t0: float) -> None:
+        base = None
+        while True:
+            await asyncio.sleep(60.0)
+            el = time.monotonic() - t0
+            r = resident_memory_mb() - tracemalloc.get_tracemalloc_memory() / 1e6
+            p = tracemalloc.get_traced_memory()[0] / 1e6
+            echo(f"  [{el / 60:5.1f} min] RSS {r:7.1f} MB, Python allocations {p:6.2f} MB")
+            if el >= fill_s:
+                rss.append((el, r))
+                traced.append((el, p))
+                if base is None:
+                    base = tracemalloc.take_snapshot()
+                else:
+                    top[:] = [str(s) for s in tracemalloc.take_snapshot().compare_to(base, "lineno")[:3]]
+
+    async def run(root: Path) -> None:
+        task = asyncio.create_task(probe(time.monotonic()))
+        await replay_async(Dataset.open(root), cfg, speed=1.0, duration_s=minutes * 60.0, handle_signals=False)
+        task.cancel()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "landfill"
+        write_flight(simulate_flight("landfill", minutes * 60.0 + 60.0, 3), root)
+        tracemalloc.start(1)
+        try:
+            asyncio.run(run(root))
+        finally:
+            tracemalloc.stop()
+    half = len(rss) // 2
+    rows: list[Row] = []
+    if half >= 1:
+        rows += [("RSS growth, first half after the fill", _slope(rss[: half + 1]), "MB/min", f"{len(rss)} samples"),
+                 ("RSS growth, second half", _slope(rss[half:]), "MB/min", ""),
+                 ("Python allocations growth, second half", _slope(traced[half:]), "MB/min", "")]
+    rows += [(f"grew most: {line}", 0.0, "", "") for line in top]
+    return rows
+
+
+if __name__ == "__main__":
+    for label, value, unit, note in bench_memory_paced(float(sys.argv[1]) if len(sys.argv) > 1 else 60.0):
+        print(f"  {label:<60} {value:>8.3f} {unit:<7} {note}")
