@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
+import subprocess
 import sys
 import tempfile
 import time
@@ -29,8 +30,6 @@ from typing import Callable
 
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.simulator import simulate_flight
-from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.service.runtime.replay_feed import replay_async
 from vtolpose.service.runtime.status import resident_memory_mb
 
@@ -60,20 +59,21 @@ def bench_memory_paced(minutes: float = 60.0, echo: Callable[[str], None] = prin
     top: list[str] = []
 
     async def probe(t0: float) -> None:
-        base = None
+        base = None  # two snapshots only (at the fill and near the end): taking them churns memory too
         while True:
             await asyncio.sleep(60.0)
             el = time.monotonic() - t0
             r = resident_memory_mb() - tracemalloc.get_tracemalloc_memory() / 1e6
             p = tracemalloc.get_traced_memory()[0] / 1e6
             echo(f"  [{el / 60:5.1f} min] RSS {r:7.1f} MB, Python allocations {p:6.2f} MB")
-            if el >= fill_s:
-                rss.append((el, r))
-                traced.append((el, p))
-                if base is None:
-                    base = tracemalloc.take_snapshot()
-                else:
-                    top[:] = [str(s) for s in tracemalloc.take_snapshot().compare_to(base, "lineno")[:3]]
+            if el < fill_s:
+                continue
+            rss.append((el, r))
+            traced.append((el, p))
+            if base is None:
+                base = tracemalloc.take_snapshot()
+            elif not top and el >= minutes * 60.0 - 90.0:
+                top[:] = [str(s) for s in tracemalloc.take_snapshot().compare_to(base, "lineno")[:3]]
 
     async def run(root: Path) -> None:
         task = asyncio.create_task(probe(time.monotonic()))
@@ -82,7 +82,10 @@ def bench_memory_paced(minutes: float = 60.0, echo: Callable[[str], None] = prin
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "landfill"
-        write_flight(simulate_flight("landfill", minutes * 60.0 + 60.0, 3), root)
+        # Simulated in another process, so that this one holds only what a run holds.
+        subprocess.run([sys.executable, "-m", "vtolpose", "-q", "simulate", "--scenario", "landfill", "--duration",
+                        str(minutes * 60.0 + 60.0), "--seed", "3", "--no-camera", "--out", str(root)],
+                       check=True, capture_output=True)
         tracemalloc.start(1)
         try:
             asyncio.run(run(root))

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from pathlib import Path
+from typing import Iterator
 
 from vtolpose.drivers.files.tum import TUM_HEADER, tum_line
 from vtolpose.estimator.fusion import OutputPose
@@ -22,7 +24,7 @@ class TrajectoryFile:
         self._file.write(TUM_HEADER + "\n")
         self.lines = 0
         self.skipped = 0
-        self.error: str | None = None  # why the end of the file could not be written (a full disk), if so
+        self.error: str | None = None  # why some lines could not be written (a full disk), if so
 
     def write(self, pose: OutputPose) -> None:
         w, x, y, z = pose.q.tolist()
@@ -30,11 +32,22 @@ class TrajectoryFile:
         if not all(map(math.isfinite, values)):
             self.skipped += 1
             return
-        self._file.write(tum_line(pose.t_ns, values) + "\n")
+        with self._noting_errors():
+            self._file.write(tum_line(pose.t_ns, values) + "\n")
         self.lines += 1
 
     def flush(self) -> None:
-        self._file.flush()
+        with self._noting_errors():
+            self._file.flush()
+
+    @contextlib.contextmanager
+    def _noting_errors(self) -> Iterator[None]:
+        """A write error (a full disk) is kept in ``error`` and raised to the caller, who counts it."""
+        try:
+            yield
+        except OSError as exc:
+            self.error = exc.strerror or str(exc)
+            raise
 
     def close(self) -> None:
         """Write what is buffered and close. A write error here (a full disk) is logged and kept in
@@ -45,5 +58,6 @@ class TrajectoryFile:
             self._file.close()  # closed even when its last flush fails
         except OSError as exc:
             self.error = exc.strerror or str(exc)
-            log.error("trajectory file %s: its last lines could not be written (%s); %d lines were given to it",
+        if self.error is not None:
+            log.error("trajectory file %s is incomplete (%s): not all of the %d lines given to it were written",
                       self.path, self.error, self.lines)

@@ -166,22 +166,25 @@ class ZenohOutput:
             s.declare_queryable(keys[1], lambda q: self._on_query(q, "trajectory")),
             s.liveliness().declare_token(f"{self.prefix}/service/{s.zid()}"),
         ]
-        log.info("Zenoh %s session %s: %s; publishing under %s/ (a mapper connects with "
-                 "PoseClient(%r, connect=[...one of these endpoints...]))",
-                 self.settings.mode, s.zid(), self.settings.endpoints_text(), self.prefix, self.prefix)
+        hint = ""
+        if self.settings.mode == "peer" and self.settings.listen:
+            endpoint = re.sub(r"/(0\.0\.0\.0|\[::\]):", "/<this computer's address>:", self.settings.listen[0])
+            hint = f"; a mapper connects with PoseClient({self.prefix!r}, connect=[{endpoint!r}])"
+        log.info("Zenoh %s session %s: %s; publishing under %s/%s", self.settings.mode, s.zid(),
+                 self.settings.endpoints_text(), self.prefix, hint)
 
     def close(self) -> None:
-        self._stop.set()
-        if self._worker is not None:
-            self._worker.join(timeout=5.0)
-            self._worker = None
-        self._refuse_waiting("the service is stopping")
-        for entity in self._entities:
+        for entity in self._entities:  # first: no new queries
             try:
                 entity.undeclare()
             except zenoh.ZError as exc:  # the session is closing anyway; undeclare the rest
                 log.debug("Zenoh undeclare on close: %s", exc)
         self._entities = []
+        self._stop.set()
+        if self._worker is not None:
+            self._worker.join(timeout=5.0)
+            self._worker = None
+        self._refuse_waiting("the service is stopping")
         if self.session is not None:
             self.session.close()
             self.session = None
