@@ -9,8 +9,8 @@ this process fires rounds of concurrent queries from one client session. The qui
 baseline of the same run; the loaded phases are given as ratios to it. Target: no pose lost and
 no pose later than one IMU period (8 ms at 125 Hz) more than in the quiet phase.
 
-Run: ``vtolpose bench --only zenoh-queries`` or ``python -m vtolpose.service.bench.zenoh_queries``
-(about 2 minutes, mostly waiting for the history to fill). Absolute figures depend on the machine
+Run: ``vtolpose bench --only zenoh-queries`` or ``python -m vtolpose.service.bench.zenoh_queries
+[--realtime PRIORITY]`` (about 2 minutes, mostly waiting for the history to fill). Absolute figures depend on the machine
 and its load (the three processes share it): compare the ratios to the quiet phase.
 """
 
@@ -54,9 +54,11 @@ class Stamps:
     def close(self): pass
 
 root, endpoint, duration = sys.argv[1], sys.argv[2], float(sys.argv[3])
+priority = None if sys.argv[4] == "none" else int(sys.argv[4])
 dataset = Dataset.open(root)
-cfg = load_config(None, {"outputs": {"zenoh": {"enabled": True, "listen": [endpoint]}}})
-runtime = build_runtime(cfg, dataset.calibration)
+cfg = load_config(None, {"outputs": {"zenoh": {"enabled": True, "listen": [endpoint]}},
+                         "run": {"realtime_priority": priority}})
+runtime = build_runtime(cfg, dataset.calibration, live=priority is not None)  # live: apply the priority
 stamps = Stamps()
 runtime.outputs.append(stamps)
 
@@ -152,15 +154,20 @@ class QueryLoad:
         self._thread.join(30.0)
 
 
-def bench_zenoh_queries(phase_s: float = 10.0, fill_s: float = 60.0, echo: Callable[[str], None] = print) -> list[Row]:
-    """Pose gaps and losses at a subscriber while clients flood the daemon's queryables (real processes)."""
+def bench_zenoh_queries(phase_s: float = 10.0, fill_s: float = 60.0, echo: Callable[[str], None] = print,
+                        realtime_priority: int | None = None) -> list[Row]:
+    """Pose lateness in the daemon and losses at a subscriber while a client floods the queryables.
+
+    ``realtime_priority``: the daemon's loop under SCHED_FIFO as ``run.realtime_priority`` sets it
+    on a vehicle (needs CAP_SYS_NICE), so that the machine's other load cannot delay it."""
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "landfill"
         write_flight(simulate_flight("landfill", fill_s + 6 * phase_s + 30.0, 5), root)
         total_s = fill_s + 6 * phase_s + 20.0
-        daemon = subprocess.Popen([sys.executable, "-c", _DAEMON, str(root), endpoint, str(total_s)],
+        daemon = subprocess.Popen([sys.executable, "-c", _DAEMON, str(root), endpoint, str(total_s),
+                                   str(realtime_priority) if realtime_priority is not None else "none"],
                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                   env={**os.environ, "PYTHONUNBUFFERED": "1"})
         assert daemon.stdout.readline().strip() == "ready", daemon.stderr.read()
@@ -232,5 +239,6 @@ def bench_zenoh_queries(phase_s: float = 10.0, fill_s: float = 60.0, echo: Calla
     return rows
 
 if __name__ == "__main__":
-    for label, value, unit, note in bench_zenoh_queries():
+    rt = int(sys.argv[sys.argv.index("--realtime") + 1]) if "--realtime" in sys.argv else None
+    for label, value, unit, note in bench_zenoh_queries(realtime_priority=rt):
         print(f"  {label:<56} {value:>10.4g} {unit:<6} {note}")
