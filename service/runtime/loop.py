@@ -107,7 +107,7 @@ class RunSummary:
     stopped_by: str
     latency_ms: dict[str, float]
     status: dict[str, Any]
-    trajectory_error: str | None = None  # the trajectory file's last write failed (a full disk)
+    trajectory_error: str | None = None  # a write to the trajectory file failed (a full disk): it is incomplete
 
 
 class Runtime:
