@@ -7,7 +7,7 @@ the service's modules move.
 """
 
 from vtolpose.estimator.pose_history import OutsideHistory, PoseWindow
-from vtolpose.service.outputs.pose_client import Pose, PoseClient, PoseUnavailable
+from vtolpose.service.outputs.pose_client import Pose, PoseClient, PoseUnavailable, ServiceUnreachable
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
-__all__ = ["OutsideHistory", "Pose", "PoseClient", "PoseUnavailable", "PoseWindow", "ZenohSettings"]
+__all__ = ["OutsideHistory", "Pose", "PoseClient", "PoseUnavailable", "PoseWindow", "ServiceUnreachable", "ZenohSettings"]

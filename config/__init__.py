@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+import re
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -16,8 +17,9 @@ import yaml
 
 from vtolpose.config.outputs import check_outputs
 from vtolpose.config.schema import SCHEMA, Field
+from vtolpose.config.yaml_limits import UnsafeYaml, load_bounded, read_bounded
 
-__all__ = ["ConfigError", "load_config", "default_config", "get", "validate"]
+__all__ = ["ConfigError", "Provenance", "load_config", "default_config", "get", "validate"]
 
 
 class ConfigError(ValueError):
@@ -26,7 +28,9 @@ class ConfigError(ValueError):
 
 def _read_yaml(text: str, origin: str) -> dict:
     try:
-        data = yaml.safe_load(text)
+        data = load_bounded(text)
+    except UnsafeYaml as exc:
+        raise ConfigError(f"{origin}: {exc}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
@@ -68,9 +72,23 @@ def _finite(x: int | float) -> bool:
         return False
 
 
+# YAML 1.1 (PyYAML) reads a number with an exponent but no point, such as 1e12, as text; YAML 1.2
+# and people read it as a number. A float key takes it as the number it is, then checks its range.
+_EXPONENT_NUMBER = re.compile(r"[-+]?[0-9]+(\.[0-9]*)?[eE][-+]?[0-9]+")
+
+
+def _shown(value: Any, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters: an error message never echoes a huge value in full."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text)} characters)"
+
+
 def _check(key: str, value: Any, field: Field, origin: str) -> Any:
     def fail(problem: str) -> ConfigError:
-        return ConfigError(f"{origin}: key '{key}': {problem} (got {value!r}, a {_type_name(value)})")
+        return ConfigError(f"{origin}: key '{key}': {problem} (got {_shown(value)}, a {_type_name(value)})")
+
+    if field.kind == "float" and isinstance(value, str) and _EXPONENT_NUMBER.fullmatch(value.strip()):
+        value = float(value)
 
     if value is None:
         if field.nullable:
@@ -147,32 +165,60 @@ def _merge(base: dict, override: dict) -> dict:
     return merged
 
 
-def _cross_checks(cfg: dict[str, Any], origin: str) -> None:
-    check_outputs(cfg, origin)
+class Provenance:
+    """Where each key's value came from (defaults, the config file, the command line).
+
+    A check across keys blames the source that gave the latest of their values: the one the user
+    most likely just changed. ``str()`` is the last source loaded (for messages about one layer).
+    """
+
+    def __init__(self, layers: list[str], sources: dict[str, str]) -> None:
+        self.layers = layers
+        self.sources = sources
+
+    def __call__(self, *keys: str) -> str:
+        # An element of a list key (``outputs.mavlink.endpoints[1].url``) came with its list.
+        given = [self.sources.get(k.split("[", 1)[0], self.layers[0]) for k in keys] or [self.layers[-1]]
+        return max(given, key=self.layers.index)
+
+    def __str__(self) -> str:
+        return self.layers[-1]
+
+
+def _cross_checks(cfg: dict[str, Any], where: Provenance) -> None:
+    check_outputs(cfg, where)
+
+
+def _read_config_file(path: Path) -> dict:
+    if not path.is_file():
+        raise ConfigError(f"config file {path}: not found")
+    try:
+        text = read_bounded(path)
+    except UnsafeYaml as exc:
+        raise ConfigError(f"config file {path}: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"config file {path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
+    return _read_yaml(text, f"config file {path}")
 
 
 def load_config(path: str | Path | None = None, overrides: dict | None = None) -> dict[str, Any]:
     """Defaults, then the file at ``path``, then ``overrides`` (nested dict); returns flat keys."""
     tree = default_config()
-    validate(tree, "config/default.yaml")
-    origin = "defaults"
+    layers = ["defaults"]
+    sources = dict.fromkeys(validate(tree, "config/default.yaml"), "defaults")
     if path is not None:
         path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"config file {path}: not found")
-        try:
-            text = path.read_text(encoding="utf-8")
-        except UnicodeDecodeError as exc:
-            raise ConfigError(f"config file {path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
-        user = _read_yaml(text, f"config file {path}")
-        validate(user, f"config file {path}")
+        user = _read_config_file(path)
+        layers.append(f"config file {path}")
+        sources.update(dict.fromkeys(validate(user, layers[-1]), layers[-1]))
         tree = _merge(tree, user)
-        origin = f"config file {path}"
     if overrides:
-        validate(overrides, "command line")
+        layers.append("command line")
+        sources.update(dict.fromkeys(validate(overrides, layers[-1]), layers[-1]))
         tree = _merge(tree, overrides)
-    cfg = validate(tree, origin)
-    _cross_checks(cfg, origin)
+    where = Provenance(layers, sources)
+    cfg = validate(tree, str(where))
+    _cross_checks(cfg, where)
     return cfg
 
 

@@ -7,14 +7,18 @@ that needs them is enabled. Each error names the key.
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
+
+log = logging.getLogger(__name__)
 
 from vtolpose.config.mavlink import check_mavlink
 
 ZENOH_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 ZENOH_OTHER_PROTOCOLS = ("unixsock-stream", "serial")
+ZENOH_ENCRYPTED_PROTOCOLS = ("tls", "quic")  # the protocols that use outputs.zenoh.tls.*
 _HOST = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+)$")
 
 
@@ -58,12 +62,22 @@ def zenoh_prefix(cfg: dict[str, Any]) -> str:
     return cfg["outputs.zenoh.prefix"] or f"vtolpose/{cfg['vehicle.name']}"
 
 
-def check_outputs(cfg: dict[str, Any], origin: str) -> None:
-    """Raise ConfigError naming the key of the first output setting that cannot work."""
+def _protocol(endpoint: str) -> str:
+    return endpoint.partition("/")[0]
+
+
+def check_outputs(cfg: dict[str, Any], origin: str | Callable[..., str]) -> None:
+    """Raise ConfigError naming the key of the first output setting that cannot work.
+
+    ``origin``: where the values came from, or a :class:`vtolpose.config.Provenance` that names the
+    source of the keys involved (a check across keys blames the one given last).
+    """
     from vtolpose.config import ConfigError
 
-    def fail(key: str, problem: str) -> ConfigError:
-        return ConfigError(f"{origin}: key '{key}': {problem}")
+    where = origin if callable(origin) else (lambda *keys: str(origin))
+
+    def fail(key: str, problem: str, *related: str) -> ConfigError:
+        return ConfigError(f"{where(key, *related)}: key '{key}': {problem}")
 
     check_mavlink(cfg, fail)
     for key, listen in (("outputs.zenoh.listen", True), ("outputs.zenoh.connect", False)):
@@ -72,18 +86,39 @@ def check_outputs(cfg: dict[str, Any], origin: str) -> None:
                 check_zenoh_endpoint(endpoint, listen)
             except ValueError as exc:
                 raise fail(key, str(exc)) from None
-    if cfg["outputs.zenoh.mode"] == "client" and cfg["outputs.zenoh.listen"]:
-        raise fail("outputs.zenoh.listen", "a client does not listen; use mode: peer, or connect to a router")
+    # The default listen endpoint is a peer's; a client ignores it, but one set by hand is a mistake.
+    if cfg["outputs.zenoh.mode"] == "client" and cfg["outputs.zenoh.listen"] and where("outputs.zenoh.listen") != "defaults":
+        raise fail("outputs.zenoh.listen", "a client does not listen; use mode: peer, or connect to a router",
+                   "outputs.zenoh.mode")
     prefix_key = "outputs.zenoh.prefix" if cfg["outputs.zenoh.prefix"] is not None else "vehicle.name"
     try:
         check_key_prefix(zenoh_prefix(cfg))
     except ValueError as exc:
         raise fail(prefix_key, f"as the Zenoh key prefix: {exc}") from None
     if cfg["outputs.zenoh.enabled"]:
-        for name in ("root_ca_certificate", "certificate", "private_key"):
-            path = cfg[f"outputs.zenoh.tls.{name}"]
+        for key in ("outputs.zenoh.config_file", *(f"outputs.zenoh.tls.{name}" for name in
+                                                    ("root_ca_certificate", "certificate", "private_key"))):
+            path = cfg[key]
             if path is not None and not Path(path).is_file():
-                raise fail(f"outputs.zenoh.tls.{name}", f"file {path} not found")
-        uses_tls = any(str(e).startswith("tls/") for e in cfg["outputs.zenoh.listen"] + cfg["outputs.zenoh.connect"])
-        if uses_tls and cfg["outputs.zenoh.tls.root_ca_certificate"] is None:
-            raise fail("outputs.zenoh.tls.root_ca_certificate", "tls/ endpoints need a root CA certificate")
+                raise fail(key, f"file {path} not found")
+        _check_zenoh_tls(cfg, fail)
+
+
+def _check_zenoh_tls(cfg: dict[str, Any], fail: Callable[..., Exception]) -> None:
+    """TLS files with only plain endpoints would run in plain text: refused; beside plain ones: a warning."""
+    listen = cfg["outputs.zenoh.listen"] if cfg["outputs.zenoh.mode"] == "peer" else []
+    endpoints = listen + cfg["outputs.zenoh.connect"]
+    encrypted = [e for e in endpoints if _protocol(e) in ZENOH_ENCRYPTED_PROTOCOLS]
+    plain = [e for e in endpoints if _protocol(e) not in ZENOH_ENCRYPTED_PROTOCOLS]
+    if any(_protocol(e) == "tls" for e in encrypted) and cfg["outputs.zenoh.tls.root_ca_certificate"] is None:
+        raise fail("outputs.zenoh.tls.root_ca_certificate", "tls/ endpoints need a root CA certificate",
+                   "outputs.zenoh.listen", "outputs.zenoh.connect")
+    tls_keys = [f"outputs.zenoh.tls.{name}" for name in ("root_ca_certificate", "certificate", "private_key")]
+    given = [k for k in tls_keys if cfg[k] is not None] + (["outputs.zenoh.tls.mutual"] if cfg["outputs.zenoh.tls.mutual"] else [])
+    if given and not encrypted:
+        raise fail(given[0], f"TLS is configured but no endpoint is tls/ or quic/ ({', '.join(plain) or 'none'}): "
+                   "the session would run in plain text; use tls/HOST:PORT endpoints",
+                   *given[1:], "outputs.zenoh.listen", "outputs.zenoh.connect")
+    if given and plain:
+        log.warning("outputs.zenoh: TLS is configured, but %s %s plain text (not encrypted, not authenticated)",
+                    ", ".join(plain), "is" if len(plain) == 1 else "are")

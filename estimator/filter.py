@@ -33,6 +33,7 @@ from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts
 from vtolpose.estimator.inertial.heading_bank import (
     UNKNOWN_HEADING_VAR, YAW, HeadingBank, HeadingBankOptions, with_bias_states,
 )
+from vtolpose.estimator.core.rotation import quat_from_euler, yaw_of
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.inertial.startup import state_from_static, velocity_from_fixes
 from vtolpose.estimator.core.state import FilterState, StateLayout
@@ -111,6 +112,7 @@ class Estimator:
         self._fixed_bias_var = np.zeros(3)  # thesis variant: variance of its calibrated gyro bias
         self._fixes_before_start: deque[GpsFix] = deque(maxlen=64)  # the GPS heard while the IMU window fills
         self._last_fix: GpsFix | None = None  # the latest usable fix (a reset re-initialises from it)
+        self._gps_reset_t: int | None = None  # the last reset for rejected fixes (a second one soon after re-aligns)
         self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
         self._gap = GapWidener(opts.health, opts.max_imu_gap_s)
         self._downsampler = ImuDownsampler(opts.max_filter_rate_hz)
@@ -418,9 +420,16 @@ class Estimator:
         self.events.append((fix.t_ns, "position initialised from GPS"))
 
     def _reset_from_gps(self, fix: GpsFix) -> None:
-        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong — and a
-        heading the filter found itself may be what is wrong with it: that is searched for again."""
-        state = self.state
+        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong.
+
+        Position and velocity are taken from GPS, and a heading the filter found itself may be what
+        is wrong with it: that is searched for again. If the fixes are still refused right after
+        that, the attitude is wrong too (a damaged gyro reading turned it): it starts again level,
+        as a moving start does, and gravity and the heading hypotheses find it again.
+        """
+        state, after_s = self.state, self.options.gps_reset_after_s
+        again = self._gps_reset_t is not None and (fix.t_ns - self._gps_reset_t) * 1e-9 <= 2.0 * after_s
+        self._gps_reset_t = fix.t_ns
         if self.heading_placement is not None and self.heading_aligned:
             self.heading_aligned = False  # and _reset restarts the hypotheses
             self._forget_heading()
@@ -428,8 +437,25 @@ class Estimator:
         state.cov[3:6, :] = 0.0
         state.cov[:, 3:6] = 0.0
         state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
-        self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {self.options.gps_reset_after_s:g} s; "
-                    "position and velocity re-initialised from GPS")
+        what = "position and velocity re-initialised from GPS"
+        if again:
+            self._relevel()
+            what += "; still refused after the last reset: attitude levelled again, heading searched for again"
+        self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {after_s:g} s; {what}")
+
+    def _relevel(self) -> None:
+        """The attitude starts again level at its last heading (a helicopter in cruise is within a few
+        degrees of level; a corrupted attitude may be upside down, beyond what an update can pull
+        back), with a moving start's sigma; the heading becomes unknown."""
+        state = self.state
+        state.q = quat_from_euler(0.0, 0.0, float(yaw_of(state.q)))
+        self.heading_aligned = False
+        sigma = math.radians(self.options.init.sigma_attitude_moving_deg)
+        state.cov[6:9, :] = 0.0
+        state.cov[:, 6:9] = 0.0
+        state.cov[6:8, 6:8] = np.eye(2) * sigma**2
+        self._forget_heading()
+        self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, state.t_ns
 
     # ------------------------------------------------------------------------------ camera
     def process_features(self, features: FrameFeatures) -> FrameReport:

@@ -6,12 +6,13 @@ import time
 
 import numpy as np
 import pytest
+import zenoh
 
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.pose_history import PoseHistory
 from vtolpose.estimator.core.rotation import quat_from_euler, rotation_angle
 from vtolpose.service.outputs.pose_client import PoseClient, PoseUnavailable
-from vtolpose.service.outputs.zenoh import ZenohOutput
+from vtolpose.service.outputs.zenoh import QueryLimits, ZenohOutput
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
 MS = 1_000_000
@@ -106,8 +107,9 @@ def test_subscribers_receive_every_publication(service, client):
         out.publish(output_pose(11_000_000_000))
         time.sleep(0.05)
     first_seq = got[-1].seq if got else 0
-    for k in range(1, 21):
+    for k in range(1, 21):  # at an IMU rate (DROP congestion control may drop a burst faster than the link)
         out.publish(output_pose(11_000_000_000 + k * 10 * MS))
+        time.sleep(0.005)
     deadline = time.monotonic() + 5.0
     while (not got or got[-1].seq < first_seq + 20) and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -148,3 +150,230 @@ def test_tls_endpoints_from_the_settings(tmp_path):
             assert np.allclose(c.pose_at(55 * MS).p, 0.5 * (truth(50 * MS)[0] + truth(60 * MS)[0]))
     finally:
         out.close()
+
+
+# ----------------------------------------------------------------------------- hostile peers
+ROGUE_P = [999.0, 999.0, 999.0]
+
+
+def session(mode: str, listen=(), connect=()) -> zenoh.Session:
+    return zenoh.open(ZenohSettings(mode, list(listen), list(connect), False).to_zenoh())
+
+
+class Rogue:
+    """Another Zenoh peer claiming the vehicle's prefix: its own pose/at and trajectory answers, its own poses
+    (plain, and with the source info of a genuine pose copied onto them) and its own liveliness token."""
+
+    def __init__(self, connect: list[str]) -> None:
+        import json
+
+        import zenoh
+
+        self.session = s = session("peer", connect=connect)
+        fake = {"t_ns": 5_000_000_000, "frame": "NED", "origin": None, "p": ROGUE_P, "q": [1.0, 0, 0, 0],
+                "v": [0.0] * 3, "w": [0.0] * 3, "cov": [0.0] * 36, "fused": True, "status": "ok", "seq": 1, "quality": 100}
+        window = {"frame": "NED", "origin": None, "t_ns": [0, 10**12], "p": [ROGUE_P, ROGUE_P], "q": [[1.0, 0, 0, 0]] * 2,
+                  "v": [[0.0] * 3] * 2, "w": [[0.0] * 3] * 2, "fused": [True, True]}
+        self.fake = json.dumps(fake)
+        self.answered = 0
+
+        def answer(query, doc: str) -> None:
+            self.answered += 1
+            query.reply(query.key_expr, doc)
+
+        self.entities = [
+            s.declare_queryable(f"{PREFIX}/pose/at", lambda q: answer(q, self.fake)),
+            s.declare_queryable(f"{PREFIX}/trajectory", lambda q: answer(q, json.dumps(window))),
+            s.liveliness().declare_token(f"{PREFIX}/service/{s.zid()}"),
+        ]
+        self.pub = s.declare_publisher(f"{PREFIX}/pose")
+        self.stolen = None  # the source info of a genuine pose, to forge with
+        self.entities.append(s.declare_subscriber(f"{PREFIX}/pose", lambda sample: setattr(
+            self, "stolen", sample.source_info if sample.source_info is not None else self.stolen)))
+        self._zenoh = zenoh
+
+    def publish(self) -> None:
+        self.pub.put(self.fake)
+        if self.stolen is not None:
+            self.pub.put(self.fake, source_info=self.stolen)
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def genuine(pose) -> bool:
+    return not np.allclose(pose.p, ROGUE_P)
+
+
+def test_a_rogue_peer_on_the_vehicle_never_reaches_the_client(service):
+    """The attack of the issue: a peer connects to the vehicle, answers pose/at and trajectory itself, publishes
+    poses (plain and with a genuine pose's source info) and declares the service's liveliness token. The
+    vehicle's access control keeps all of it from the vehicle's clients."""
+    out, port = service
+    rogue = Rogue([f"tcp/127.0.0.1:{port}"])
+    try:
+        with PoseClient(PREFIX, connect=[f"tcp/127.0.0.1:{port}"], timeout_s=5.0) as client:
+            got = []
+            client.subscribe(got.append)
+            assert client.service_id() == str(out.session.zid())
+            for k in range(20):
+                out.publish(output_pose(11_000_000_000 + k * 10 * MS))
+                rogue.publish()
+                assert genuine(client.pose_at(5_003_700_000))
+                assert np.all(np.isfinite(client.trajectory(2_000_000_000, 2_050_000_000).p))
+                time.sleep(0.01)
+            time.sleep(0.3)
+            assert got and all(genuine(p) for p in got)
+            assert rogue.stolen is not None  # the rogue did see genuine poses, and forged with their source
+            assert rogue.answered == 0  # its queryable never even heard of the client's queries
+    finally:
+        rogue.close()
+
+
+def test_the_client_believes_only_the_service_session(tmp_path):
+    """Where the vehicle's access control cannot help (the rogue connects to the client itself), the client
+    refuses to guess between two sessions claiming the prefix, and once told which is the vehicle it ignores
+    the other's answers and its unforged poses."""
+    client_port = free_port()
+    history, lock = PoseHistory(120.0), threading.Lock()
+    for k in range(1, 1001):
+        pose = output_pose(k * 10 * MS)
+        history.add_fused(pose.t_ns, history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov))
+    endpoint = f"tcp/127.0.0.1:{client_port}"
+    with PoseClient(PREFIX, listen=[endpoint], mode="peer", timeout_s=5.0) as client:
+        out = ZenohOutput(ZenohSettings("peer", [], [endpoint], False), PREFIX, history, lock, lambda: ORIGIN)
+        out.open()
+        rogue = None
+        try:
+            vehicle = client.service_id()  # alone: believed
+            assert vehicle == str(out.session.zid()) and genuine(client.pose_at(5_003_700_000))
+            rogue = Rogue([endpoint])
+            deadline = time.monotonic() + 5.0
+            while len(client._services) < 2 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            with pytest.raises(PoseUnavailable, match="2 Zenoh sessions claim to be the vtolpose service"):
+                client.pose_at(5_003_700_000)
+            client.pinned_service_id = vehicle
+            got = []
+            client.subscribe(got.append)
+            time.sleep(0.3)
+            for k in range(20):
+                assert genuine(client.pose_at(5_003_700_000))
+                out.publish(output_pose(11_000_000_000 + k * 10 * MS))
+                rogue.pub.put(rogue.fake)  # unforged
+                time.sleep(0.01)
+            time.sleep(0.3)
+            assert len(got) > 10 and all(genuine(p) for p in got)
+            # The rogue answered every query; whichever of its answers came before the vehicle's was ignored.
+            assert rogue.answered >= 20 and client.ignored["replies"] >= 1 and client.ignored["samples"] >= 10
+        finally:
+            if rogue is not None:
+                rogue.close()
+            out.close()
+
+
+# ------------------------------------------------------------------------------- bad queries
+@pytest.mark.parametrize("text", [" 123", "+123", "1_000", "1e9", "0x10", "１２３", "9" * 5000, "99999999999999999999"])
+def test_only_a_plain_integer_is_a_time(client, text):
+    with pytest.raises(PoseUnavailable, match="not an integer nanosecond time") as err:
+        client._query(f"{PREFIX}/pose/at?t_ns={text}")
+    assert len(str(err.value)) < 200  # a 5000-digit input is never echoed in full
+
+
+def test_windows_are_capped_and_refused_before_any_work(service, client):
+    out, _ = service
+    with out.lock:  # the history is busy: a refusal must not need it
+        with pytest.raises(PoseUnavailable, match="longer than the 10 s one query may span"):
+            client._query(f"{PREFIX}/trajectory?from=0;to={2**62}")
+        with pytest.raises(PoseUnavailable, match="ends .* before it starts"):
+            client._query(f"{PREFIX}/trajectory?from=20;to=10")
+    assert len(client.trajectory(1_000_000_000, 10_000_000_000).t_ns) == 901  # exactly the cap is allowed
+
+
+def test_queries_beyond_the_queue_are_refused_as_busy():
+
+    port = free_port()
+    history, lock = PoseHistory(120.0), threading.Lock()
+    for k in range(1, 101):
+        pose = output_pose(k * 10 * MS)
+        history.add_fused(pose.t_ns, history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov))
+    out = ZenohOutput(ZenohSettings("peer", [f"tcp/127.0.0.1:{port}"], [], False), PREFIX, history, lock,
+                      limits=QueryLimits(max_pending=4, max_queries_per_s=10000.0))
+    out.open()
+    s = session("client", connect=[f"tcp/127.0.0.1:{port}"])
+    try:
+        with lock:  # the query thread is stuck on the history: queries pile up
+            pending = []
+            for k in range(30):  # 2 ms apart: not one burst, which the per-link rate limit would thin out
+                pending.append(s.get(f"{PREFIX}/pose/at?t_ns={500_000_000 + k}", timeout=10.0))
+                time.sleep(0.002)
+            time.sleep(1.0)
+        answers = [[("pose" if r.ok is not None else r.err.payload.to_string()) for r in replies] for replies in pending]
+    finally:
+        s.close()
+        out.close()
+    # Every query that reached the service was answered: with its pose once the history was free, or at
+    # once with "busy" (on a loaded machine a few may arrive together and be dropped by the rate limit,
+    # which ends them at once too; none waits for its timeout).
+    reached = [a for a in answers if a]
+    assert all(len(a) == 1 and (a[0] == "pose" or "busy" in a[0]) for a in reached)
+    assert sum(a == ["pose"] for a in reached) == 1 + 4  # the one being answered, and the queue's four
+    assert out.stats["queries_busy"] == len(reached) - 5 >= 10
+
+
+def test_heavy_queries_leave_the_pose_stream_whole():
+    """600 whole-history and 200 ten-second-window queries from real sessions while poses go out at 200 Hz:
+    the whole-history ones are refused, every other one is answered or told busy, and the poses keep coming."""
+    import json
+
+
+    port = free_port()
+    history, lock = PoseHistory(120.0), threading.Lock()
+    for k in range(1, 24_001):  # 120 s at 200 Hz
+        pose = output_pose(k * 5 * MS)
+        history.add_fused(pose.t_ns, history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov))
+    # The rate limit is raised so that the window queries below (1 ms apart) all reach the query thread.
+    out = ZenohOutput(ZenohSettings("peer", [f"tcp/127.0.0.1:{port}"], [], False), PREFIX, history, lock,
+                      limits=QueryLimits(max_queries_per_s=10000.0))
+    out.open()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    sub, asker = session("client", connect=[endpoint]), session("client", connect=[endpoint])
+    seqs = []
+    sub.declare_subscriber(f"{PREFIX}/pose", lambda s: seqs.append(json.loads(s.payload.to_string())["seq"]))
+    time.sleep(0.5)
+    stop = threading.Event()
+
+    def pose_path() -> None:  # what the runtime does per IMU sample: publish, then store in the history
+        k = 24_001
+        while not stop.is_set():
+            pose = output_pose(k * 5 * MS)
+            out.publish(pose)
+            with lock:
+                history.add_fused(pose.t_ns, history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov))
+            k += 1
+            time.sleep(0.005)
+
+    runtime = threading.Thread(target=pose_path)
+    runtime.start()
+    try:
+        whole = [asker.get(f"{PREFIX}/trajectory?from=0;to={2**62}", timeout=10.0) for _ in range(600)]
+        windows = []
+        for k in range(200):
+            windows.append(asker.get(f"{PREFIX}/trajectory?from={100_000_000_000 + k * MS};to={110_000_000_000 + k * MS}",
+                                     timeout=30.0))
+            time.sleep(0.001)
+        whole_answers = [[r.ok is None and "longer than" in r.err.payload.to_string() for r in rs] for rs in whole]
+        window_answers = [[r.ok is not None or "busy" in r.err.payload.to_string() for r in rs] for rs in windows]
+    finally:
+        stop.set()
+        runtime.join()
+        time.sleep(0.3)
+        sub.close()
+        asker.close()
+        out.close()
+    # Queries that arrive together (Zenoh batches them) are thinned out by the per-link rate limit: an empty
+    # answer at once, never a wait. The whole-history queries that pass are refused with the reason; the
+    # windows are answered or told busy (max_pending_queries), and most of them do reach the query thread.
+    assert all(a in ([True], []) for a in whole_answers) and sum(a == [True] for a in whole_answers) >= 1
+    assert all(a in ([True], []) for a in window_answers) and sum(a == [True] for a in window_answers) >= 100
+    assert seqs == sorted(seqs) and len(seqs) >= 0.9 * out.stats["poses_published"]

@@ -33,7 +33,7 @@ def test_live_run_with_emulated_devices(tmp_path):
         config.write_text(
             f"sensors:\n  imu: {{port: {imu.port}}}\n  gps: {{type: nmea, port: {gps.port}}}\n  camera: {{type: none}}\n"
             f"run:\n  calibration_file: {root / 'dataset.yaml'}\n"
-            f"outputs:\n  zenoh: {{enabled: true, connect: ['tcp/127.0.0.1:{port}'], multicast_scouting: false}}\n"
+            f"outputs:\n  zenoh: {{enabled: true, listen: [], connect: ['tcp/127.0.0.1:{port}']}}\n"
         )
         with PoseClient("vtolpose/vtol1", listen=[f"tcp/127.0.0.1:{port}"], mode="peer") as client:
             poses, status = [], []

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from vtolpose.config.yaml_limits import BoundedLoader, UnsafeYaml, read_bounded
 from vtolpose.estimator.core.calibration import (
     STANDARD_GRAVITY,
     Calibration,
@@ -45,8 +46,8 @@ class CalibrationError(ValueError):
 _OPENCV_HEADER = re.compile(r"\A\ufeff?%YAML:\d+\.\d+[ \t]*(?:\r?\n|\Z)")
 
 
-class _OpenCvSafeLoader(yaml.SafeLoader):
-    """SafeLoader that also reads OpenCV ``FileStorage`` matrices (``!!opencv-matrix``) as plain mappings."""
+class _OpenCvSafeLoader(BoundedLoader):
+    """The bounded SafeLoader that also reads OpenCV ``FileStorage`` matrices (``!!opencv-matrix``) as plain mappings."""
 
 
 _OpenCvSafeLoader.add_constructor(
@@ -56,14 +57,18 @@ _OpenCvSafeLoader.add_constructor(
 def parse_yaml_text(text: str) -> Any:
     """YAML as written by this program, or OpenCV-style: a ``%YAML:1.0`` first line (OpenCV
     ``FileStorage``, ORB-SLAM, VINS, Kimera and the EuRoC ``sensor.yaml`` files write it, PyYAML
-    refuses it) is dropped, and ``!!opencv-matrix`` nodes become ``{rows, cols, dt, data}`` mappings."""
+    refuses it) is dropped, and ``!!opencv-matrix`` nodes become ``{rows, cols, dt, data}`` mappings.
+    Aliases are bounded as in ``vtolpose.config.yaml_limits`` (UnsafeYaml past the bound)."""
     return yaml.load(_OPENCV_HEADER.sub("", text, count=1), Loader=_OpenCvSafeLoader)
 
 
 def load_yaml_file(path: Path) -> Any:
-    """The document in a small YAML file; CalibrationError names the file when it cannot be read as one."""
+    """The document in a small YAML file; CalibrationError names the file when it cannot be read as one
+    (including a file too large, or aliases that would expand without bound: ``vtolpose.config.yaml_limits``)."""
     try:
-        return parse_yaml_text(path.read_text(encoding="utf-8"))
+        return parse_yaml_text(read_bounded(path))
+    except UnsafeYaml as exc:
+        raise CalibrationError(f"{path}: {exc}") from None
     except UnicodeDecodeError as exc:
         raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     except yaml.YAMLError as exc:
@@ -79,7 +84,10 @@ class YamlReader:
         self.source = source
 
     def fail(self, key: str, expected: str, got: Any) -> CalibrationError:
-        return CalibrationError(f"{self.source}: {key}: expected {expected}, got {got!r}")
+        shown = repr(got)
+        if len(shown) > 120:  # never echo a huge value in full
+            shown = f"{shown[:120]}… ({len(shown)} characters)"
+        return CalibrationError(f"{self.source}: {key}: expected {expected}, got {shown}")
 
     def mapping(self, value: Any, key: str, allowed: set[str], required: tuple[str, ...] = ()) -> dict:
         if value is None:

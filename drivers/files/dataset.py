@@ -19,7 +19,7 @@ import yaml
 
 from vtolpose.drivers.files.calibration_yaml import DATASET_FORMAT, CalibrationError, calibration_from_yaml, calibration_to_yaml, load_yaml_file
 from vtolpose.drivers.files.csvio import read_numeric_csv, write_numeric_csv
-from vtolpose.drivers.files.frames_csv import load_grey, read_frame_index, write_frame_index, write_png
+from vtolpose.drivers.files.frames_csv import MAX_FRAME_PIXELS, load_grey, read_frame_index, write_frame_index, write_png
 from vtolpose.drivers.files.lidar import LIDAR_CSV, LidarReturns, read_lidar, write_lidar
 from vtolpose.drivers.files.series import GpsSeries, ImuSeries, TruthSeries
 from vtolpose.estimator.core.calibration import Calibration
@@ -59,6 +59,9 @@ class Dataset:
     calibration: Calibration
     meta: dict
     skipped: dict[str, int] = field(default_factory=dict)
+    # Each file is parsed (and its damage counted and warned about) once, however often it is asked
+    # for: a replay, its report and its progress display all read the same series. Shared: read-only.
+    _parsed: dict[str, object] = field(default_factory=dict, repr=False)
 
     @classmethod
     def open(cls, root: str | Path) -> "Dataset":
@@ -83,11 +86,13 @@ class Dataset:
         return self.calibration.camera is not None and (self.root / CAM_CSV).is_file()
 
     def _read(self, rel: str, n_values: int, header: str) -> tuple[np.ndarray, np.ndarray]:
-        data = read_numeric_csv(self.root / rel, n_values, header=header)
-        self.skipped[rel] = data.skipped
-        if len(data.t_ns) == 0:
-            raise ValueError(f"{self.root / rel}: no valid data lines")
-        return data.t_ns, data.values
+        if rel not in self._parsed:
+            data = read_numeric_csv(self.root / rel, n_values, header=header)
+            self.skipped[rel] = data.skipped
+            if len(data.t_ns) == 0:
+                raise ValueError(f"{self.root / rel}: no valid data lines")
+            self._parsed[rel] = (data.t_ns, data.values)
+        return self._parsed[rel]
 
     def camera_frames(self) -> list[tuple[int, Path]]:
         """``(t_ns, image path)`` of every frame in ``cam0/data.csv``, in time order (bad lines counted)."""
@@ -99,7 +104,9 @@ class Dataset:
 
     def load_frame(self, path: Path) -> np.ndarray | None:
         """A frame as a grey uint8 array; a missing or unreadable file is a counted skip (None)."""
-        image = load_grey(path)
+        cam = self.calibration.camera
+        # A frame may be somewhat off its calibrated size (refused later as the wrong size), never huge.
+        image = load_grey(path, MAX_FRAME_PIXELS if cam is None else min(MAX_FRAME_PIXELS, 4 * cam.width * cam.height))
         if image is None:
             self.skipped[CAM_DIR] = self.skipped.get(CAM_DIR, 0) + 1
         return image
@@ -119,6 +126,11 @@ class Dataset:
         """GPS fixes in local NED (geodetic files converted around the dataset origin or the first fix)."""
         if not (self.root / GPS_CSV).is_file():
             return None
+        if "gps" not in self._parsed:
+            self._parsed["gps"] = self._gps()
+        return self._parsed["gps"]
+
+    def _gps(self) -> GpsSeries:
         frame = _gps_frame(self.root / GPS_SENSOR)
         t, v = self._read(GPS_CSV, 5, GPS_HEADER_WGS84 if frame == "WGS84" else GPS_HEADER_NED)
         t, v = self._keep_fixes(t, v, np.all(v[:, 3:5] > 0.0, axis=1), "sigma <= 0")

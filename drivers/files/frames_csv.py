@@ -57,14 +57,74 @@ def read_frame_index(csv_path: Path, image_dir: Path) -> tuple[list[tuple[int, P
     return frames, len(bad)
 
 
-def load_grey(path: Path) -> np.ndarray | None:
-    """A grey uint8 image, or None (with a warning naming the file) if it is missing or unreadable.
+MAX_FRAME_PIXELS = 16_000_000  # a camera frame is well under this; a decompression bomb is far above it
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _jpeg_size(f) -> tuple[int, int] | None:
+    """Width and height from a JPEG's start-of-frame segment, walking the segments before it."""
+    f.seek(2)
+    while True:
+        marker = f.read(2)
+        if len(marker) < 2 or marker[0] != 0xFF:
+            return None
+        while marker[1] == 0xFF:  # fill bytes
+            marker = marker[1:] + f.read(1)
+        length = int.from_bytes(f.read(2), "big")
+        if marker[1] in _JPEG_SOF:
+            data = f.read(5)
+            return (int.from_bytes(data[3:5], "big"), int.from_bytes(data[1:3], "big")) if len(data) == 5 else None
+        if length < 2:
+            return None
+        f.seek(length - 2, 1)
+
+
+def image_size(path: Path) -> tuple[int, int] | None:
+    """``(width, height)`` read from the header of a PNG, JPEG, BMP or binary PGM/PPM file, without
+    decoding it; None for any other format or a header that does not parse."""
+    with open(path, "rb") as f:
+        head = f.read(32)
+        if head.startswith(_PNG_SIGNATURE) and head[12:16] == b"IHDR":
+            return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        if head.startswith(b"\xff\xd8"):
+            return _jpeg_size(f)
+        if head.startswith(b"BM") and len(head) >= 26:
+            return (abs(int.from_bytes(head[18:22], "little", signed=True)),
+                    abs(int.from_bytes(head[22:26], "little", signed=True)))
+        if head[:2] in (b"P5", b"P6"):
+            fields = head[2:].split()
+            if len(fields) >= 2 and fields[0].isdigit() and fields[1].isdigit():
+                return int(fields[0]), int(fields[1])
+    return None
+
+
+def _refusal(path: Path, max_pixels: int) -> str | None:
+    """Why the image at ``path`` must not be decoded, or None."""
+    if not path.is_file():
+        return "missing" if not path.exists() else "not a file"
+    try:
+        size = image_size(path)
+    except OSError as exc:
+        return f"unreadable ({exc.strerror or exc})"
+    if size is None:
+        return "not a PNG, JPEG, BMP or PGM/PPM image (or a damaged header)"
+    width, height = size
+    if width * height > max_pixels:
+        return f"{width} x {height} pixels by its header, more than the {max_pixels} a frame may have: not decoded"
+    return None
+
+
+def load_grey(path: Path, max_pixels: int = MAX_FRAME_PIXELS) -> np.ndarray | None:
+    """A grey uint8 image, or None (with a warning naming the file) if it is missing, unreadable, or
+    larger than ``max_pixels`` by its header (checked before decoding: a small file can claim 20000²).
 
     Colour images are converted to grey; 16-bit images keep their top 8 bits.
     """
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    problem = _refusal(path, max_pixels)
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if problem is None else None
     if image is None:
-        log.warning("%s: image %s, frame skipped", path, "missing" if not path.exists() else "unreadable")
+        log.warning("%s: image %s, frame skipped", path, problem or "unreadable")
         return None
     if image.dtype == np.uint16:
         image = (image >> 8).astype(np.uint8)

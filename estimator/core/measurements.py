@@ -6,6 +6,7 @@ Times are integer nanoseconds on one monotonic clock; values are SI and already 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,6 +19,25 @@ class ImuSample:
     t_ns: int
     gyro: np.ndarray
     accel: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class ImuRange:
+    """The largest angular rate [rad/s] and specific force [m/s^2] the IMU measures on any of its axes.
+
+    A reading beyond it is no motion but a damaged sample (a flipped bit, a unit error, a corrupt
+    row): integrated for even one step it can turn the attitude over, so it is refused instead.
+    Samples arrive in body axes, rotated from the sensor's by its mounting, so the test is on the
+    vector's length, which no rotation changes: at most √3 × the per-axis range.
+    """
+
+    gyro: float
+    accel: float
+
+    def exceeded(self, gyro: np.ndarray, accel: np.ndarray) -> bool:
+        """True for a finite reading beyond the range (a non-finite one is counted as such elsewhere)."""
+        g2, a2 = float(gyro @ gyro), float(accel @ accel)
+        return (g2 > 3.0 * self.gyro**2 or a2 > 3.0 * self.accel**2) and math.isfinite(g2 + a2)
 
 
 @dataclass(frozen=True, slots=True)

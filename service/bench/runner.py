@@ -31,6 +31,8 @@ from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.camera import bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.euroc import bench_euroc
+from vtolpose.service.bench.memory_paced import bench_memory_paced
+from vtolpose.service.bench.zenoh_queries import bench_zenoh_queries
 from vtolpose.service.replay.session import replay
 
 
@@ -96,11 +98,13 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "fault-targets": bench_fault_targets,
     "fault-table": bench_fault_table,
     "euroc": bench_euroc,
+    "zenoh-queries": bench_zenoh_queries,
+    "memory-paced": bench_memory_paced,
 }
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc")
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "zenoh-queries", "memory-paced")
 
 
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:

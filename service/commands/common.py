@@ -10,6 +10,7 @@ from typing import Any
 import yaml
 
 from vtolpose.config import ConfigError, load_config
+from vtolpose.config.yaml_limits import UnsafeYaml, load_bounded
 
 
 def add_config_options(p: argparse.ArgumentParser) -> None:
@@ -34,9 +35,9 @@ def overrides_from(args: argparse.Namespace) -> dict[str, Any]:
         if not sep or not key:
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
         try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError:
-            raise ConfigError(f"--set {item!r}: VALUE is not valid YAML") from None
+            value = load_bounded(text)
+        except (yaml.YAMLError, UnsafeYaml, RecursionError):
+            raise ConfigError(f"--set {item[:80]!r}: VALUE is not valid YAML (or its aliases expand without bound)") from None
         node = tree
         parts = key.split(".")
         for part in parts[:-1]:

@@ -114,6 +114,12 @@ def run(args: argparse.Namespace) -> int:
         from vtolpose.drivers.files.dataset import Dataset
         from vtolpose.service.runtime.replay_feed import replay_async
 
+        if args.record:
+            raise ConfigError("--record writes what live sensors deliver; a replay reads a recording already "
+                              "(copy the dataset folder to keep it)")
+        if cfg["run.record_dir"]:
+            log.warning("run.record_dir (%s) is not used with --replay: the dataset is the recording", cfg["run.record_dir"])
+
         dataset = Dataset.open(args.replay)
         sensors = parse_sensors(args.sensors) or cfg["replay.sensors"]
         processor = camera_processor(cfg, dataset.calibration) if "camera" in sensors else None

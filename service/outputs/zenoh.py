@@ -1,10 +1,19 @@
-"""Zenoh outputs for the LIDAR mapper and anyone else (INTERFACES.md, "Out: Zenoh").
+"""Zenoh outputs for the LIDAR mapper and anyone else (INTERFACES.md, "Out: Zenoh"; docs/zenoh.md).
 
 ``<prefix>/pose`` carries every estimate, ``<prefix>/status`` a status document once a second;
 the queryables ``<prefix>/pose/at?t_ns=…`` and ``<prefix>/trajectory?from=…;to=…`` answer from
-the bounded pose history. Queries are served on Zenoh's own threads, so the history is read
-under a lock the runtime also takes when it appends; an unanswerable query (time outside the
-history, a malformed parameter) gets an error reply, never silence.
+the bounded pose history. An unanswerable query (time outside the history, a malformed
+parameter, a window longer than ``max_window_s``, too many waiting) gets an error reply, never
+silence. The session declares the liveliness token ``<prefix>/service/<zid>`` by which clients
+know this session's answers and poses from anyone else's.
+
+Query work never delays a pose: Zenoh's threads only check a query's parameters and queue it
+(bounded, ``max_pending``); one niced thread answers, reading the history under the lock the
+runtime takes for a moment per pose, and writes large answers in pieces so that the event loop
+gets the interpreter between them. It works at most a quarter of the time (WORKER_DUTY): a
+flood of the largest windows fills its queue and gets "busy" replies, not more of the CPU. Poses go out at Zenoh's real-time priority, ahead of answers
+in a link's queues, and each client link may ask at most ``max_queries_per_s`` per queryable
+(Zenoh's downsampling drops the excess; the client asks again).
 """
 
 from __future__ import annotations
@@ -12,21 +21,45 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import os
+import queue
+import re
 import threading
+import time
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 import zenoh
 
 from vtolpose.estimator.fusion import OutputPose
-from vtolpose.estimator.pose_history import OutsideHistory, PoseHistory
-from vtolpose.service.outputs.zenoh_session import ZenohSettings
+from vtolpose.estimator.pose_history import OutsideHistory, PoseHistory, PoseWindow
+from vtolpose.service.outputs.zenoh_session import ZenohSettings, service_config
 from vtolpose.service.runtime.status import heading_weak, pose_quality
 
 log = logging.getLogger(__name__)
 
 JSON = zenoh.Encoding.APPLICATION_JSON
 Origin = tuple[float, float, float] | None
+_INTEGER = re.compile(r"-?[0-9]{1,19}")  # nothing else: no sign '+', spaces, '_' or exponents
+_INT64 = (-(1 << 63), (1 << 63) - 1)
+JSON_CHUNK_ROWS = 128  # rows serialised at a time when answering a trajectory (well under 1 ms each)
+WORKER_NICE = 10
+WORKER_DUTY = 0.25  # the query thread rests 3x as long as it worked: at most a quarter of a core, whatever the load
+
+
+@dataclass(frozen=True, slots=True)
+class QueryLimits:
+    """``outputs.zenoh.max_window_s``, ``max_queries_per_s``, ``max_pending_queries``."""
+
+    max_window_s: float = 10.0
+    max_queries_per_s: float = 200.0
+    max_pending: int = 64
+
+    @classmethod
+    def from_config(cls, cfg: dict[str, Any]) -> "QueryLimits":
+        return cls(cfg["outputs.zenoh.max_window_s"], cfg["outputs.zenoh.max_queries_per_s"],
+                   cfg["outputs.zenoh.max_pending_queries"])
 
 
 def pose_status(pose: OutputPose, quality: int) -> str:
@@ -62,8 +95,37 @@ def pose_message(pose: OutputPose, seq: int, origin: Origin) -> dict[str, Any]:
     }
 
 
+def parse_time_parameter(parameters: Any, name: str) -> int:
+    """``name`` as integer nanoseconds; ValueError (quoting at most 24 characters of it) otherwise."""
+    text = parameters.get(name)
+    if text is None:
+        raise ValueError(f"missing parameter {name}=<t_ns> (integer nanoseconds)")
+    if not _INTEGER.fullmatch(text) or not _INT64[0] <= int(text) <= _INT64[1]:
+        shown = repr(text) if len(text) <= 24 else f"{text[:24]!r}… ({len(text)} characters)"
+        raise ValueError(f"parameter {name}={shown} is not an integer nanosecond time (digits only, optional '-')")
+    return int(text)
+
+
+def _rows_json(values: np.ndarray) -> str:
+    """A JSON array of ``values``' rows, written JSON_CHUNK_ROWS at a time with the interpreter
+    handed back between pieces (``json.dumps`` keeps it for the whole of one call)."""
+    parts = []
+    for k in range(0, len(values), JSON_CHUNK_ROWS):
+        parts.append(json.dumps(_floats(values[k:k + JSON_CHUNK_ROWS]))[1:-1])
+        time.sleep(0)
+    return "[" + ",".join(p for p in parts if p) + "]"
+
+
+def trajectory_json(window: PoseWindow, origin: Origin) -> str:
+    """The ``<prefix>/trajectory`` answer, as :func:`json.dumps` of the same document would write it."""
+    head = json.dumps({"frame": "NED", "origin": _origin_json(origin), "t_ns": window.t_ns.tolist()})[:-1]
+    fields = ", ".join(f'"{name}": {_rows_json(values)}' for name, values in
+                       (("p", window.p), ("q", window.q), ("v", window.v), ("w", window.w)))
+    return f'{head}, {fields}, "fused": {json.dumps(window.fused.tolist())}}}'
+
+
 class ZenohOutput:
-    """Publishers and queryables on one Zenoh session."""
+    """Publishers, queryables and a liveliness token on one Zenoh session."""
 
     name = "zenoh"
 
@@ -74,36 +136,57 @@ class ZenohOutput:
         history: PoseHistory,
         lock: threading.Lock,
         origin: Callable[[], Origin] = lambda: None,
+        limits: QueryLimits = QueryLimits(),
     ) -> None:
         self.settings = settings
         self.prefix = prefix
         self.history = history
         self.lock = lock
         self.origin = origin
+        self.limits = limits
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._seq = 0
-        self.stats = {"poses_published": 0, "queries": 0, "query_errors": 0}
+        self._queries: queue.Queue = queue.Queue(maxsize=limits.max_pending)
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+        self.stats = {"poses_published": 0, "queries": 0, "query_errors": 0, "queries_busy": 0}
 
     def open(self) -> None:
-        self.session = s = zenoh.open(self.settings.to_zenoh())
+        keys = [f"{self.prefix}/pose/at", f"{self.prefix}/trajectory"]
+        self.session = s = zenoh.open(service_config(self.settings, self.prefix, keys, self.limits.max_queries_per_s))
         drop = zenoh.CongestionControl.DROP  # a slow subscriber must never stall the estimator
-        self._pose_pub = s.declare_publisher(f"{self.prefix}/pose", encoding=JSON, congestion_control=drop, express=True)
+        self._pose_pub = s.declare_publisher(f"{self.prefix}/pose", encoding=JSON, congestion_control=drop, express=True,
+                                             priority=zenoh.Priority.REAL_TIME)
         self._status_pub = s.declare_publisher(f"{self.prefix}/status", encoding=JSON, congestion_control=drop)
+        self._stop.clear()
+        self._worker = threading.Thread(target=self._answer_queries, name="zenoh-queries", daemon=True)
+        self._worker.start()
         self._entities = [
             self._pose_pub, self._status_pub,
-            s.declare_queryable(f"{self.prefix}/pose/at", self._on_pose_at),
-            s.declare_queryable(f"{self.prefix}/trajectory", self._on_trajectory),
+            s.declare_queryable(keys[0], lambda q: self._on_query(q, "pose/at")),
+            s.declare_queryable(keys[1], lambda q: self._on_query(q, "trajectory")),
+            s.liveliness().declare_token(f"{self.prefix}/service/{s.zid()}"),
         ]
-        log.info("Zenoh session %s (%s): publishing under %s/", s.zid(), self.settings.mode, self.prefix)
+        hint = ""
+        if self.settings.mode == "peer" and self.settings.listen:
+            endpoint = re.sub(r"/(0\.0\.0\.0|\[::\]):", "/<this computer's address>:", self.settings.listen[0])
+            hint = f"; a mapper connects with PoseClient({self.prefix!r}, connect=[{endpoint!r}])"
+        log.info("Zenoh %s session %s: %s; publishing under %s/%s", self.settings.mode, s.zid(),
+                 self.settings.endpoints_text(), self.prefix, hint)
 
     def close(self) -> None:
-        for entity in self._entities:
+        for entity in self._entities:  # first: no new queries
             try:
                 entity.undeclare()
             except zenoh.ZError as exc:  # the session is closing anyway; undeclare the rest
                 log.debug("Zenoh undeclare on close: %s", exc)
         self._entities = []
+        self._stop.set()
+        if self._worker is not None:
+            self._worker.join(timeout=5.0)
+            self._worker = None
+        self._refuse_waiting("the service is stopping")
         if self.session is not None:
             self.session.close()
             self.session = None
@@ -113,59 +196,93 @@ class ZenohOutput:
         if self.session is None:
             return
         self._seq += 1
-        self._pose_pub.put(json.dumps(pose_message(pose, self._seq, self.origin())))
+        self._pose_pub.put(json.dumps(pose_message(pose, self._seq, self.origin())),
+                           source_info=zenoh.SourceInfo(self._pose_pub.id, self._seq))
         self.stats["poses_published"] += 1
 
     def publish_status(self, status: dict[str, Any]) -> None:
         if self.session is not None:
-            self._status_pub.put(json.dumps(status))
+            self._status_pub.put(json.dumps(status), source_info=zenoh.SourceInfo(self._status_pub.id, 0))
 
     async def serve(self, stop: asyncio.Event) -> None:
-        await stop.wait()  # everything happens in callbacks
+        await stop.wait()  # everything happens in callbacks and the query thread
 
     # ------------------------------------------------------------------------- queries
     def _error(self, query: zenoh.Query, message: str) -> None:
         self.stats["query_errors"] += 1
-        query.reply_err(json.dumps({"error": message}), encoding=JSON)
-
-    @staticmethod
-    def _int_parameter(query: zenoh.Query, name: str) -> int:
-        text = query.parameters.get(name)
-        if text is None:
-            raise ValueError(f"missing parameter {name}=<t_ns> (integer nanoseconds)")
         try:
-            return int(text)
-        except ValueError:
-            raise ValueError(f"parameter {name}={text!r} is not an integer nanosecond time") from None
+            query.reply_err(json.dumps({"error": message}), encoding=JSON)
+        except zenoh.ZError as exc:  # the asker is gone
+            log.debug("Zenoh error reply not sent: %s", exc)
+        query.drop()
 
-    def _on_pose_at(self, query: zenoh.Query) -> None:
+    def _on_query(self, query: zenoh.Query, kind: str) -> None:
+        """On a Zenoh thread: check the parameters (cheap), then queue the work or refuse at once."""
         self.stats["queries"] += 1
         try:
-            t_ns = self._int_parameter(query, "t_ns")
-            with self.lock:
-                pose = self.history.at(t_ns)
-        except (ValueError, OutsideHistory) as exc:
+            if kind == "pose/at":
+                args: tuple[int, ...] = (parse_time_parameter(query.parameters, "t_ns"),)
+            else:
+                t0, t1 = parse_time_parameter(query.parameters, "from"), parse_time_parameter(query.parameters, "to")
+                if t1 < t0:
+                    raise ValueError(f"the window ends (to={t1}) before it starts (from={t0})")
+                if (t1 - t0) * 1e-9 > self.limits.max_window_s:
+                    raise ValueError(f"a window of {(t1 - t0) * 1e-9:.6g} s is longer than the {self.limits.max_window_s:g} s "
+                                     "one query may span (outputs.zenoh.max_window_s): ask in pieces")
+                args = (t0, t1)
+        except ValueError as exc:
             self._error(query, str(exc))
             return
-        doc = {
-            "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(self.origin()),
-            "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.w),
-            "cov": _floats(pose.cov.reshape(36)), "fused": pose.fused,
-        }
-        query.reply(query.key_expr, json.dumps(doc), encoding=JSON)
-
-    def _on_trajectory(self, query: zenoh.Query) -> None:
-        self.stats["queries"] += 1
         try:
-            t0, t1 = self._int_parameter(query, "from"), self._int_parameter(query, "to")
+            self._queries.put_nowait((kind, query, args))
+        except queue.Full:
+            self.stats["queries_busy"] += 1
+            self._error(query, f"busy: {self.limits.max_pending} queries are waiting; ask again later")
+
+    def _answer_queries(self) -> None:
+        """The query thread: niced, so that the event loop wins a contended core."""
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WORKER_NICE)
+        except (AttributeError, OSError) as exc:
+            log.debug("query thread nice %d refused: %s", WORKER_NICE, exc)
+        while not self._stop.is_set():
+            try:
+                kind, query, args = self._queries.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            started = time.perf_counter()
+            try:
+                self._answer(query, kind, args)
+            except OutsideHistory as exc:
+                self._error(query, str(exc))
+            except zenoh.ZError as exc:  # the asker is gone
+                log.debug("Zenoh reply not sent: %s", exc)
+            except Exception as exc:  # a bug here must not end the query thread
+                log.exception("answering %s failed", kind)
+                self._error(query, f"internal error: {type(exc).__name__}")
+            finally:
+                query.drop()  # the final answer: the asker stops waiting (idempotent)
+            self._stop.wait((time.perf_counter() - started) * (1.0 / WORKER_DUTY - 1.0))
+
+    def _answer(self, query: zenoh.Query, kind: str, args: tuple[int, ...]) -> None:
+        if kind == "pose/at":
             with self.lock:
-                window = self.history.window(t0, t1)
-        except (ValueError, OutsideHistory) as exc:
-            self._error(query, str(exc))
-            return
-        doc = {
-            "frame": "NED", "origin": _origin_json(self.origin()), "t_ns": window.t_ns.tolist(),
-            "p": _floats(window.p), "q": _floats(window.q), "v": _floats(window.v), "w": _floats(window.w),
-            "fused": window.fused.tolist(),
-        }
-        query.reply(query.key_expr, json.dumps(doc), encoding=JSON)
+                pose = self.history.at(args[0])
+            text = json.dumps({
+                "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(self.origin()),
+                "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.w),
+                "cov": _floats(pose.cov.reshape(36)), "fused": pose.fused,
+            })
+        else:
+            with self.lock:
+                window = self.history.window(*args)
+            text = trajectory_json(window, self.origin())
+        query.reply(query.key_expr, text, encoding=JSON)
+
+    def _refuse_waiting(self, why: str) -> None:
+        while True:
+            try:
+                _, query, _ = self._queries.get_nowait()
+            except queue.Empty:
+                return
+            self._error(query, why)

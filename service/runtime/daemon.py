@@ -8,16 +8,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import signal
 from pathlib import Path
 from typing import Any, AsyncIterator, Callable, Sequence
 
-import yaml
-
 from vtolpose.config import ConfigError
 from vtolpose.config.outputs import zenoh_prefix
-from vtolpose.drivers.files.calibration_yaml import calibration_from_yaml
-from vtolpose.estimator.core.calibration import Calibration
+from vtolpose.drivers.files.calibration_yaml import CalibrationError, calibration_from_yaml, load_yaml_file
+from vtolpose.estimator.core.calibration import STANDARD_GRAVITY, Calibration
+from vtolpose.estimator.core.measurements import ImuRange
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import FusionOptions, OutputPose
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
@@ -34,15 +34,20 @@ def fusion_options(cfg: dict[str, Any]) -> FusionOptions:
     return FusionOptions(cfg["fusion.delay_s"], cfg["fusion.max_pending"], cfg["fusion.max_imu_buffer"])
 
 
+def imu_range(cfg: dict[str, Any]) -> ImuRange:
+    """``estimator.imu.gyro_range_dps`` and ``accel_range_g`` in SI (rad/s, m/s^2)."""
+    return ImuRange(math.radians(cfg["estimator.imu.gyro_range_dps"]), cfg["estimator.imu.accel_range_g"] * STANDARD_GRAVITY)
+
+
 def load_calibration_file(path: str | Path) -> Calibration:
     """A vehicle's calibration from a dataset.yaml-format file (``run.calibration_file``)."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"key 'run.calibration_file': file {path} not found")
     try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"key 'run.calibration_file': {path} is not valid YAML: {exc}") from None
+        doc = load_yaml_file(path)
+    except CalibrationError as exc:
+        raise ConfigError(f"key 'run.calibration_file': {exc}") from None
     return calibration_from_yaml(doc, str(path))
 
 
@@ -67,6 +72,7 @@ def build_runtime(
     options = RuntimeOptions(
         fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"], camera_workers=cfg["fusion.camera_workers"],
         lockstep=lockstep, measure_latency=measure_latency, realtime_priority=cfg["run.realtime_priority"] if live else None,
+        imu_range=imu_range(cfg),
     )
     path = trajectory_path or cfg["run.trajectory"]
     runtime = Runtime(estimator, options, camera_processor=camera_processor,
@@ -80,11 +86,11 @@ def build_runtime(
         except ValueError as exc:  # an unusable signing key file: the message names its key
             raise ConfigError(str(exc)) from None
     if cfg["outputs.zenoh.enabled"]:
-        from vtolpose.service.outputs.zenoh import ZenohOutput
+        from vtolpose.service.outputs.zenoh import QueryLimits, ZenohOutput
         from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
         runtime.outputs.append(ZenohOutput(ZenohSettings.from_config(cfg), zenoh_prefix(cfg), runtime.history,
-                                           runtime.history_lock, lambda: runtime.origin()))
+                                           runtime.history_lock, lambda: runtime.origin(), QueryLimits.from_config(cfg)))
     add_interop_outputs(runtime, cfg, camera_processor)
     return runtime
 
@@ -159,6 +165,8 @@ def summary_lines(summary: RunSummary) -> list[str]:
         f"({summary.data_s:.1f} s of data), {summary.poses_published} poses published, "
         f"{summary.trajectory_lines} trajectory lines",
     ]
+    if summary.trajectory_error:
+        lines.append(f"the trajectory file is incomplete: {summary.trajectory_error}")
     if summary.latency_ms["p50"] == summary.latency_ms["p50"]:  # not NaN
         lines.append("latency IMU in -> outputs out: p50 {p50:.3f} ms, p99 {p99:.3f} ms, max {max:.3f} ms".format(**summary.latency_ms))
     status = summary.status

@@ -30,7 +30,7 @@ import cv2
 
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuRange, ImuSample
 from vtolpose.estimator.pose_history import PoseHistory
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.status import (FailureBook, LatencyProbe, StatusTracker, pose_problem, pose_quality,
@@ -95,6 +95,7 @@ class RuntimeOptions:
     status_period_s: float = 1.0
     measure_latency: bool = False
     realtime_priority: int | None = None  # SCHED_FIFO priority for the loop and the device readers
+    imu_range: ImuRange | None = None  # plausibility: readings beyond it are refused where they enter
 
 
 @dataclass
@@ -107,6 +108,7 @@ class RunSummary:
     stopped_by: str
     latency_ms: dict[str, float]
     status: dict[str, Any]
+    trajectory_error: str | None = None  # a write to the trajectory file failed (a full disk): it is incomplete
 
 
 class Runtime:
@@ -176,6 +178,12 @@ class Runtime:
         self.status.saw("imu")
         if self._first_t is None:
             self._first_t = sample.t_ns
+        imu_range = self.options.imu_range
+        if imu_range is not None and imu_range.exceeded(sample.gyro, sample.accel):
+            counts = self.est.counts["imu"]  # the filter's IMU counts, so reports show it beside non_finite
+            counts.received += 1
+            counts.reject("out_of_range")
+            return
         fusion = self.fusion
         if not fusion.add_imu(sample, fuse=False):
             return
@@ -394,4 +402,5 @@ class Runtime:
             stopped_by=stopped_by,
             latency_ms={"p50": p50, "p99": p99, "max": pmax},
             status=self.status_document(),
+            trajectory_error=self.trajectory.error if self.trajectory is not None else None,
         )
