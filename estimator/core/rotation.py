@@ -1,6 +1,6 @@
 """Rotations: Hamilton quaternions (scalar first), rotation matrices, the SO(3) exponential map.
 
-One convention everywhere (see README, "Frames"): a unit quaternion ``q = [w, x, y, z]``
+One convention everywhere (docs/configuration.md, "Frames and conventions"): a unit quaternion ``q = [w, x, y, z]``
 rotates body vectors into the world, ``v_W = R(q) v_B``; composition is Hamilton's product,
 so ``q_WC = q_WB ⊗ q_BC``. Every function accepts a single quaternion/vector or a stack of
 them along the leading axes (``[..., 4]`` / ``[..., 3]``), which keeps evaluation code free of

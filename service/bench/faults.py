@@ -1,4 +1,4 @@
-"""Behaviour under injected faults, measured: the figures behind the README's fault table.
+"""Behaviour under injected faults, measured: the figures behind the fault table in docs/faults.md.
 
 ``fault-targets`` (the fault-tolerance targets, with the default SIFT features):
 - landfill Test 3 (imu,camera,gps), 120 s, GPS off for 30 s from 60 s: how long after the GPS

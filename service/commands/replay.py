@@ -36,7 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "  vtolpose replay data/book --sensors imu,camera,gps --speed 1 --foxglove --mcap book.mcap",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("dataset", metavar="DATASET", help="dataset folder (see README, Dataset layout)")
+    p.add_argument("dataset", metavar="DATASET", help="dataset folder (docs/configuration.md, Datasets)")
     add_config_options(p)
     add_runtime_options(p)
     add_fault_options(p)
