@@ -1,4 +1,4 @@
-"""Datasets on disk (extended ASL/EuRoC layout, see README "Dataset layout"): read and write.
+"""Datasets on disk (extended ASL/EuRoC layout, docs/configuration.md "Datasets"): read and write.
 
 What ``replay`` reads and ``simulate``/``import``/recording write, so every flight, simulated or
 real, goes through the same files. Readers return whole-file numpy series in SI units; the IMU

@@ -267,7 +267,7 @@ def _table(name: str, dataset: Dataset, cfg: dict[str, Any], sensors: Sequence[s
 
 
 def bench_fault_table() -> list[Row]:
-    """Each fault kind: largest error, quality, recovery, resets, counts (the figures behind the README table)."""
+    """Each fault kind: largest error, quality, recovery, resets, counts (the figures behind the table in docs/faults.md)."""
     rows: list[Row] = []
     with tempfile.TemporaryDirectory() as tmp:
         landfill = _dataset(Path(tmp), "landfill", 100.0, camera=False)

@@ -10,7 +10,7 @@ from vtolpose.drivers.simulator.lidar import default_lidar, lidar_with, simulate
 
 
 def add_lidar_options(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("LIDAR (with --lidar; defaults: the scenario's scanner, see README)")
+    g = p.add_argument_group("LIDAR (with --lidar; defaults: the scenario's scanner, docs/mapping.md)")
     g.add_argument("--lidar", action="store_true",
                    help="add a line-scanning LIDAR (landfill: a survey scanner; book: the URG-04LX) as mav0/lidar0")
     g.add_argument("--lidar-fov", type=float, metavar="DEG", help="field of view (landfill 90, book 240)")

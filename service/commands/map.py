@@ -27,7 +27,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "known for simulated datasets).\n\n"
         "Poses come from a trajectory file (TUM, as `replay --out` writes), from the dataset's truth, or\n"
         "live from a running vtolpose over Zenoh: one `trajectory` query per scan, interpolated per\n"
-        "return, as the README tells a mapper to.\n\n"
+        "return, as docs/outputs.md tells a mapper to.\n\n"
         "Examples:\n"
         "  vtolpose map data/landfill --trajectory traj.txt --png maps/filter --report map.json\n"
         "  vtolpose map data/landfill --trajectory traj.txt --explain   (what position, attitude and timing cost)\n"

@@ -2,7 +2,7 @@
 
 ``poses`` gives a pose to every return at its own time, from a trajectory file, the dataset's
 truth or a running vtolpose over Zenoh (the public ``vtolpose.client.PoseClient``, one
-``trajectory()`` query per scan, as the README tells a mapper to); ``mapper`` runs the scans
+``trajectory()`` query per scan, as docs/outputs.md tells a mapper to); ``mapper`` runs the scans
 through a height grid (``vtolpose.estimator.mapping``); ``report`` and ``plots`` turn a map into
 figures, a table and PNGs. ``vtolpose map`` and ``vtolpose demo --lidar`` are built on it.
 """
