@@ -6,7 +6,7 @@ import argparse
 import importlib.util
 import time
 
-from vtolpose.drivers.simulator import SCENARIOS, simulate_flight
+from vtolpose.drivers.simulator import SCENARIOS, SimulationOptions, make_scenario, simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
 
@@ -23,6 +23,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "Camera frames (656 x 494 grey at 7.5 Hz, looking down, rendered from the true pose over the\n"
         "scenario's textured ground) are written when scikit-image is installed (the 'sim' extra);\n"
         "--no-camera skips them.\n\n"
+        "--start-in-flight begins the recording in the air, mid-trajectory, with no rest and no stated\n"
+        "heading (a service restarted in flight): book 20 s into the arm's motion, landfill on the first\n"
+        "survey leg 5 s before a turn (70 s in); a number of seconds picks another point.\n\n"
         "The same scenario, duration and seed always give the same bytes.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -32,11 +35,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DATASET", help="folder to write")
     p.add_argument("--force", action="store_true", help="replace an existing dataset in --out")
     p.add_argument("--no-camera", action="store_true", help="do not render camera frames")
+    p.add_argument("--start-in-flight", nargs="?", type=_seconds, const=-1.0, default=None, metavar="S",
+                   help="start S seconds into the scenario's trajectory, moving (default: the scenario's in-flight point)")
     p.set_defaults(run=run)
 
 
+def _seconds(text: str) -> float:
+    value = float(text)
+    if not (value >= 0.0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds >= 0")
+    return value
+
+
 def run(args: argparse.Namespace) -> int:
-    flight = simulate_flight(args.scenario, args.duration, args.seed)
+    options = SimulationOptions()
+    if args.start_in_flight is not None:
+        start_s = make_scenario(args.scenario).in_flight_s if args.start_in_flight < 0.0 else args.start_in_flight
+        options = SimulationOptions(start_s=start_s)
+    flight = simulate_flight(args.scenario, args.duration, args.seed, options)
     camera = None
     if not args.no_camera:
         if importlib.util.find_spec("skimage") is None:
