@@ -4,15 +4,20 @@ Feed it samples in timestamp order (late measurements are ordered by ``vtolpose.
 ask it for the pose. Bad samples are counted per sensor and reason, never raised: the
 caller always gets the best estimate the good data allow.
 
-Start-up has three paths. A still IMU gives roll, pitch and gyro bias (thesis 5.2); the
+Start-up has four paths. A still IMU gives roll, pitch and gyro bias (thesis 5.2); the
 heading then comes from the dataset or operator, or stays unknown — the filter then works in
 a frame of arbitrary yaw, levelled by gravity, until the in-motion alignment places it. A
-vehicle that is moving from the start is initialised by the in-motion alignment directly.
+vehicle that is moving from the start is initialised by the in-motion alignment directly
+when there is GPS; without GPS but with a camera, by the visual-inertial start
+(``vtolpose.estimator.init``), in a frame of its own origin and heading. Until one of them has
+converged, a filter that started moving is *initialising*: it runs from the accelerometer
+alone and what it says must not be used.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,7 +35,9 @@ from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts
 from vtolpose.estimator.inertial.motion_alignment import MotionAligner, MotionAlignment, MotionAlignOptions
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.inertial.startup import state_from_alignment, state_from_static
+from vtolpose.estimator.core.rotation import euler_from_quat
 from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
@@ -55,6 +62,7 @@ class FilterOptions:
     align: MotionAlignOptions = field(default_factory=MotionAlignOptions)
     still: StillnessOptions = field(default_factory=StillnessOptions)
     camera: CameraOptions = field(default_factory=CameraOptions)
+    visual_inertial: VisualInertialOptions = field(default_factory=VisualInertialOptions)
     health: HealthOptions = field(default_factory=HealthOptions)
 
     def __post_init__(self) -> None:
@@ -114,10 +122,25 @@ class Estimator:
         cam = calibration.camera
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
+        self.initialising = False  # started moving; no in-motion start (visual-inertial or GPS) yet: not to be used
+        self.heading_local = False  # the heading is the visual-inertial start's own, not north
+        self._gps_seen = False
+        self._position_jumps = False  # the first fix moves a position published in the camera's own frame
+        self._early_fixes: deque[tuple[int, np.ndarray, float]] = deque(maxlen=64)  # fixes before the start
+        self.visual_inertial = None
+        if cam is not None and opts.visual_inertial.enabled:
+            self.visual_inertial = VisualInertialInitializer(cam, self.noise, calibration.imu.gravity, opts.camera.pixel_sigma,
+                                                             opts.visual_inertial, opts.camera.association)
 
     @property
     def initialized(self) -> bool:
         return self.state is not None
+
+    @property
+    def local_position(self) -> bool:
+        """No absolute position, but the camera holds the filter's own origin (no GPS at all so far)."""
+        camera = self.counts.get("camera")
+        return not (self.position_initialized or self._gps_seen) and camera is not None and camera.used > 0
 
     def _known_heading(self) -> tuple[float | None, float]:
         """Initial heading and its sigma [rad]; (None, 0) when it must come from GPS."""
@@ -155,9 +178,12 @@ class Estimator:
         if self.state is None:
             if delta is not None:
                 self._aligner.add_delta(delta)
+                if self._visual_start_pending():
+                    self.visual_inertial.add_delta(delta)
             # Moving from the start: with GPS the in-motion alignment will do; without it,
             # start from the accelerometer alone after max_wait_s rather than never.
-            init = self._initializer.add(t_ns, gyro, accel, allow_moving=self._fixes_before_start == 0)
+            init = self._initializer.add(t_ns, gyro, accel, allow_moving=self._fixes_before_start == 0,
+                                         allow_still=not self._seen_moving(t_ns))
             if init is not None:
                 self._downsampler.flush()  # the filter starts at this sample
                 self._start_still(init)
@@ -177,6 +203,10 @@ class Estimator:
 
     def _propagate(self, delta: ImuDelta) -> None:
         extra = 0.0
+        if self._visual_start_pending():
+            self.visual_inertial.add_delta(delta)
+        if self.heading_local:
+            self._aligner.add_delta(delta)  # a GPS that appears can still place the frame
         if not self.heading_aligned:
             self._aligner.add_delta(delta)  # every step, so that its window has no gaps
             # An unknown heading misplaces the horizontal acceleration by up to twice its size;
@@ -280,6 +310,9 @@ class Estimator:
         self._fixed_bias_var = np.full(3, init.sigma_gyro_bias**2)
         self.heading_aligned = self._heading_known
         how = "still" if init.static else "moving, accelerometer only (no still window, no GPS)"
+        if not init.static and self.visual_inertial is not None and not self._gps_seen:
+            self.initialising = True
+            how += "; initialising until the visual-inertial start"
         self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
         self._aligner.set_bias_prior(init.gyro_bias, max(init.sigma_gyro_bias, 1e-3), np.zeros(3), opts.init.sigma_accel_bias)
         if self._pending_fix is not None and (init.t_ns - self._pending_fix.t_ns) < 1e9:
@@ -304,12 +337,68 @@ class Estimator:
         self.heading_aligned = True
         self.position_initialized = True
         self._pending_fix = None
+        if self.initialising or self.heading_local:
+            self.reset_counter += 1  # the frame jumped: the initialising (or local-frame) estimate is replaced
+        self.initialising = self.heading_local = False
+
+    def _seen_moving(self, t_ns: int) -> bool:
+        """The camera or the GPS sees the vehicle move, however still the IMU feels (a steady cruise)."""
+        if self.visual_inertial is not None and self.visual_inertial.image_moving(t_ns):
+            return True
+        window_ns = int(self.options.init.static_window_s * 1e9)
+        fixes = [f for f in self._early_fixes if t_ns - f[0] <= window_ns]
+        if len(fixes) < 2:
+            return False
+        (_, p0, s0), (_, p1, s1) = fixes[0], fixes[-1]
+        return float(np.linalg.norm((p1 - p0)[:2])) > 5.0 * math.hypot(s0, s1)
+
+    def _visual_start_pending(self) -> bool:
+        """Whether the visual-inertial start is wanted: moving, no GPS, no start yet."""
+        return self.visual_inertial is not None and not self._gps_seen and (self.state is None or self.initialising)
+
+    def _gauge(self) -> Gauge:
+        """Position and heading a visual-inertial start keeps: the filter's own, or the known heading."""
+        state = self.state
+        if state is not None:
+            p, heading = state.p.copy(), float(euler_from_quat(state.q)[2])
+        else:
+            p, heading = np.zeros(3), self._initializer.heading_rad
+        return Gauge(p, heading, self._heading_sigma if self._heading_known else None)
+
+    def _apply_visual_start(self, start: VisualInertialStart) -> None:
+        """Start (or restart) EKF-SLAM from a converged visual-inertial window, its landmarks included."""
+        n = self.layout.robot_dim
+        keep = np.r_[0:n, 15 : len(start.cov)]
+        state = FilterState(self.layout)
+        state.t_ns = start.t_ns
+        state.p, state.v, state.q, state.b_g = start.p.copy(), start.v.copy(), start.q.copy(), start.b_g.copy()
+        if self.layout.estimates_biases:
+            state.b_a = start.b_a.copy()
+        state.landmarks = start.landmarks.copy()
+        state.cov = start.cov[np.ix_(keep, keep)].copy()
+        self._fixed_bias_var = np.diag(start.cov)[9:12].copy()
+        message = start.describe()
+        if self.state is None:
+            self._begin(state, self.calibration.imu.gravity, message)
+        else:
+            self.state = state
+            self.events.append((state.t_ns, message))
+            self.reset_counter += 1  # the initialising estimate is replaced: a jump
+        self.camera.adopt(state, start.descriptors, np.sqrt(np.diag(start.cov)[15 + 5 :: 6]))
+        self.initialising = False
+        self.heading_aligned = True
+        self.heading_local = not self._heading_known
+        self._aligner.set_bias_prior(start.b_g, float(np.sqrt(np.max(self._fixed_bias_var))), start.b_a,
+                                     self.options.init.sigma_accel_bias)
+        self.visual_inertial.reset()
 
     # -------------------------------------------------------------------------------- GPS
     def process_gps(self, fix: GpsFix) -> UpdateOutcome | None:
         """Fuse a fix at its own time. Returns the update outcome, or None if it was not fused."""
         counts = self.counts["gps"]
         counts.received += 1
+        self._position_jumps = self._position_jumps or self.local_position
+        self._gps_seen = True
         p = np.asarray(fix.p_ned, dtype=float)
         if not (np.all(np.isfinite(p)) and math.isfinite(fix.sigma_h)) or fix.sigma_h <= 0.0:
             counts.reject("non_finite")
@@ -319,7 +408,7 @@ class Estimator:
         if state is not None and fix.t_ns < state.t_ns:
             counts.reject("older_than_filter")
             return None
-        if not self.heading_aligned:
+        if not self.heading_aligned or self.heading_local:
             sigma_h, sigma_v = gps_sigmas(fix, self.options.gps_sigma_floor_m)
             alignment = self._aligner.add_fix(fix.t_ns, p, sigma_h, sigma_v)
             if alignment is not None:
@@ -327,9 +416,15 @@ class Estimator:
                 self._propagate_to(fix.t_ns)
                 counts.used += 1
                 return UpdateOutcome(True, 0.0, 3, "in-motion alignment")
+        if self.heading_local:
+            # A frame of the visual-inertial start's own heading: a fix means nothing in it until
+            # the in-motion alignment places the frame (it then replaces the estimate).
+            counts.reject("local_frame")
+            return None
         if state is None:
             self._fixes_before_start += 1
             self._pending_fix = fix
+            self._early_fixes.append((fix.t_ns, p, fix.sigma_h))
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)
@@ -356,6 +451,9 @@ class Estimator:
 
     def _init_position(self, fix: GpsFix) -> None:
         state = self.state
+        if self._position_jumps:
+            self.reset_counter += 1  # a position published in the filter's own frame jumps to the GPS's
+            self._position_jumps = False
         sigma_h, sigma_v = gps_sigmas(fix, self.options.gps_sigma_floor_m)
         state.p = np.asarray(fix.p_ned, dtype=float) - state.R @ self.calibration.gps.lever_arm_b
         state.cov[0:3, :] = 0.0
@@ -386,6 +484,10 @@ class Estimator:
         t_ns = features.t_ns  # already on the IMU clock (the runtime applies camera.time_offset_s)
         reason = self._frame_rejection(features, t_ns)
         self._last_frame = (t_ns, features.digest) if reason != "out_of_order" else self._last_frame
+        if reason in (None, "before_start") and self._visual_start_pending():
+            return self._visual_start_frame(features, counts)
+        if reason == "before_start" and self.visual_inertial is not None:
+            self.visual_inertial.observe(features)  # does the scene move? (a cruise feels still to the IMU)
         if reason is not None:
             counts.reject(reason)
             self.health.measured("camera", t_ns, used=False)  # alive (frames arrive), not usable
@@ -406,6 +508,25 @@ class Estimator:
         if report.behind_camera:
             matches.flag("behind_camera", report.behind_camera)
         return report
+
+    def _visual_start_frame(self, features: FrameFeatures, counts: RejectionCounts) -> FrameReport:
+        """A frame for the visual-inertial start (the IMU brought to its time first); the start once it converges."""
+        t_ns = features.t_ns
+        if self.state is not None:
+            self._propagate_to(t_ns)
+        else:
+            for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
+                if delta is not None:
+                    self._aligner.add_delta(delta)
+                    self.visual_inertial.add_delta(delta)
+        start = self.visual_inertial.add_frame(features, self._gauge())
+        self.health.measured("camera", t_ns, used=True)  # alive and in use, by the start
+        if start is None:
+            counts.reject("initialising")
+            return FrameReport(t_ns, False, "initialising", n_features=len(features))
+        self._apply_visual_start(start)
+        counts.used += 1
+        return FrameReport(t_ns, True, "visual-inertial start", n_features=len(features), n_landmarks=len(start.landmarks))
 
     def _frame_rejection(self, features: FrameFeatures, t_ns: int) -> str | None:
         if self.camera is None:

@@ -11,6 +11,7 @@ from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, 
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline
 from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
 from vtolpose.estimator.filter import Estimator, FilterOptions
+from vtolpose.estimator.init.visual_inertial import VisualInertialOptions
 from vtolpose.estimator.vision.map_manager import LandmarkBook, MapOptions, deletions, depth_priors, select_new_features
 from vtolpose.estimator.core.rotation import quat_from_euler
 from vtolpose.estimator.core.state import FilterState, StateLayout
@@ -105,10 +106,16 @@ def test_duplicate_and_out_of_order_frames(detector):
 
 
 def test_frames_before_the_filter_starts_are_counted():
+    """Before the start a frame goes to the visual-inertial start (it may be moving); without it, it waits."""
     cal = Calibration(imu=ImuCalibration(125.0, ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4)), camera=CAM)
+    frame = extract_features(textured(4), EPOCH, FeatureOptions(max_features=50))
     est = Estimator(cal)
-    report = est.process_features(extract_features(textured(4), EPOCH, FeatureOptions(max_features=50)))
-    assert report.reason == "before_start" and est.counts["camera"].rejected == {"before_start": 1}
+    report = est.process_features(frame)
+    assert report.reason == "initialising" and est.counts["camera"].rejected == {"initialising": 1}
+    assert len(est.visual_inertial.tracker.frames) == 1
+    plain = Estimator(cal, FilterOptions(visual_inertial=VisualInertialOptions(enabled=False)))
+    report = plain.process_features(frame)
+    assert report.reason == "before_start" and plain.counts["camera"].rejected == {"before_start": 1}
 
 
 def test_unknown_heading_adds_no_landmarks():

@@ -64,9 +64,12 @@ class StaticInitializer:
         self._accel: deque[np.ndarray] = deque()
         self._first_t: int | None = None
 
-    def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, allow_moving: bool = True) -> InitialAttitude | None:
+    def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, allow_moving: bool = True,
+            allow_still: bool = True) -> InitialAttitude | None:
         """Returns the initial attitude once a still window exists or, if ``allow_moving``, once
-        ``max_wait_s`` has passed without one (then from the last window, less certain)."""
+        ``max_wait_s`` has passed without one (then from the last window, less certain).
+        ``allow_still`` False: another sensor sees the vehicle move (a steady cruise feels still to
+        an IMU), so no window counts as still."""
         opts = self.options
         if self._first_t is None:
             self._first_t = t_ns
@@ -83,7 +86,7 @@ class StaticInitializer:
             return None
         g = np.array(self._gyro)
         a = np.array(self._accel)
-        static = bool(np.all(g.std(axis=0) < opts.gyro_std_max) and np.all(a.std(axis=0) < opts.accel_std_max))
+        static = allow_still and bool(np.all(g.std(axis=0) < opts.gyro_std_max) and np.all(a.std(axis=0) < opts.accel_std_max))
         timed_out = t_ns - self._first_t >= int(opts.max_wait_s * 1e9)
         if not (static or (timed_out and allow_moving)):
             return None

@@ -93,6 +93,12 @@ class CameraPipeline:
         self.book.clear()
         return n
 
+    def adopt(self, state: FilterState, descriptors: np.ndarray, sigma_rho0: np.ndarray) -> None:
+        """Take the landmarks already in ``state`` (a visual-inertial start) as the map, with their descriptors."""
+        self.book.clear()
+        self.book.append(np.asarray(descriptors), np.asarray(sigma_rho0, dtype=float))
+        self.initialized_total += state.n_landmarks
+
     def process(
         self,
         state: FilterState,

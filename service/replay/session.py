@@ -40,6 +40,11 @@ class Trajectory:
     p: np.ndarray
     v: np.ndarray
     q: np.ndarray
+    initialising: np.ndarray | None = None  # (N,) bool: published as not to be used (quality −1)
+
+    @property
+    def valid(self) -> np.ndarray:
+        return np.ones(len(self.t_ns), dtype=bool) if self.initialising is None else ~self.initialising
 
 
 @dataclass
@@ -57,7 +62,7 @@ class Recorder:
 
     def __init__(self, cov_period_ns: int, absolute_position: bool = True,
                  on_progress: Callable[[int], None] | None = None) -> None:
-        self._rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, bool]] = []
         self.cov_period_ns = cov_period_ns
         # Without an absolute position source the start is the origin and the covariance is
         # meaningful from the first step; with one, only once the position is initialised.
@@ -67,8 +72,9 @@ class Recorder:
         self._cov: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
 
     def record(self, pose: OutputPose) -> None:
-        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q))
-        if pose.t_ns >= self._next_cov_t and (pose.position_initialized or not self.absolute_position):
+        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q, pose.initialising))
+        # A pose offered as not to be used (initialising) is not scored.
+        if not pose.initialising and pose.t_ns >= self._next_cov_t and (pose.position_initialized or not self.absolute_position):
             self._cov.append((pose.t_ns, pose.p, pose.q, pose.pose_cov))
             self._next_cov_t = pose.t_ns + self.cov_period_ns
         if self.on_progress is not None and len(self._rows) % 2000 == 0:
@@ -76,9 +82,9 @@ class Recorder:
 
     def trajectory(self) -> Trajectory:
         if not self._rows:
-            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)))
-        t, p, v, q = zip(*self._rows)
-        return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q))
+            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0, bool))
+        t, p, v, q, initialising = zip(*self._rows)
+        return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q), np.array(initialising, bool))
 
     def covariance_samples(self) -> CovarianceSamples:
         if not self._cov:

@@ -28,9 +28,13 @@ _ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD = math.radians(0.5), math.radians(20.0)
 
 
 def pose_quality(pose: OutputPose) -> int:
-    """0 = invalid (no heading, no position, non-finite); else 1–100 from the largest position and attitude
-    sigmas, never above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
-    if not (pose.heading_aligned and pose.position_initialized):
+    """−1 = must not be used (the filter is initialising: MAVLink's "failed"); 0 = invalid (no heading, no
+    position, non-finite); else 1–100 from the largest position and attitude sigmas, never above the
+    filter's health cap (a stale sensor, a recent reset, innovations out of band: ``estimator.health``).
+    A camera-only filter's position is relative to its own origin, and counts as a position."""
+    if pose.initialising:
+        return -1
+    if not (pose.heading_aligned and (pose.position_initialized or pose.local_position)):
         return 0
     d = pose.cov9.diagonal().tolist()
     var_p, var_a = max(d[0:3]), max(d[6:9])
