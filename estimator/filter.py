@@ -27,7 +27,7 @@ from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipel
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.gnss.gps_update import GpsUpdater, gps_sigmas
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
-from vtolpose.estimator.health import GapWidener, HealthMonitor, HealthOptions
+from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonitor, HealthOptions
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
@@ -440,6 +440,9 @@ class Estimator:
             counts.used += 1
         else:
             counts.reject(outcome.reason.replace(" ", "_"))
+        gated = outcome.accepted or outcome.reason == "chi2 gate"
+        self.health.innovations("gps", fix.t_ns, outcome.accepted if gated else None,
+                                "" if outcome.accepted else f"fix refused by the gate (NIS {outcome.nis:.1f})")
         if self.health.measured("gps", fix.t_ns, outcome.accepted, gated=True):
             self._reset_from_gps(fix)
         return outcome
@@ -469,8 +472,42 @@ class Estimator:
         state.cov[3:6, :] = 0.0
         state.cov[:, 3:6] = 0.0
         state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
-        self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {self.options.gps_reset_after_s:g} s; "
-                    "position and velocity re-initialised from GPS")
+        what = "position and velocity re-initialised from GPS"
+        last = self.health.resets[-1] if self.health.resets else None
+        window_ns = int((2.0 * self.options.gps_reset_after_s + self.options.health.reset_hold_s) * 1e9)
+        if last is not None and last.kind == "gps_rejected" and fix.t_ns - last.t_ns <= window_ns:
+            # Lost again right after the last reset: not a GPS that jumped but a wrong attitude.
+            self._widen_attitude()
+            what += ", and the attitude, since the last reset did not hold"
+        self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {self.options.gps_reset_after_s:g} s; {what}")
+
+    def _widen_attitude(self) -> None:
+        """A filter found lost: its attitude may be wrong. Nothing better is known than the nominal value,
+        but its covariance is re-initialised as for a start in motion (decorrelated, ``init.
+        sigma_attitude_moving_deg``), so that the sensors that remain can turn it."""
+        cov = self.state.cov
+        sigma = math.radians(self.options.init.sigma_attitude_moving_deg)
+        cov[6:9, :] = 0.0
+        cov[:, 6:9] = 0.0
+        cov[6:9, 6:9] = np.eye(3) * sigma**2
+
+    def _reset_camera_lost(self, t_ns: int, why: str) -> None:
+        """The camera's innovations say the filter is lost: map cleared, velocity, attitude and biases
+        re-initialised as for a start in motion; without GPS the visual-inertial start begins again."""
+        self._reset(t_ns, "camera_lost", f"camera innovations out of band for {self.options.health.innovation_reset_s:g} s "
+                    f"({why}): map cleared, velocity, attitude and biases re-initialised")
+        state, init = self.state, self.options.init
+        n = self.layout.robot_dim
+        var_p = np.diagonal(state.cov)[0:3].copy()
+        sigmas = [init.sigma_velocity_moving] * 3 + [math.radians(init.sigma_attitude_moving_deg)] * 3
+        if self.layout.estimates_biases:
+            sigmas += [init.sigma_gyro_bias] * 3 + [init.sigma_accel_bias] * 3
+        state.cov = np.diag(np.concatenate([var_p, np.square(sigmas)]))[:n, :n]
+        if self.position_initialized and self._last_fix is not None and self.health.fresh("gps", t_ns):
+            self._init_position(self._last_fix)
+        elif self.visual_inertial is not None and not self._gps_seen:
+            self.initialising = True
+            self.visual_inertial.reset()
 
     # ------------------------------------------------------------------------------ camera
     def process_features(self, features: FrameFeatures) -> FrameReport:
@@ -500,6 +537,10 @@ class Estimator:
         else:
             counts.reject(report.reason)
         self.health.measured("camera", t_ns, report.accepted)
+        lost, why = self.health.camera_frame(FrameInnovations(
+            t_ns, report.candidates, report.n_matches, len(report.new_ids), report.nis, 2 * report.n_matches))
+        if lost:
+            self._reset_camera_lost(t_ns, why)
         matches = self.counts.setdefault("camera_match", RejectionCounts())
         matches.received += report.candidates
         matches.used += report.n_matches

@@ -285,6 +285,8 @@ class VisualInertialInitializer:
         last = frames[-1]
         seen = self._landmark_points(problem, solution, chosen, last)
         start = self._to_filter(problem, solution, seen, last, gauge, tilt)
+        if not (np.all(np.isfinite(start.cov)) and np.all(np.diagonal(start.cov) > 0.0)):
+            raise WindowFailure("the start's covariance is not positive")
         v_limit = opts.max_velocity_sigma + opts.max_velocity_sigma_rel * float(np.linalg.norm(start.v))
         if start.sigma_velocity > v_limit:
             raise WindowFailure(f"velocity sigma {start.sigma_velocity:.3f} m/s")

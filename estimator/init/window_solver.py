@@ -615,6 +615,8 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     cost, est = min(fits, key=lambda x: x[0])
     inliers = model.pixel_chi2(est) <= outlier_chi2
     counts = np.bincount(problem.obs_point[inliers], minlength=M)
+    inliers &= counts[problem.obs_point] >= 2  # a point seen once says nothing, and would leave H singular
+    counts = np.bincount(problem.obs_point[inliers], minlength=M)
     if np.sum(counts >= 2) < 6 or np.mean(inliers) < 0.5:
         raise WindowFailure("too few points consistent with the motion")
     model = _Residuals(problem, inliers)
@@ -623,12 +625,15 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     tangent = tangent_basis(est.g_dir)
     lin = model.evaluate(est, tangent)
     H_cc, H_cf, H_ff, _, _ = lin.normal_equations(np.ones(len(lin.frame)))
-    # Points seen in fewer than two inlier frames are unconstrained: pin them so the inverse exists.
-    H_ff[counts < 2] += np.eye(3) * 1e-6
+    # Points left without observations are not in the solution: any pin keeps the inverse defined.
+    H_ff[counts < 2] += np.eye(3)
     try:
         cov = _covariance(H_cc, H_cf, H_ff)
     except np.linalg.LinAlgError:
         raise WindowFailure("singular information matrix") from None
+    n_c = len(H_cc)
+    if not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov[:n_c, :n_c]).min() <= 0.0:
+        raise WindowFailure("information matrix too ill-conditioned for a covariance")
     r2 = float(np.sum(lin.r_pix**2) + lin.r_dense @ lin.r_dense)
     ratio = math.sqrt(r2 / max(2 * len(lin.frame) + len(lin.r_dense) - Layout(K, M).size, 1))
     cov *= max(1.0, ratio**2)
