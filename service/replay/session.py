@@ -153,8 +153,10 @@ def replay(
     faults: Sequence[Fault] = (),
     fault_seed: int = 0,
     on_fused: Callable[[OutputPose], None] | None = None,
+    start_at_s: float | None = None,
 ) -> ReplayResult:
-    """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0), ``faults`` played on its stream."""
+    """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0), ``faults`` played on its
+    stream; ``start_at_s``: joined that far into the recording, as a service restarted in flight."""
     sensors = checked_sensors(sensors or cfg["replay.sensors"])
     notes: list[str] = []
     has_gps = "gps" in sensors and dataset.gps() is not None
@@ -184,7 +186,7 @@ def replay(
     wall0 = time.perf_counter()
     summary, runtime = run_replay(
         dataset, cfg, sensors=sensors, speed=speed, trajectory_path=trajectory_path,
-        camera_processor=processor, handle_signals=False, faults=injector,
+        camera_processor=processor, handle_signals=False, faults=injector, start_at_s=start_at_s,
         on_fused=recorder.record if on_fused is None else lambda pose: (recorder.record(pose), on_fused(pose)),
     )
     wall = time.perf_counter() - wall0
