@@ -164,7 +164,9 @@ class StatusTracker:
         doc = {
             "sensors": sensors,
             "initialized": state is not None,
+            "initialising": state is None or est.initialising,  # no pose to use yet (quality −1)
             "heading_aligned": est.heading_aligned,
+            "heading_local": est.heading_local,  # the visual-inertial start's own heading, not north
             "landmarks": int(state.n_landmarks) if state is not None else 0,
             "rejected": rejected,
             "fusion": {
