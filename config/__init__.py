@@ -148,8 +148,6 @@ def _merge(base: dict, override: dict) -> dict:
 
 
 def _cross_checks(cfg: dict[str, Any], origin: str) -> None:
-    if cfg["estimator.alignment.min_window_s"] > cfg["estimator.alignment.window_s"]:
-        raise ConfigError(f"{origin}: key 'estimator.alignment.min_window_s' must not exceed 'estimator.alignment.window_s'")
     check_outputs(cfg, origin)
 
 

@@ -1,4 +1,4 @@
-"""Checks of the output links (MAVLink URL, Zenoh endpoints and prefix, key files) before anything opens.
+"""Checks of the output links (Zenoh endpoints and prefix, key files; MAVLink in :mod:`.mavlink`) before anything opens.
 
 The schema checks types; these check what a type cannot: a port in range, an endpoint a
 Zenoh session can open, a key expression without wildcards, files that exist when the output
@@ -11,7 +11,8 @@ import re
 from pathlib import Path
 from typing import Any
 
-MAVLINK_NET_SCHEMES = ("udpin", "udpout", "udp", "udpbcast", "tcp", "tcpin")
+from vtolpose.config.mavlink import check_mavlink
+
 ZENOH_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 ZENOH_OTHER_PROTOCOLS = ("unixsock-stream", "serial")
 _HOST = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+)$")
@@ -28,20 +29,6 @@ def _host_port(text: str, allow_zero: bool = False) -> tuple[str, int]:
     if not sep or not host or not _HOST.match(host):
         raise ValueError(f"expected HOST:PORT, got {text!r}")
     return host.strip("[]"), _port(port, allow_zero)
-
-
-def parse_mavlink_url(url: str) -> tuple[str, int | None]:
-    """``(device, baud)`` for pymavlink: ``udpout:HOST:PORT`` etc. (baud None), or ``/dev/ttyX[,BAUD]``."""
-    scheme, sep, rest = url.partition(":")
-    if sep and scheme in MAVLINK_NET_SCHEMES:
-        _host_port(rest)
-        return url, None
-    if url.startswith("/") or re.match(r"^COM\d+", url):
-        device, comma, baud = url.partition(",")
-        if comma and (not baud.isdigit() or int(baud) <= 0):
-            raise ValueError(f"serial baud rate {baud!r} is not a positive integer")
-        return device, int(baud) if comma else None
-    raise ValueError(f"{url!r} is not a MAVLink link: use {'|'.join(MAVLINK_NET_SCHEMES)}:HOST:PORT or /dev/ttyX,BAUD")
 
 
 def check_zenoh_endpoint(endpoint: Any, listen: bool) -> None:
@@ -78,15 +65,7 @@ def check_outputs(cfg: dict[str, Any], origin: str) -> None:
     def fail(key: str, problem: str) -> ConfigError:
         return ConfigError(f"{origin}: key '{key}': {problem}")
 
-    try:
-        parse_mavlink_url(cfg["outputs.mavlink.url"])
-    except ValueError as exc:
-        raise fail("outputs.mavlink.url", str(exc)) from None
-    key_file = cfg["outputs.mavlink.signing_key_file"]
-    if cfg["outputs.mavlink.require_signing"] and key_file is None:
-        raise fail("outputs.mavlink.require_signing", "needs outputs.mavlink.signing_key_file")
-    if cfg["outputs.mavlink.enabled"] and key_file is not None and not Path(key_file).is_file():
-        raise fail("outputs.mavlink.signing_key_file", f"file {key_file} not found")
+    check_mavlink(cfg, fail)
     for key, listen in (("outputs.zenoh.listen", True), ("outputs.zenoh.connect", False)):
         for endpoint in cfg[key]:
             try:

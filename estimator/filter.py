@@ -4,18 +4,25 @@ Feed it samples in timestamp order (late measurements are ordered by ``vtolpose.
 ask it for the pose. Bad samples are counted per sensor and reason, never raised: the
 caller always gets the best estimate the good data allow.
 
-Start-up has four paths. A still IMU gives roll, pitch and gyro bias (thesis 5.2); the
-heading then comes from the dataset or operator, or stays unknown — the filter then works in
-a frame of arbitrary yaw, levelled by gravity, until the in-motion alignment places it. A
-vehicle that is moving from the start is initialised by the in-motion alignment directly
-when there is GPS; without GPS but with a camera, by the visual-inertial start
-(``vtolpose.estimator.init``), in a frame of its own origin and heading. Until one of them has
-converged, a filter that started moving is *initialising*: it runs from the accelerometer
-alone and what it says must not be used.
+Start-up never waits for the motion: a still IMU gives roll, pitch and gyro bias (thesis 5.2),
+and a vehicle that is not still within ``init.max_wait_s`` starts from the mean specific
+force with wider sigmas. The heading comes from the dataset or operator, or is unknown: the
+filter then works in a frame of arbitrary yaw, levelled by gravity, publishes that its heading
+is unknown (a variance for a heading anywhere on the circle), and a bank of heading
+hypotheses (``inertial/heading_bank.py``) places it from GPS once the motion shows it.
+
+A vehicle that is moving from the start with a camera and no GPS is *initialising*: it runs
+from the accelerometer alone and what it says must not be used, until the visual-inertial
+start (``vtolpose.estimator.init``) has solved a window of tracked features and IMU deltas and
+the EKF-SLAM starts from it. Without GPS ever, position and (unless known) heading are then
+the filter's own frame's: its origin and heading where it started (``local_position``). A GPS
+that appears later places both, as at any start: the first fix the position, the heading bank
+the heading; while initialising, its first second of fixes the velocity too.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -25,22 +32,26 @@ import numpy as np
 from vtolpose.estimator.core.calibration import Calibration, ImuNoise
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
-from vtolpose.estimator.gnss.gps_update import GpsUpdater, gps_sigmas
+from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
 from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonitor, HealthOptions
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts
-from vtolpose.estimator.inertial.motion_alignment import MotionAligner, MotionAlignment, MotionAlignOptions
+from vtolpose.estimator.inertial.heading_bank import (
+    UNKNOWN_HEADING_VAR, YAW, HeadingBank, HeadingBankOptions, with_bias_states,
+)
 from vtolpose.estimator.inertial.propagator import ImuPropagator
-from vtolpose.estimator.inertial.startup import state_from_alignment, state_from_static
-from vtolpose.estimator.core.rotation import euler_from_quat
+from vtolpose.estimator.inertial.startup import state_from_static, velocity_from_fixes
+from vtolpose.estimator.core.rotation import yaw_of
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
+_POSE = np.r_[0:3, 6:9]  # [δp, δθ] within [δp, δv, δθ]
+VELOCITY_FIT_S = 1.0  # the fixes before the start that give its velocity (a constant acceleration holds that long)
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
 
 
@@ -49,7 +60,7 @@ class FilterOptions:
     variant: str = "biases"
     heading_source: str = "auto"  # auto: the dataset's known heading if any, else align from GPS
     heading_deg: float | None = None  # an operator-entered heading overrides both
-    gps_gate: float | None = 7.81  # χ², 3 dof, 95 % (spec); None disables the gate
+    gps_gate: float | None = 16.27  # χ², 3 dof, 99.9 %: an outlier test, not a tenth of the good fixes; None: no gate
     gps_sigma_floor_m: float = 0.005
     gps_reset_after_s: float = 3.0  # every fix rejected for this long: the filter is lost, reset
     max_imu_gap_s: float = 0.1
@@ -59,7 +70,7 @@ class FilterOptions:
     level_sigma: float = 2.0  # m/s²: the vehicle's own accelerations, averaged out over many updates
     noise: ImuNoise | None = None  # overrides the calibration's noise when given
     init: InitOptions = field(default_factory=InitOptions)
-    align: MotionAlignOptions = field(default_factory=MotionAlignOptions)
+    align: HeadingBankOptions = field(default_factory=HeadingBankOptions)
     still: StillnessOptions = field(default_factory=StillnessOptions)
     camera: CameraOptions = field(default_factory=CameraOptions)
     visual_inertial: VisualInertialOptions = field(default_factory=VisualInertialOptions)
@@ -88,7 +99,10 @@ class PoseEstimate:
 
 class Estimator:
     def __init__(self, calibration: Calibration, options: FilterOptions | None = None) -> None:
-        self.options = opts = options or FilterOptions()
+        opts = options or FilterOptions()
+        if calibration.initial_gyro_bias_sigma is not None:  # the vehicle's IMU says how large its turn-on bias is
+            opts = dataclasses.replace(opts, init=dataclasses.replace(opts.init, sigma_gyro_bias=calibration.initial_gyro_bias_sigma))
+        self.options = opts
         self.calibration = calibration
         self.layout = StateLayout(opts.variant)
         self.noise = opts.noise or calibration.imu.noise
@@ -97,36 +111,35 @@ class Estimator:
         self.state: FilterState | None = None
         self.propagator: ImuPropagator | None = None
         self.heading_aligned = False
-        self.alignment: MotionAlignment | None = None  # the in-motion alignment used, if any
+        self.heading_placement: dict | None = None  # how the bank placed the heading (time, sigma, fixes)
         self.position_initialized = False
         self.reset_counter = 0
         self.events: list[tuple[int, str]] = []  # (t_ns, message): start-up, alignment, resets
         heading, self._heading_sigma = self._known_heading()
         self._heading_known = heading is not None
         self._initializer = StaticInitializer(opts.init, calibration.imu.gravity, heading or 0.0)
-        self._aligner = MotionAligner(opts.align, calibration.imu.gravity, calibration.gps.lever_arm_b)
+        self._bank: HeadingBank | None = None  # heading hypotheses while the heading is unknown
+        self._bank_gps = GpsUpdater(calibration.gps.lever_arm_b, None, opts.gps_sigma_floor_m)  # no gate: every fix weighs
         self._stillness = StillnessDetector(opts.still)
         self._leveller: GravityLeveller | None = None
         self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, 0
         self._fixed_bias_var = np.zeros(3)  # thesis variant: variance of its calibrated gyro bias
-        self._fixes_before_start = 0
-        self._pending_fix: GpsFix | None = None
+        self._fixes_before_start: deque[GpsFix] = deque(maxlen=64)  # the GPS heard while the IMU window fills
         self._last_fix: GpsFix | None = None  # the latest usable fix (a reset re-initialises from it)
         self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
         self._gap = GapWidener(opts.health, opts.max_imu_gap_s)
         self._downsampler = ImuDownsampler(opts.max_filter_rate_hz)
-        self._horizontal_accel = 0.0
+        self._horizontal_accel = np.zeros(2)  # horizontal acceleration, averaged (see _propagate)
+        self._accel_at_rest = np.zeros(2)  # what it read at the last still chunk
         self._last_imu_t: int | None = None
         self._lost_before_next_s = 0.0  # refused IMU data the next sample must account for (imu_discontinuity)
         self._gyro = np.zeros(3)
         cam = calibration.camera
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
-        self.initialising = False  # started moving; no in-motion start (visual-inertial or GPS) yet: not to be used
-        self.heading_local = False  # the heading is the visual-inertial start's own, not north
+        self._joining = False  # a GPS appeared in a filter without a world frame: its first second is being collected
+        self.initialising = False  # started moving with no GPS: nothing to stand on until the visual-inertial start
         self._gps_seen = False
-        self._position_jumps = False  # the first fix moves a position published in the camera's own frame
-        self._early_fixes: deque[tuple[int, np.ndarray, float]] = deque(maxlen=64)  # fixes before the start
         self.visual_inertial = None
         if cam is not None and opts.visual_inertial.enabled:
             self.visual_inertial = VisualInertialInitializer(cam, self.noise, calibration.imu.gravity, opts.camera.pixel_sigma,
@@ -138,7 +151,8 @@ class Estimator:
 
     @property
     def local_position(self) -> bool:
-        """No absolute position, but the camera holds the filter's own origin (no GPS at all so far)."""
+        """No GPS heard at all, but the camera holds the filter's own frame: its origin where it started and,
+        unless one was known, its heading the one it started with (the yaw gauge of an unknown heading)."""
         camera = self.counts.get("camera")
         return not (self.position_initialized or self._gps_seen) and camera is not None and camera.used > 0
 
@@ -176,17 +190,14 @@ class Estimator:
         self._gyro = gyro
         delta = self._downsampler.add(t_ns, gyro, accel)
         if self.state is None:
-            if delta is not None:
-                self._aligner.add_delta(delta)
-                if self._visual_start_pending():
-                    self.visual_inertial.add_delta(delta)
-            # Moving from the start: with GPS the in-motion alignment will do; without it,
-            # start from the accelerometer alone after max_wait_s rather than never.
-            init = self._initializer.add(t_ns, gyro, accel, allow_moving=self._fixes_before_start == 0,
-                                         allow_still=not self._seen_moving(t_ns))
+            if delta is not None and self._visual_start_pending():
+                self.visual_inertial.add_delta(delta)
+            # Not still within max_wait_s (rotors turning, carried, flying): start from the
+            # accelerometer alone rather than wait for a rest or a manoeuvre that may never come.
+            init = self._initializer.add(t_ns, gyro, accel)
             if init is not None:
                 self._downsampler.flush()  # the filter starts at this sample
-                self._start_still(init)
+                self._start(init)
             return True
         if delta is not None:
             self._propagate(delta)
@@ -205,16 +216,44 @@ class Estimator:
         extra = 0.0
         if self._visual_start_pending():
             self.visual_inertial.add_delta(delta)
-        if self.heading_local:
-            self._aligner.add_delta(delta)  # a GPS that appears can still place the frame
-        if not self.heading_aligned:
-            self._aligner.add_delta(delta)  # every step, so that its window has no gaps
+        if not self.heading_aligned and self._bank is not None:
+            self._bank.propagate(delta)
+        if not (self.heading_aligned or self.local_position):  # a frame of its own needs no world heading
             # An unknown heading misplaces the horizontal acceleration by up to twice its size;
-            # at rest that is nothing, so the filter can still tell it is at rest.
-            extra = max(self.options.unaligned_accel_noise, 2.0 * self._horizontal_accel)
+            # at rest that is nothing, so the filter can still tell it is at rest. The vehicle's
+            # acceleration, that is: vibration (zero mean, tens of hertz) is in the IMU noise
+            # already, so it is averaged over init.average_s first, and what the tilt and bias
+            # errors make of gravity (the reading at the last still chunk) is taken off.
+            accel = self._horizontal_accel - self._accel_at_rest
+            extra = max(self.options.unaligned_accel_noise, 2.0 * math.hypot(accel[0], accel[1]))
         a_w = self.propagator.propagate(self.state, delta, extra)
-        self._horizontal_accel = math.hypot(a_w[0], a_w[1])
+        keep = self.options.init.average_s / (self.options.init.average_s + delta.dt)
+        self._horizontal_accel = keep * self._horizontal_accel + (1.0 - keep) * a_w[:2]
         self.state.t_ns = delta.t1_ns
+
+    def _forget_heading(self) -> None:
+        """The heading becomes unknown: the filter's frame gets an arbitrary yaw, a gauge rather than an
+        error (landmarks, if any, share it), so its variance starts from zero. What the heading may be —
+        anywhere on the circle — is what :meth:`published_cov9` says."""
+        cov = self.state.cov
+        cov[YAW, :] = 0.0
+        cov[:, YAW] = 0.0
+
+    def published_cov9(self) -> np.ndarray:
+        """Covariance of [δp, δv, δθ] as the outputs publish it: the filter's, except that an unknown
+        heading has the variance of a heading uniform on the circle, uncorrelated with the rest. In a
+        frame of its own (``local_position``) the heading is the frame's: its variance is the filter's,
+        what the heading may have drifted since the start (never below the start's own gauge sigma)."""
+        cov9 = self.state.cov[:9, :9].copy()
+        if self.heading_aligned:
+            return cov9
+        if self.local_position:
+            cov9[YAW, YAW] = max(cov9[YAW, YAW], math.radians(self.options.visual_inertial.heading_sigma_deg) ** 2)
+            return cov9
+        cov9[YAW, :] = 0.0
+        cov9[:, YAW] = 0.0
+        cov9[YAW, YAW] = UNKNOWN_HEADING_VAR
+        return cov9
 
     def imu_discontinuity(self, lost_s: float) -> None:
         """``lost_s`` of IMU data before the next sample were refused (stamped in the past: a backward
@@ -285,6 +324,7 @@ class Estimator:
         if clear_map and self.camera is not None and self.state is not None:
             self.camera.clear(self.state)
         self.reset_counter += 1
+        self._bank = None  # its hypotheses followed the old estimate: they start again at the next fix
         self.health.record_reset(t_ns, kind, reason)
         self.events.append((t_ns, f"reset #{self.reset_counter}: {reason}"))
 
@@ -304,69 +344,70 @@ class Estimator:
         self._level_t0 = state.t_ns
         self.events.append((state.t_ns, message))
 
-    def _start_still(self, init: InitialAttitude) -> None:
+    def _start(self, init: InitialAttitude) -> None:
+        """Start from the IMU window; the GPS heard meanwhile gives the velocity. A window that looks
+        still to the IMU is also what steady straight flight (or a steady turn) looks like: if the
+        fixes say the vehicle moves, it is no still start."""
         opts = self.options
+        window = [f for f in self._fixes_before_start if init.t_ns - f.t_ns < VELOCITY_FIT_S * 1e9]
+        spread = self._fixes_moved(init.t_ns)
+        self._fixes_before_start.clear()
+        velocity = velocity_from_fixes(window, init.t_ns, opts.gps_sigma_floor_m)
+        moving = spread or (velocity is not None
+                            and chi2_gate(3, 0.999) < float(velocity[0] @ np.linalg.solve(velocity[1], velocity[0])))
+        seen = self._camera_sees_motion(init.t_ns)
+        if init.static and (moving or seen):
+            init = self._initializer.as_moving(init)
         state = state_from_static(self.layout, init, opts.init, self._heading_sigma)
+        if velocity is not None and not init.static:
+            state.v = velocity[0]
+            state.cov[3:6, 3:6] = velocity[1]
         self._fixed_bias_var = np.full(3, init.sigma_gyro_bias**2)
         self.heading_aligned = self._heading_known
-        how = "still" if init.static else "moving, accelerometer only (no still window, no GPS)"
-        if not init.static and self.visual_inertial is not None and not self._gps_seen:
+        how = ("still" if init.static else "moving (GPS)" if moving else "moving (camera), from the mean specific force" if seen
+               else f"not still within {opts.init.max_wait_s:g} s: from the mean specific force")
+        camera = self.counts.get("camera")
+        if not init.static and not self._gps_seen and self.visual_inertial is not None and camera is not None and camera.received:
             self.initialising = True
             how += "; initialising until the visual-inertial start"
         self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
-        self._aligner.set_bias_prior(init.gyro_bias, max(init.sigma_gyro_bias, 1e-3), np.zeros(3), opts.init.sigma_accel_bias)
-        if self._pending_fix is not None and (init.t_ns - self._pending_fix.t_ns) < 1e9:
-            self._init_position(self._pending_fix)
-        self._pending_fix = None
+        if not (self.heading_aligned or self.initialising):
+            self._bank = self._new_bank(state, None)
+        # The last fix places a still vehicle; a moving one waits for the next fix.
+        if init.static and window and (init.t_ns - window[-1].t_ns) < 1e9:
+            self._init_position(window[-1])
 
-    def _apply_alignment(self, alignment: MotionAlignment) -> None:
-        """Start (or re-place an unaligned filter) from an in-motion alignment."""
-        sd = np.degrees(np.sqrt(np.diag(alignment.cov)[6:9]))
-        message = (
-            f"aligned in motion from {alignment.n_fixes} GPS fixes over {alignment.window_s:.1f} s: attitude sigma "
-            f"{sd[0]:.2f}/{sd[1]:.2f}/{sd[2]:.2f} deg, residuals {alignment.residual_ratio:.2f}x the GPS noise"
-        )
-        state = state_from_alignment(self.layout, alignment)
-        self._fixed_bias_var = np.diag(alignment.cov)[9:12].copy()
-        if self.state is None:
-            self._begin(state, self.calibration.imu.gravity, message)
-        else:
-            self.state = state
-            self.events.append((state.t_ns, message))
-        self.alignment = alignment
-        self.heading_aligned = True
-        self.position_initialized = True
-        self._pending_fix = None
-        if self.initialising or self.heading_local:
-            self.reset_counter += 1  # the frame jumped: the initialising (or local-frame) estimate is replaced
-        self.initialising = self.heading_local = False
-
-    def _seen_moving(self, t_ns: int) -> bool:
-        """The camera or the GPS sees the vehicle move, however still the IMU feels (a steady cruise)."""
-        if self.visual_inertial is not None and self.visual_inertial.image_moving(t_ns):
-            return True
+    def _fixes_moved(self, t_ns: int) -> bool:
+        """The fixes over the IMU's window lie further apart than their noise allows (5 σ): a cruise that a
+        noisy GPS's one-second velocity fit cannot tell from rest (1 m fixes, 8 m/s)."""
         window_ns = int(self.options.init.static_window_s * 1e9)
-        fixes = [f for f in self._early_fixes if t_ns - f[0] <= window_ns]
+        fixes = [f for f in self._fixes_before_start if t_ns - f.t_ns <= window_ns]
         if len(fixes) < 2:
             return False
-        (_, p0, s0), (_, p1, s1) = fixes[0], fixes[-1]
-        return float(np.linalg.norm((p1 - p0)[:2])) > 5.0 * math.hypot(s0, s1)
+        first, last = fixes[0], fixes[-1]
+        moved = float(np.linalg.norm((np.asarray(last.p_ned) - np.asarray(first.p_ned))[:2]))
+        return moved > 5.0 * math.hypot(first.sigma_h, last.sigma_h)
+
+    def _camera_sees_motion(self, t_ns: int) -> bool:
+        """The camera saw the scene move while the IMU's window filled: a steady cruise, not rest."""
+        return self.visual_inertial is not None and self.visual_inertial.image_moving(t_ns)
 
     def _visual_start_pending(self) -> bool:
-        """Whether the visual-inertial start is wanted: moving, no GPS, no start yet."""
+        """Whether the visual-inertial start is wanted: no GPS heard, and not started or still initialising."""
         return self.visual_inertial is not None and not self._gps_seen and (self.state is None or self.initialising)
 
     def _gauge(self) -> Gauge:
-        """Position and heading a visual-inertial start keeps: the filter's own, or the known heading."""
+        """What a visual-inertial start cannot observe: the filter's position and heading, or the known heading."""
         state = self.state
         if state is not None:
-            p, heading = state.p.copy(), float(euler_from_quat(state.q)[2])
+            p, heading = state.p.copy(), yaw_of(state.q)
         else:
             p, heading = np.zeros(3), self._initializer.heading_rad
         return Gauge(p, heading, self._heading_sigma if self._heading_known else None)
 
     def _apply_visual_start(self, start: VisualInertialStart) -> None:
-        """Start (or restart) EKF-SLAM from a converged visual-inertial window, its landmarks included."""
+        """Start (or restart) EKF-SLAM from a converged visual-inertial window, its landmarks included. An
+        unknown heading stays unknown: the frame's yaw is a gauge (its variance zero, held by the camera)."""
         n = self.layout.robot_dim
         keep = np.r_[0:n, 15 : len(start.cov)]
         state = FilterState(self.layout)
@@ -380,25 +421,83 @@ class Estimator:
         message = start.describe()
         if self.state is None:
             self._begin(state, self.calibration.imu.gravity, message)
+            self.heading_aligned = self._heading_known
         else:
             self.state = state
             self.events.append((state.t_ns, message))
             self.reset_counter += 1  # the initialising estimate is replaced: a jump
+        if not self.heading_aligned:
+            self._forget_heading()
         self.camera.adopt(state, start.descriptors, np.sqrt(np.diag(start.cov)[15 + 5 :: 6]))
         self.initialising = False
-        self.heading_aligned = True
-        self.heading_local = not self._heading_known
-        self._aligner.set_bias_prior(start.b_g, float(np.sqrt(np.max(self._fixed_bias_var))), start.b_a,
-                                     self.options.init.sigma_accel_bias)
         self.visual_inertial.reset()
+
+    def _join_gps(self, fix: GpsFix) -> bool:
+        """A GPS heard for the first time by a filter without a world frame (initialising, or in the camera's
+        own frame): its fixes are collected for ``VELOCITY_FIT_S``; then they give the velocity, the last
+        one the position, the heading bank the heading — the moving start the GPS would have given. The
+        map, placed in the old frame, goes. Returns True once joined."""
+        self._fixes_before_start.append(fix)
+        first = self._fixes_before_start[0]
+        if (fix.t_ns - first.t_ns) * 1e-9 < VELOCITY_FIT_S:
+            return False
+        fixes = list(self._fixes_before_start)
+        self._fixes_before_start.clear()
+        floor = self.options.gps_sigma_floor_m
+        recent = [f for f in fixes if fix.t_ns - f.t_ns <= VELOCITY_FIT_S * 1e9]
+        velocity = velocity_from_fixes(recent, fix.t_ns, floor) or velocity_from_fixes(fixes, fix.t_ns, floor)
+        state = self.state
+        state.cov[3:6, :] = 0.0
+        state.cov[:, 3:6] = 0.0
+        if velocity is not None:
+            state.v = velocity[0]
+            state.cov[3:6, 3:6] = velocity[1]
+        else:
+            state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
+        if self.camera is not None:
+            self.camera.clear(state)
+        self.initialising = False
+        if self.visual_inertial is not None:
+            self.visual_inertial.reset()
+        self._init_position(fix)
+        self.reset_counter += 1  # the frame jumps to the GPS's
+        self.events.append((fix.t_ns, f"GPS joined: velocity from {len(recent if velocity is not None else fixes)} fixes, "
+                            f"position from the last; reset #{self.reset_counter}"))
+        if not self.heading_aligned:
+            self._bank = self._new_bank(state, None)
+            self._bank.update(fix)  # positions the hypotheses
+        return True
+
+    def _new_bank(self, state: FilterState, velocity_sigma: float | None) -> HeadingBank:
+        """Hypotheses around ``state``; they always carry bias states (the thesis model takes its fixed
+        biases from them, measured in flight, when the heading is placed)."""
+        start = with_bias_states(state, np.sqrt(self._fixed_bias_var), self.options.init.sigma_accel_bias)
+        return HeadingBank(self.options.align, start, self.propagator, self._bank_gps, velocity_sigma)
+
+    def _place_heading(self, placed: FilterState, fix_t_ns: int) -> None:
+        """The bank has found the heading: its best hypothesis becomes the robot state. Landmarks
+        placed in the frame of arbitrary yaw go with it."""
+        bank = self._bank
+        if self.camera is not None:
+            self.camera.clear(self.state)
+        state, n = self.state, self.layout.robot_dim
+        state.p, state.v, state.q, state.b_g, state.b_a = placed.p, placed.v, placed.q, placed.b_g, placed.b_a
+        state.cov = placed.cov[:n, :n].copy()
+        self._fixed_bias_var = np.diagonal(placed.cov)[9:12].copy()  # the thesis model keeps b_g at this
+        self.heading_aligned = True
+        self._bank = None
+        heading, sigma = bank.heading()
+        self.heading_placement = {"t_ns": fix_t_ns, "sigma_deg": math.degrees(sigma), "fixes": bank.fixes,
+                                  "hypotheses": len(bank.members), "best_weight": float(bank.weights.max())}
+        sd = np.degrees(np.sqrt(np.diag(state.cov)[6:9]))
+        self.events.append((fix_t_ns, f"heading placed from {bank.fixes} GPS fixes by {len(bank.members)} hypotheses: "
+                            f"{math.degrees(heading):.1f} deg, attitude sigma {sd[0]:.2f}/{sd[1]:.2f}/{sd[2]:.2f} deg"))
 
     # -------------------------------------------------------------------------------- GPS
     def process_gps(self, fix: GpsFix) -> UpdateOutcome | None:
         """Fuse a fix at its own time. Returns the update outcome, or None if it was not fused."""
         counts = self.counts["gps"]
         counts.received += 1
-        self._position_jumps = self._position_jumps or self.local_position
-        self._gps_seen = True
         p = np.asarray(fix.p_ned, dtype=float)
         if not (np.all(np.isfinite(p)) and math.isfinite(fix.sigma_h)) or fix.sigma_h <= 0.0:
             counts.reject("non_finite")
@@ -408,34 +507,32 @@ class Estimator:
         if state is not None and fix.t_ns < state.t_ns:
             counts.reject("older_than_filter")
             return None
-        if not self.heading_aligned or self.heading_local:
-            sigma_h, sigma_v = gps_sigmas(fix, self.options.gps_sigma_floor_m)
-            alignment = self._aligner.add_fix(fix.t_ns, p, sigma_h, sigma_v)
-            if alignment is not None:
-                self._apply_alignment(alignment)
-                self._propagate_to(fix.t_ns)
-                counts.used += 1
-                return UpdateOutcome(True, 0.0, 3, "in-motion alignment")
-        if self.heading_local:
-            # A frame of the visual-inertial start's own heading: a fix means nothing in it until
-            # the in-motion alignment places the frame (it then replaces the estimate).
-            counts.reject("local_frame")
-            return None
         if state is None:
-            self._fixes_before_start += 1
-            self._pending_fix = fix
-            self._early_fixes.append((fix.t_ns, p, fix.sigma_h))
+            self._gps_seen = True
+            self._fixes_before_start.append(fix)
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)
         self._last_fix = fix
+        if self._joining or self.initialising or self.local_position:
+            self._joining = self._gps_seen = True
+            if not self._join_gps(fix):
+                counts.reject("joining")
+                return None
+            self._joining = False
+            counts.used += 1
+            self.health.measured("gps", fix.t_ns, used=True)
+            return UpdateOutcome(True, 0.0, 3, "GPS joined")
+        self._gps_seen = True
         if not self.position_initialized:
             self._init_position(fix)
             counts.used += 1
             self.health.measured("gps", fix.t_ns, used=True)
             return UpdateOutcome(True, 0.0, 3, "position initialised")
-        held = None if self.heading_aligned else self._held_until_aligned()
-        outcome = self.gps.update(state, fix, held=held)
+        if self.heading_aligned:
+            outcome = self.gps.update(state, fix)
+        else:
+            outcome = self.gps.update_heading_unknown(state, fix, self._held_until_aligned())
         if outcome.accepted:
             counts.used += 1
         else:
@@ -445,7 +542,21 @@ class Estimator:
                                 "" if outcome.accepted else f"fix refused by the gate (NIS {outcome.nis:.1f})")
         if self.health.measured("gps", fix.t_ns, outcome.accepted, gated=True):
             self._reset_from_gps(fix)
+        if not self.heading_aligned:
+            self._search_heading(fix)
         return outcome
+
+    def _search_heading(self, fix: GpsFix) -> None:
+        """Feed the heading hypotheses. After a reset they start again from the filter's state, but
+        its velocity was carried by an accelerometer turned by an unknown heading: they take it
+        with a moving start's sigma and their position from the next fix."""
+        if self._bank is None:
+            self._bank = self._new_bank(self.state, self.options.init.sigma_velocity_moving)
+            return
+        self._bank.update(fix)
+        placed = self._bank.placed()
+        if placed is not None:
+            self._place_heading(placed, fix.t_ns)
 
     def _held_until_aligned(self) -> np.ndarray:
         held = np.zeros(self.state.dim, dtype=bool)
@@ -453,25 +564,14 @@ class Estimator:
         return held
 
     def _init_position(self, fix: GpsFix) -> None:
-        state = self.state
-        if self._position_jumps:
-            self.reset_counter += 1  # a position published in the filter's own frame jumps to the GPS's
-            self._position_jumps = False
-        sigma_h, sigma_v = gps_sigmas(fix, self.options.gps_sigma_floor_m)
-        state.p = np.asarray(fix.p_ned, dtype=float) - state.R @ self.calibration.gps.lever_arm_b
-        state.cov[0:3, :] = 0.0
-        state.cov[:, 0:3] = 0.0
-        state.cov[0:3, 0:3] = np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
+        place_at_fix(self.state, fix, self.calibration.gps.lever_arm_b, self.options.gps_sigma_floor_m)
         self.position_initialized = True
         self.events.append((fix.t_ns, "position initialised from GPS"))
 
     def _reset_from_gps(self, fix: GpsFix) -> None:
-        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong."""
+        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong — and a
+        heading the filter found itself may be what is wrong with it: that is searched for again."""
         state = self.state
-        self._init_position(fix)
-        state.cov[3:6, :] = 0.0
-        state.cov[:, 3:6] = 0.0
-        state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
         what = "position and velocity re-initialised from GPS"
         last = self.health.resets[-1] if self.health.resets else None
         window_ns = int((2.0 * self.options.gps_reset_after_s + self.options.health.reset_hold_s) * 1e9)
@@ -479,6 +579,15 @@ class Estimator:
             # Lost again right after the last reset: not a GPS that jumped but a wrong attitude.
             self._widen_attitude()
             what += ", and the attitude, since the last reset did not hold"
+        if self.heading_placement is not None and self.heading_aligned:
+            self.heading_aligned = False  # and _reset restarts the hypotheses
+            what += "; the heading searched for again"
+        if not self.heading_aligned:
+            self._forget_heading()
+        self._init_position(fix)
+        state.cov[3:6, :] = 0.0
+        state.cov[:, 3:6] = 0.0
+        state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
         self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {self.options.gps_reset_after_s:g} s; {what}")
 
     def _widen_attitude(self) -> None:
@@ -503,6 +612,8 @@ class Estimator:
         if self.layout.estimates_biases:
             sigmas += [init.sigma_gyro_bias] * 3 + [init.sigma_accel_bias] * 3
         state.cov = np.diag(np.concatenate([var_p, np.square(sigmas)]))[:n, :n]
+        if not self.heading_aligned:
+            self._forget_heading()
         if self.position_initialized and self._last_fix is not None and self.health.fresh("gps", t_ns):
             self._init_position(self._last_fix)
         elif self.visual_inertial is not None and not self._gps_seen:
@@ -525,13 +636,21 @@ class Estimator:
             return self._visual_start_frame(features, counts)
         if reason == "before_start" and self.visual_inertial is not None:
             self.visual_inertial.observe(features)  # does the scene move? (a cruise feels still to the IMU)
+        if reason is None and self.initialising:
+            reason = "initialising"  # a GPS is joining: until then the state is the accelerometer's alone
         if reason is not None:
             counts.reject(reason)
             self.health.measured("camera", t_ns, used=False)  # alive (frames arrive), not usable
             return FrameReport(t_ns, False, reason, n_features=len(features))
         self._propagate_to(t_ns)
-        held = None if self.heading_aligned else self._held_until_aligned()
-        report = self.camera.process(self.state, features, t_ns, self.heading_aligned, self.position_initialized, held)
+        # Before the heading is known, landmarks live in the frame of arbitrary yaw with the rest of the
+        # camera geometry (consistent with itself, so only the heading is held) and go when it is placed:
+        # at rest on the pad the camera holds the pose from the first frames.
+        held = None
+        if not self.heading_aligned:
+            held = np.zeros(self.state.dim, dtype=bool)
+            held[YAW] = True
+        report = self.camera.process(self.state, features, t_ns, True, self.position_initialized, held)
         if report.accepted:
             counts.used += 1
         else:
@@ -558,7 +677,6 @@ class Estimator:
         else:
             for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
                 if delta is not None:
-                    self._aligner.add_delta(delta)
                     self.visual_inertial.add_delta(delta)
         start = self.visual_inertial.add_frame(features, self._gauge())
         self.health.measured("camera", t_ns, used=True)  # alive and in use, by the start
@@ -616,21 +734,22 @@ class Estimator:
         counts = self.counts["still"]
         counts.received += 1
         state = self.state
-        held = None if self.heading_aligned else self._held_until_aligned()
+        # Zero velocity holds in any frame, that of arbitrary yaw included: it may correct tilt and
+        # biases before the heading is known (the heading itself is uncorrelated with them then).
         sigma = self.options.still.zupt_sigma
-        zupt = ekf_update(state, slice(3, 6), np.eye(3), -state.v, np.eye(3) * sigma**2, chi2_gate(3, 0.999), held)
+        zupt = ekf_update(state, slice(3, 6), np.eye(3), -state.v, np.eye(3) * sigma**2, chi2_gate(3, 0.999))
         if not zupt.accepted:
             counts.reject(f"zupt_{zupt.reason.replace(' ', '_')}")
             return
         counts.used += 1
+        self._accel_at_rest = self._horizontal_accel.copy()
         # The mean rate of a still IMU is its bias; its variance is what the samples' scatter says,
         # never less than the white-noise density allows over the chunk.
         r = np.maximum(chunk.gyro_var_of_mean, self.noise.gyro_noise_density**2 / chunk.duration_s)
+        if self._bank is not None:
+            self._bank.at_rest(chunk.gyro_mean, r, sigma)
         if self.layout.estimates_biases:
-            if held is not None:
-                held = held.copy()
-                held[self.layout.BG] = False
-            ekf_update(state, self.layout.BG, np.eye(3), chunk.gyro_mean - state.b_g, np.diag(r), None, held)
+            ekf_update(state, self.layout.BG, np.eye(3), chunk.gyro_mean - state.b_g, np.diag(r))
         else:
             # Thesis model: the bias is a calibration constant; refine it as a per-axis
             # weighted mean, the older value aged by the bias random walk.
@@ -650,7 +769,7 @@ class Estimator:
             v=state.v.copy(),
             q=state.q.copy(),
             omega_b=self._gyro - state.b_g,
-            pose_cov=state.pose_covariance(),
+            pose_cov=self.published_cov9()[np.ix_(_POSE, _POSE)],
             vel_cov=state.cov[3:6, 3:6].copy(),
             heading_aligned=self.heading_aligned,
             reset_counter=self.reset_counter,

@@ -7,6 +7,7 @@ import importlib
 import logging
 import os
 import sys
+import textwrap
 
 # One BLAS thread: the estimator's matrices are small, and idle BLAS threads spin on the core
 # that feature extraction needs. Set before anything imports numpy.
@@ -15,7 +16,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from vtolpose.config import ConfigError
 
 # Subcommand name -> module in vtolpose.service.commands providing add_parser(subparsers) and run(args).
-COMMANDS = ("demo", "simulate", "import", "replay", "eval", "bench", "calibrate", "probe", "run")
+COMMANDS = ("demo", "simulate", "import", "replay", "eval", "map", "export", "bench", "calibrate", "probe", "run")
 
 DESCRIPTION = """\
 vtolpose: pose of a VTOL UAV from IMU, camera and GPS (EKF-SLAM), for the flight controller
@@ -31,14 +32,35 @@ Start here:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="vtolpose", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="vtolpose", description=DESCRIPTION, formatter_class=HelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         module = importlib.import_module(f"vtolpose.service.commands.{name.replace('import', 'importer')}")
         module.add_parser(sub)
+    for command in sub.choices.values():
+        finish_subcommand(command)
     return parser
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions as written; option help wrapped at spaces only, so ``imu-gap:START`` stays whole."""
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False, break_long_words=False)
+
+
+def finish_subcommand(parser: argparse.ArgumentParser) -> None:
+    """What every subcommand (and sub-subcommand) shares: the help layout, and -v/-q after the
+    subcommand too (``vtolpose replay d -q``; SUPPRESS keeps one given before it)."""
+    parser.formatter_class = HelpFormatter
+    parser.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="debug logging")
+    parser.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="warnings and errors only")
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for nested in action.choices.values():
+                finish_subcommand(nested)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -65,7 +65,7 @@ def test_missing_matplotlib_says_how_to_get_it(book, monkeypatch, tmp_path, caps
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_matplotlib)
-    with pytest.raises(PlotUnavailable, match=r"pip install 'vtolpose\[plot\]' \(or pass --no-plot\)"):
+    with pytest.raises(PlotUnavailable, match=r"pip install matplotlib \(from a checkout: pip install -e '\.\[plot\]'\), or pass --no-plot"):
         plot_allan(tmp_path / "a.png", None)
     _, root = book
     out = tmp_path / "imu.yaml"

@@ -71,16 +71,26 @@ def test_replay_writes_trajectory_and_report_then_eval_agrees(book_dir, tmp_path
     assert report["position_rmse_m"] < 0.7 * report["gps_rmse_m"]
     t, p, q = read_tum(traj)
     assert len(t) == report["estimates"] and q is not None
-    assert main(["eval", str(traj), "--truth", str(book_dir)]) == 0
-    scores = json.loads(capsys.readouterr().out)
+    scores_path = tmp_path / "scores.json"
+    assert main(["eval", str(traj), "--truth", str(book_dir), "--report", str(scores_path)]) == 0
+    scores = json.loads(scores_path.read_text())
     assert scores["position_rmse_m"] == pytest.approx(report["position_rmse_m"], rel=1e-6)
+    printed = capsys.readouterr().out
+    assert f"position RMSE {scores['position_rmse_m']:.4f} m" in printed
+    assert "0000000" not in printed and "{" not in printed  # rounded figures, not raw JSON
 
 
 def test_replay_variant_and_set_override(book_dir, tmp_path):
-    report_path = tmp_path / "r.json"
-    main(["-q", "replay", str(book_dir), "--variant", "thesis", "--set", "estimator.gps.gate_chi2=11.34", "--report", str(report_path), "--no-progress"])
-    report = json.loads(report_path.read_text())
-    assert report["variant"] == "thesis"
+    def gate_rejections(*extra: str) -> tuple[str, int]:
+        path = tmp_path / "r.json"
+        assert main(["-q", "replay", str(book_dir), "--variant", "thesis", *extra, "--report", str(path), "--no-progress"]) == 0
+        report = json.loads(path.read_text())
+        return report["variant"], report["sensors"]["gps"]["rejected"].get("chi2_gate", 0)
+
+    variant, default_gate = gate_rejections()
+    assert variant == "thesis"
+    _, narrow_gate = gate_rejections("--set", "estimator.gps.gate_chi2=2.0")
+    assert narrow_gate > default_gate + 20  # the override reached the GPS gate
 
 
 def test_replay_without_gps_is_reported(book_dir, tmp_path):
@@ -124,18 +134,95 @@ def test_a_corrupt_imu_line_is_counted_in_the_report(book_dir, tmp_path):
     assert json.loads(report_path.read_text())["skipped_lines"]["mav0/imu0/data.csv"] == 2
 
 
-def test_demo_runs_both_models(tmp_path, capsys):
+def test_demo_runs_both_models_side_by_side(tmp_path, capsys):
     assert main(["-q", "demo", "--duration", "30", "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
-    assert "variant thesis" in out and "variant biases" in out
-    assert (tmp_path / "demo" / "report-biases.json").is_file()
+    header = next(line for line in out.splitlines() if line.split() == ["thesis", "biases"])
+    assert header
+    reports = {v: json.loads((tmp_path / "demo" / f"report-{v}.json").read_text()) for v in ("thesis", "biases")}
+    row = next(line for line in out.splitlines() if line.strip().startswith("position RMSE [m]"))
+    assert row.split()[-2:] == [f"{reports[v]['position_rmse_m']:.4f}" for v in ("thesis", "biases")]
+    for report in reports.values():  # the demo's flight is one the estimator must handle well
+        assert report["position_rmse_over_gps"] < 0.8 and report["nees"]["mean_in_band"]
 
 
 def test_import_euroc_from_the_command_line(euroc_mh01, tmp_path, capsys):
     out = tmp_path / "mh01"
     assert main(["-q", "import", "euroc", str(euroc_mh01), "--out", str(out), "--gps-rate", "10", "--gps-sigma", "0.02"]) == 0
-    summary = json.loads(capsys.readouterr().out)
-    assert summary["imu_lines_skipped"] == 7
+    printed = capsys.readouterr().out
+    assert "imu lines skipped: 7" in printed
     ds = Dataset.open(out)
     assert ds.gps() is not None and ds.truth().q is None
     assert np.median(np.diff(ds.gps().t_ns)) == pytest.approx(1e8, rel=0.05)
+
+
+def test_replay_names_what_is_missing_instead_of_doing_nothing(book_dir, tmp_path, capsys):
+    # --overlay with sensors that have no camera: refused, saying how to fix it
+    assert main(["replay", str(book_dir), "--sensors", "imu,gps", "--overlay", str(tmp_path / "ov"), "--no-progress"]) == 1
+    assert "--sensors imu,gps,camera" in capsys.readouterr().err
+    # a camera asked for on a dataset without one: an error naming the file, not a warning and exit 0
+    assert main(["replay", str(book_dir), "--sensors", "imu,camera,gps", "--no-progress"]) == 1
+    assert "mav0/cam0/data.csv" in capsys.readouterr().err
+    assert main(["replay", str(book_dir), "--overlay", str(tmp_path / "ov"), "--no-progress"]) == 1
+    assert "--overlay needs the camera" in capsys.readouterr().err
+    assert not (tmp_path / "ov").exists()
+    # without --out or --report the replay says that nothing was written
+    assert main(["-q", "replay", str(book_dir), "--no-progress"]) == 0
+    assert "nothing written" in capsys.readouterr().out
+
+
+def test_missing_inputs_are_named_for_what_they_are(book_dir, tmp_path, capsys):
+    traj = tmp_path / "t.txt"
+    assert main(["-q", "replay", str(book_dir), "--out", str(traj), "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["eval", str(traj), "--truth", str(tmp_path / "nope")]) == 1
+    assert "nope: truth not found" in capsys.readouterr().err
+    assert main(["eval", str(tmp_path / "none.txt"), "--truth", str(book_dir)]) == 1
+    assert "none.txt: trajectory file not found" in capsys.readouterr().err
+    assert main(["import", "euroc", str(tmp_path / "absent"), "--out", str(tmp_path / "x")]) == 1
+    assert "absent: no such folder" in capsys.readouterr().err
+
+
+def test_simulate_refuses_an_existing_dataset_before_any_work(book_dir, capsys, monkeypatch):
+    import vtolpose.service.commands.simulate as simulate
+
+    def never(*args, **kwargs):
+        raise AssertionError("simulated although the folder holds a dataset")
+
+    monkeypatch.setattr(simulate, "simulate_flight", never)
+    assert main(["simulate", "--duration", "5", "--out", str(book_dir)]) == 1
+    assert "already holds a dataset" in capsys.readouterr().err
+
+
+def test_verbosity_flags_work_after_the_subcommand(book_dir, capsys):
+    assert main(["replay", str(book_dir), "-q", "--no-progress"]) == 0
+    assert "INFO" not in capsys.readouterr().err
+    args = build_parser().parse_args(["calibrate", "imu", "d", "-v"])
+    assert args.verbose is True and args.quiet is False
+
+
+def test_calibrate_imu_works_on_a_simulated_rest_with_the_defaults(tmp_path, capsys):
+    out = tmp_path / "rest"
+    assert main(["-q", "simulate", "--rest", "40", "--duration", "45", "--out", str(out), "--no-camera"]) == 0
+    assert main(["calibrate", "imu", str(out), "--no-plot", "--out", str(tmp_path / "imu.yaml")]) == 0
+    assert "gyro bias" in capsys.readouterr().out
+    short = tmp_path / "short"
+    assert main(["-q", "simulate", "--rest", "4", "--duration", "20", "--out", str(short), "--no-camera"]) == 0
+    assert main(["calibrate", "imu", str(short), "--no-plot"]) == 1
+    err = capsys.readouterr().err
+    assert "at least 10 s (the shortest stretch asked for)" in err and "30 s or more" in err
+
+
+def test_sub_helps_have_examples(capsys):
+    for job in ("imu", "camera", "timesync", "gps-latency", "lever-arm"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["calibrate", job, "--help"])
+        assert f"vtolpose calibrate {job} " in capsys.readouterr().out, job
+
+
+def test_option_help_never_breaks_inside_a_token(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["replay", "--help"])
+    out = capsys.readouterr().out
+    for token in ("imu-gap:START:DURATION", "gps-multipath:START:DURATION:SIGMA:RATE", "clock-step:T:STEP"):
+        assert token in out, token

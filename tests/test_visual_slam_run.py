@@ -64,7 +64,7 @@ def test_camera_without_gps_keeps_drift_bounded(book: Dataset, tmp_path: Path):
     imu_only = run(book, ["imu"])
     assert test2["final_drift_m"] < 0.5 * imu_only["final_drift_m"]
     assert overlay.written == int(DURATION_S * 7.5)
-    assert len(list((tmp_path / "overlay").glob("*.png"))) == overlay.written
+    assert len(list((tmp_path / "overlay").glob("*.jpg"))) == overlay.written
 
 
 def test_thesis_variant_runs_test_3(book: Dataset):

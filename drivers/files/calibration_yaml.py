@@ -7,6 +7,7 @@ are errors too. Vectors may be written as scalars where that is natural (isotrop
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -41,10 +42,28 @@ class CalibrationError(ValueError):
     """A calibration file that cannot be used; the message names the file and the key."""
 
 
+_OPENCV_HEADER = re.compile(r"\A\ufeff?%YAML:\d+\.\d+[ \t]*(?:\r?\n|\Z)")
+
+
+class _OpenCvSafeLoader(yaml.SafeLoader):
+    """SafeLoader that also reads OpenCV ``FileStorage`` matrices (``!!opencv-matrix``) as plain mappings."""
+
+
+_OpenCvSafeLoader.add_constructor(
+    "tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True))
+
+
+def parse_yaml_text(text: str) -> Any:
+    """YAML as written by this program, or OpenCV-style: a ``%YAML:1.0`` first line (OpenCV
+    ``FileStorage``, ORB-SLAM, VINS, Kimera and the EuRoC ``sensor.yaml`` files write it, PyYAML
+    refuses it) is dropped, and ``!!opencv-matrix`` nodes become ``{rows, cols, dt, data}`` mappings."""
+    return yaml.load(_OPENCV_HEADER.sub("", text, count=1), Loader=_OpenCvSafeLoader)
+
+
 def load_yaml_file(path: Path) -> Any:
     """The document in a small YAML file; CalibrationError names the file when it cannot be read as one."""
     try:
-        return yaml.safe_load(path.read_text(encoding="utf-8"))
+        return parse_yaml_text(path.read_text(encoding="utf-8"))
     except UnicodeDecodeError as exc:
         raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     except yaml.YAMLError as exc:
@@ -138,9 +157,10 @@ def calibration_from_yaml(doc: Any, source: str = "dataset.yaml") -> Calibration
                              y.number(gps.get("time_offset_s", 0.0), "gps.time_offset_s"))
 
     truth = y.mapping(top.get("truth"), "truth", {"point_b"})
-    init = y.mapping(top.get("init"), "init", {"heading_deg", "heading_sigma_deg"})
+    init = y.mapping(top.get("init"), "init", {"heading_deg", "heading_sigma_deg", "gyro_bias_sigma_deg_s"})
     heading = init.get("heading_deg")
     heading_sigma = init.get("heading_sigma_deg")
+    bias_sigma = init.get("gyro_bias_sigma_deg_s")
     return Calibration(
         imu=imu_cal,
         gps=gps_cal,
@@ -149,6 +169,9 @@ def calibration_from_yaml(doc: Any, source: str = "dataset.yaml") -> Calibration
         initial_heading_sigma_rad=None
         if heading_sigma is None
         else math.radians(y.number(heading_sigma, "init.heading_sigma_deg", positive=True)),
+        initial_gyro_bias_sigma=None
+        if bias_sigma is None
+        else math.radians(y.number(bias_sigma, "init.gyro_bias_sigma_deg_s", positive=True)),
         truth_point_b=y.vector(truth.get("point_b", [0, 0, 0]), "truth.point_b", 3),
     )
 
@@ -206,6 +229,8 @@ def calibration_to_yaml(cal: Calibration) -> dict:
             "heading_sigma_deg": None
             if cal.initial_heading_sigma_rad is None
             else math.degrees(cal.initial_heading_sigma_rad),
+            **({"gyro_bias_sigma_deg_s": math.degrees(cal.initial_gyro_bias_sigma)}
+               if cal.initial_gyro_bias_sigma is not None else {}),
         },
         "camera": None if camera is None else {
             "width": int(camera.width), "height": int(camera.height),

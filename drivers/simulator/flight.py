@@ -3,12 +3,13 @@
 ``simulate_flight`` is what ``vtolpose simulate`` calls; writing the dataset is
 ``vtolpose.drivers.files.dataset``'s job. Determinism: each sensor draws from its own PCG64 stream, seeded by
 ``SeedSequence(seed, spawn_key=(stream,))`` with a fixed stream number per sensor, so the same
-seed gives identical arrays and a sensor added later (camera: stream 2) changes nothing else.
+seed gives identical arrays and a sensor added later (camera: stream 2, LIDAR: 4) changes nothing else.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -23,6 +24,7 @@ STREAM_IMU = 0
 STREAM_GPS = 1
 STREAM_CAMERA = 2  # reserved for the renderer
 STREAM_HEADING = 3
+STREAM_LIDAR = 4  # the LIDAR's range noise (drivers.simulator.lidar)
 
 
 @dataclass(frozen=True, slots=True)
@@ -40,11 +42,14 @@ class SimulationOptions:
     truth_rate_hz: float = 100.0
     epoch_ns: int = 1_000_000_000
     gravity: float = STANDARD_GRAVITY
-    start_s: float = 0.0
+    start_s: float = 0.0  # join the scenario's trajectory this far in (a flight that starts in the air)
+    rest_s: float | None = None  # time at rest before the motion; None: the scenario's own
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.start_s) and self.start_s >= 0.0):
             raise ValueError(f"start_s must be finite and >= 0, got {self.start_s}")
+        if self.rest_s is not None and not (np.isfinite(self.rest_s) and self.rest_s >= 0.0):
+            raise ValueError(f"rest_s must be zero or positive, got {self.rest_s}")
         if not (np.isfinite(self.truth_rate_hz) and self.truth_rate_hz > 0.0):
             raise ValueError(f"truth_rate_hz must be positive, got {self.truth_rate_hz}")
         if self.epoch_ns <= 0:
@@ -114,6 +119,8 @@ def simulate_flight(
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     options = options or SimulationOptions()
     world = make_scenario(scenario)
+    if options.rest_s is not None:
+        world = replace(world, static_s=options.rest_s)
     gps_model = options.gps or world.gps_model()
     trajectory = world.trajectory(options.start_s + duration_s, options.gravity)
     if options.start_s > 0.0:
@@ -155,6 +162,7 @@ def simulate_flight(
         gps=GpsCalibration(lever_arm_b=np.array(gps_model.lever_arm_b, dtype=float), origin_lla=world.origin_lla),
         initial_heading_rad=None if in_flight else _stated_heading(world, trajectory, seed),
         initial_heading_sigma_rad=None if in_flight else float(np.radians(world.heading_sigma_deg)),
+        initial_gyro_bias_sigma=float(options.imu.gyro_turn_on_bias_std) or None,  # the simulated unit's datasheet
     )
     start = f", starting in flight {options.start_s:g} s into the scenario" if in_flight else ""
     description = f"{world.description}; simulated {duration_s:g} s with seed {seed}{start}"

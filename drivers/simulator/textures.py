@@ -29,7 +29,7 @@ def photo(name: str) -> np.ndarray:
     try:
         from skimage import data
     except ImportError:  # pragma: no cover - depends on the installation
-        raise ImportError("rendering camera frames needs scikit-image (pip install 'vtolpose[sim]')") from None
+        raise ImportError("rendering camera frames needs scikit-image (pip install scikit-image; from a checkout: pip install -e '.[sim]')") from None
     image = getattr(data, name)()
     if image.ndim == 3:
         image = cv2.cvtColor(image[..., :3], cv2.COLOR_RGB2GRAY)

@@ -18,6 +18,7 @@ from vtolpose.estimator.calibration.allan import AllanCurve, AllanFit, allan_dev
 from vtolpose.estimator.inertial.initializer import roll_pitch_from_specific_force
 from vtolpose.estimator.calibration.static_detection import (
     NoStaticStretchError, StaticOptions, StaticStretch, find_static_stretches, reject_moving, require_static_stretch,
+    rest_advice,
 )
 
 
@@ -71,8 +72,7 @@ def calibrate_imu(
             worst = max(speed for _, speed in moving)
             raise NoStaticStretchError(
                 f"the IMU is quiet in {len(moving)} stretch(es) but the position fixes show the vehicle moving (up to "
-                f"{worst:.1f} m/s: steady flight, not rest). Record the vehicle standing still on the ground, "
-                f"untouched, for at least {max(static.min_duration_s, 30.0):g} s")
+                f"{worst:.1f} m/s: steady flight, not rest). {rest_advice(static.min_duration_s)}")
     stretch = stretches[0] if stretches else require_static_stretch(t_ns, gyro, accel, static)  # raises, explaining
     sl = slice(stretch.start, stretch.stop)
     g, a, t = gyro[sl], accel[sl], t_ns[sl]

@@ -124,6 +124,13 @@ def reject_moving(
     return kept, moving
 
 
+def rest_advice(min_duration_s: float) -> str:
+    """What to record, consistent with the shortest stretch asked for (``--min-static``)."""
+    return (f"Record the vehicle standing still on level ground, untouched, for at least {min_duration_s:g} s "
+            f"(the shortest stretch asked for); 30 s or more gives a steadier gyro bias, minutes the Allan noise "
+            f"figures, an hour or more the bias random walk. A simulated record: vtolpose simulate --rest S")
+
+
 def require_static_stretch(
     t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, options: StaticOptions = StaticOptions()
 ) -> StaticStretch:
@@ -136,6 +143,4 @@ def require_static_stretch(
     raise NoStaticStretchError(
         f"no static stretch of at least {options.min_duration_s:g} s in the IMU record ({seen}; a stretch must not "
         f"turn by more than {options.gyro_mean_tol:g} rad/s or tilt by more than {options.accel_mean_tol:g} m/s^2 "
-        f"between {options.chunk_s:g} s chunks). Record the vehicle standing still on level ground, untouched, for at "
-        f"least {max(options.min_duration_s, 30.0):g} s (minutes for the Allan noise figures, an hour or more for "
-        "the bias random walk)")
+        f"between {options.chunk_s:g} s chunks). {rest_advice(options.min_duration_s)}")

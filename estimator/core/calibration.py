@@ -102,6 +102,9 @@ class Calibration:
     camera: CameraCalibration | None = None
     initial_heading_rad: float | None = None
     initial_heading_sigma_rad: float | None = None  # how well that heading is known (None: config default)
+    # The IMU's turn-on gyro bias (its datasheet's repeatability) [rad/s]: the bias prior of a start that no
+    # still window measured (None: the config's init.sigma_gyro_bias)
+    initial_gyro_bias_sigma: float | None = None
     truth_point_b: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:

@@ -32,8 +32,8 @@ from vtolpose.service.replay.faults import parse_faults
 from vtolpose.service.replay.session import ReplayResult, replay
 from vtolpose.service.replay.report import scoring_times
 from vtolpose.service.runtime.status import pose_quality
+from vtolpose.service.bench.rows import Row
 
-Row = tuple[str, float, str, str]
 
 
 @dataclass

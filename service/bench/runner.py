@@ -1,7 +1,8 @@
 """Benchmarks that answer "can my helicopter computer keep up?" — figures, not asserts.
 
-Each benchmark returns rows of (name, value, unit, note). Ratios are measured against a
-baseline taken in the same run where a baseline makes sense.
+Each benchmark returns :class:`~vtolpose.service.bench.rows.Row` figures, with a target and a
+pass/short verdict where an issue set one. Ratios are measured against a baseline taken in the
+same run where a baseline makes sense.
 """
 
 from __future__ import annotations
@@ -25,12 +26,13 @@ from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.core.rotation import quat_from_euler
 from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.camera import bench_camera_update, bench_features, bench_replay_camera
+from vtolpose.service.bench.euroc import bench_euroc
 from vtolpose.service.replay.session import replay
 
-Row = tuple[str, float, str, str]
 
 
 def _per_call_us(fn: Callable[[], object], number: int) -> float:
@@ -62,8 +64,11 @@ def bench_filter_steps() -> list[Row]:
     return rows
 
 
+REPLAY_TARGETS = {"book": ">= 300", "landfill": ">= 100"}  # x real time, IMU+GPS, both variants
+
+
 def bench_replay_speed(scenarios: tuple[tuple[str, float], ...] = (("book", 120.0), ("landfill", 300.0))) -> list[Row]:
-    """IMU+GPS replay speed as a multiple of real time (target ≥ 100×)."""
+    """IMU+GPS replay speed as a multiple of real time (targets: book ≥ 300×, landfill ≥ 100×)."""
     rows: list[Row] = []
     with tempfile.TemporaryDirectory() as tmp:
         for scenario, duration in scenarios:
@@ -74,7 +79,8 @@ def bench_replay_speed(scenarios: tuple[tuple[str, float], ...] = (("book", 120.
                 cfg = load_config(None, {"estimator": {"variant": variant}})
                 result = replay(dataset, cfg, ["imu", "gps"])
                 rate = result.duration_s / result.wall_s
-                rows.append((f"replay imu,gps {scenario} {duration:g} s ({variant})", rate, "x real time", f"{result.wall_s:.2f} s wall"))
+                rows.append(Row(f"replay imu,gps {scenario} {duration:g} s ({variant})", rate, "x real time",
+                                f"{result.wall_s:.2f} s wall", REPLAY_TARGETS.get(scenario)))
     return rows
 
 
@@ -89,14 +95,16 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "soak-camera": bench_soak_camera,
     "fault-targets": bench_fault_targets,
     "fault-table": bench_fault_table,
+    "euroc": bench_euroc,
 }
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table")
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc")
 
 
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:
+    """Run ``names`` (default: all but the long ones), print each figure as it comes, then a verdict line."""
     rows: list[Row] = []
     default = [n for n in BENCHMARKS if include_long or n not in LONG_BENCHMARKS]
     for name in names or default:
@@ -104,8 +112,12 @@ def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] =
             raise ValueError(f"unknown benchmark {name!r}; choose from {', '.join(BENCHMARKS)}")
         t0 = time.perf_counter()
         got = BENCHMARKS[name]()
-        for label, value, unit, note in got:
-            echo(f"  {label:<48} {value:>10.4g} {unit:<12} {note}")
+        for row in got:
+            echo(Row(*row).line())
         echo(f"  ({name}: {time.perf_counter() - t0:.1f} s)")
-        rows.extend(got)
+        rows.extend(Row(*row) for row in got)
+    judged = [r for r in rows if r.target is not None]
+    short = [r for r in judged if r.verdict == "short"]
+    echo(f"verdict: {len(judged) - len(short)} of {len(judged)} figures with a target pass"
+         + (f"; short: {', '.join(r.name for r in short)}" if short else ""))
     return rows

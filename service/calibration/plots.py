@@ -1,6 +1,6 @@
 """PNG figures of the calibrations: what a field team looks at before trusting a number.
 
-matplotlib is an optional extra (``pip install 'vtolpose[plot]'``); it is imported only when a
+matplotlib is an optional extra (``pip install matplotlib``, or ``pip install -e '.[plot]'`` from a checkout); it is imported only when a
 figure is drawn, with a message saying how to get it (or to pass ``--no-plot``).
 """
 
@@ -27,7 +27,7 @@ def _pyplot() -> Any:
         import matplotlib
     except ImportError:
         raise PlotUnavailable(
-            "drawing the figure needs matplotlib: pip install 'vtolpose[plot]' (or pass --no-plot)") from None
+            "drawing the figure needs matplotlib: pip install matplotlib (from a checkout: pip install -e '.[plot]'), or pass --no-plot") from None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+from pathlib import Path
 
 from vtolpose.service.bench.runner import BENCHMARKS, LONG_BENCHMARKS, run_benchmarks
 
@@ -24,7 +25,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run)
 
 
+def cpu_model() -> str:
+    """The CPU's model name (Linux /proc/cpuinfo), else what the platform module knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_line() -> str:
+    """Which machine the figures belong to: absolute figures do not carry over to another."""
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (f"vtolpose bench on {platform.node()}: {cpu_model()}, {os.cpu_count()} cores, Python "
+            f"{platform.python_version()}, load average {load:.2f} at the start")
+
+
 def run(args: argparse.Namespace) -> int:
-    print(f"vtolpose bench on {platform.node()}: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    print(machine_line())
     run_benchmarks(args.only, include_long=args.all)
     return 0

@@ -41,7 +41,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     jobs = p.add_subparsers(dest="job", metavar="JOB", required=True)
 
-    imu = jobs.add_parser("imu", help="gravity, gyro bias, roll/pitch and Allan noise figures from a rest stretch")
+    imu = jobs.add_parser(
+        "imu", help="gravity, gyro bias, roll/pitch and Allan noise figures from a rest stretch",
+        description="IMU calibration from the longest stretch at rest (thesis 5.2): |f| (the thesis' g), gyro bias,\n"
+        "roll and pitch, and the Allan deviation's white noise, bias instability and random walk.\n"
+        "The rest must last --min-static seconds; minutes give the noise figures, an hour the random walk.\n\n"
+        "Examples:\n"
+        "  vtolpose calibrate imu data/mh01\n"
+        "  vtolpose simulate --rest 600 --duration 610 --no-camera --out data/rest && vtolpose calibrate imu data/rest")
     imu.add_argument("dataset", metavar="DATASET")
     imu.add_argument("--min-static", type=float, default=10.0, metavar="S", help="shortest rest stretch to use (default 10 s)")
     imu.add_argument("--min-tau", type=float, default=0.0, metavar="S",
@@ -51,9 +58,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     calibrate_camera.add_parsers(jobs)
 
-    for name, helptext in (("gps-latency", "time offset of the GPS (or truth track) against the IMU clock"),
-                           ("lever-arm", "GPS antenna lever arm in the body frame")):
-        g = jobs.add_parser(name, help=helptext)
+    for name, helptext, example in (
+        ("gps-latency", "time offset of the GPS (or truth track) against the IMU clock",
+         "  vtolpose calibrate gps-latency data/mh01\n"
+         "  vtolpose calibrate gps-latency data/mh01 --source truth --plot latency.png"),
+        ("lever-arm", "GPS antenna lever arm in the body frame",
+         "  vtolpose calibrate lever-arm data/mh01 --offset -0.142\n"
+         "  vtolpose calibrate lever-arm data/mh01 --source truth --out lever.yaml"),
+    ):
+        g = jobs.add_parser(name, help=helptext, description=f"{helptext[0].upper()}{helptext[1:]}, from in-motion "
+                            f"alignment fits over the liveliest windows of the flight.\n\nExamples:\n{example}")
         g.add_argument("dataset", metavar="DATASET")
         g.add_argument("--source", choices=("gps", "truth"), default="gps",
                        help="position track to use: the dataset's GPS, or its truth track (e.g. the raw Leica)")

@@ -21,7 +21,13 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm"}
 
 
 def add_parsers(jobs: argparse._SubParsersAction) -> None:
-    cam = jobs.add_parser("camera", help="intrinsics and distortion from chessboard images (OpenCV)")
+    cam = jobs.add_parser(
+        "camera", help="intrinsics and distortion from chessboard images (OpenCV)",
+        description="Camera intrinsics and radial-tangential distortion from chessboard views (thesis 5.3),\n"
+        "with the RMS reprojection error and the views worth dropping.\n\n"
+        "Examples:\n"
+        "  vtolpose calibrate camera shots/ --board 9x6 --square 0.025\n"
+        "  vtolpose calibrate camera shots/*.png --board 9x6 --square 0.025 --drop --out camera.yaml")
     cam.add_argument("images", nargs="+", metavar="IMAGE", help="chessboard images, or folders of them")
     cam.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners of the board, e.g. 9x6")
     cam.add_argument("--square", required=True, type=float, metavar="M", help="side of one square [m]")
@@ -30,7 +36,13 @@ def add_parsers(jobs: argparse._SubParsersAction) -> None:
     add_output_options(cam, "calib_camera")
     cam.set_defaults(run=run_camera)
 
-    sync = jobs.add_parser("timesync", help="IMU-camera time offset by correlating gyro and camera rotation")
+    sync = jobs.add_parser(
+        "timesync", help="IMU-camera time offset by correlating gyro and camera rotation",
+        description="The camera's time offset against the IMU clock (thesis 5.1.2): the lag that best correlates\n"
+        "the gyro's rate with the rotation seen between frames. Swing the camera about all axes.\n\n"
+        "Examples:\n"
+        "  vtolpose calibrate timesync data/book\n"
+        "  vtolpose calibrate timesync data/book --max-offset 0.1 --out timesync.yaml")
     sync.add_argument("dataset", metavar="DATASET", help="a dataset with IMU and camera frames (mav0/cam0)")
     sync.add_argument("--max-offset", type=float, default=0.2, metavar="S", help="scan ± this (default 0.2 s)")
     sync.add_argument("--step", type=float, default=0.001, metavar="S", help="scan step (default 0.001 s)")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +12,7 @@ from vtolpose.drivers.files.series import TruthSeries
 from vtolpose.drivers.files.tum import read_tum
 from vtolpose.estimator.metrics import evaluate
 from vtolpose.service.commands.common import write_json
+from vtolpose.service.text import number
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -33,6 +33,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _truth(path: Path) -> tuple[TruthSeries, np.ndarray]:
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: truth not found (--truth takes a dataset folder or a TUM / EuRoC truth file)")
     if path.is_dir():
         dataset = Dataset.open(path)
         truth = dataset.truth()
@@ -41,6 +43,23 @@ def _truth(path: Path) -> tuple[TruthSeries, np.ndarray]:
         return truth, dataset.calibration.truth_point_b
     t, p, q = read_tum(path)
     return TruthSeries(t, p, q), np.zeros(3)
+
+
+def score_lines(trajectory: str, truth: str, s: dict) -> list[str]:
+    """The scores as a person reads them (the --report JSON keeps every digit)."""
+    n, e, d = s["position_rmse_ned_m"]
+    lines = [
+        f"{trajectory} against {truth}: {s['samples']} truth samples over {number(s['duration_s'])} s"
+        + (f" ({s['truth_samples_outside_estimate']} outside the estimate's time span, not scored)"
+           if s["truth_samples_outside_estimate"] else ""),
+        f"  position RMSE {s['position_rmse_m']:.4f} m (N {n:.4f}, E {e:.4f}, D {d:.4f}), max {s['max_position_error_m']:.4f} m",
+    ]
+    if s.get("attitude_rmse_deg") is not None:
+        lines.append(f"  attitude RMSE {s['attitude_rmse_deg']:.3f} deg, max {s['max_attitude_error_deg']:.3f} deg")
+    drift = f"  final drift {s['final_drift_m']:.4f} m"
+    if s.get("distance_travelled_m"):
+        drift += f" ({s['drift_percent']:.2f} % of {s['distance_travelled_m']:.1f} m travelled)"
+    return lines + [drift]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
         if point_b.shape != (3,):
             raise ValueError(f"--point-b {args.point_b!r}: expected three numbers X,Y,Z")
     scores = evaluate(t, p, q, truth, point_b)
-    print(json.dumps(scores, indent=2))
+    for line in score_lines(args.trajectory, args.truth, scores):
+        print(line)
     if args.report:
         write_json(args.report, scores)
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from pathlib import Path
 
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.tum import write_tum
@@ -12,8 +13,8 @@ from vtolpose.service.commands.run import add_runtime_options, add_start_option,
 from vtolpose.service.replay.faults import add_fault_options, parse_faults
 from vtolpose.service.replay.overlay import OverlayWriter
 from vtolpose.service.replay.progress import Progress
-from vtolpose.service.replay.session import replay
-from vtolpose.service.replay.report import build_report, summary_lines
+from vtolpose.service.replay.session import missing_sensor, replay
+from vtolpose.service.replay.report import build_report, event_lines, summary_lines
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +32,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "Examples:\n"
         "  vtolpose replay data/book --sensors imu,gps --variant thesis --out traj.txt --report report.json\n"
         "  vtolpose replay data/landfill --speed 1 --mavlink udpout:127.0.0.1:14540 --zenoh   (a live-like feed)\n"
-        "  vtolpose replay data/landfill --sensors imu,camera,gps --fault gps-off:60:30 --report r.json",
+        "  vtolpose replay data/landfill --sensors imu,camera,gps --fault gps-off:60:30 --report r.json\n"
+        "  vtolpose replay data/book --sensors imu,camera,gps --speed 1 --foxglove --mcap book.mcap",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("dataset", metavar="DATASET", help="dataset folder (see README, Dataset layout)")
@@ -48,12 +50,34 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run)
 
 
+def requested_sensors(args: argparse.Namespace, cfg: dict, dataset: Dataset) -> list[str]:
+    """The sensors to replay: those named with --sensors must all be in the dataset (an error
+    says which is missing); --overlay without --sensors adds the camera, since it draws frames."""
+    named = parse_sensors(args.sensors)
+    if named is None:
+        sensors = list(cfg["replay.sensors"])
+        if args.overlay and "camera" not in sensors:
+            sensors.append("camera")
+    else:
+        sensors = named
+        if args.overlay and "camera" not in sensors:
+            raise ValueError(f"--overlay draws the camera frames, but --sensors {args.sensors} has no camera: "
+                             f"add it, e.g. --sensors {','.join([*sensors, 'camera'])}")
+    for name in sensors if named is not None or args.overlay else ():
+        if name in ("gps", "camera"):
+            reason = missing_sensor(dataset, name)
+            if reason is not None:
+                asked = f"--sensors {args.sensors}" if named is not None else "--overlay"
+                raise ValueError(f"{dataset.root}: {asked} needs the {name}: {reason}")
+    return sensors
+
+
 def run(args: argparse.Namespace) -> int:
     cfg = config_for(args)
     faults = parse_faults(args.fault)
+    progress = Progress(None, f"replay {Path(args.dataset).name}", enabled=False if args.no_progress else None)
     dataset = Dataset.open(args.dataset)
-    sensors = parse_sensors(args.sensors)
-    progress = Progress(1.0, f"replay {dataset.meta['name']}", enabled=False if args.no_progress else None)
+    sensors = requested_sensors(args, cfg, dataset)
 
     def on_progress(done_s: float, total_s: float) -> None:
         progress.total = max(total_s, 1e-9)
@@ -68,10 +92,11 @@ def run(args: argparse.Namespace) -> int:
         write_tum(args.out, result.trajectory.t_ns, result.trajectory.p, result.trajectory.q)
     if args.report:
         write_json(args.report, report)
-    for line in summary_lines(report):
+    for line in event_lines(report) + summary_lines(report):
         print(line)
     if overlay is not None:
         print(f"  overlay: {overlay.written} pictures in {overlay.folder}")
-    for t, message in result.estimator.events:
-        log.info("t=%.3f s: %s", (t - int(result.trajectory.t_ns[0])) * 1e-9 if len(result.trajectory.t_ns) else 0.0, message)
+    written = ([f"trajectory {args.out}"] if args.out else []) + ([f"report {args.report}"] if args.report else [])
+    print(f"  wrote {' and '.join(written)}" if written else
+          "  (nothing written: give --out TRAJ.txt for the trajectory, --report R.json for the full report)")
     return 0

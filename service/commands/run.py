@@ -13,6 +13,7 @@ from vtolpose.service.replay.faults import add_fault_options, injector_from
 
 log = logging.getLogger(__name__)
 LIVE_FRAME_REPORTS = 1000  # recent per-frame reports a long run keeps (memory stays flat)
+FOXGLOVE_CONFIG_PORT = -1  # --foxglove without a port: outputs.foxglove.port
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -28,7 +29,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "  vtolpose run --config vehicle.yaml\n"
         "  vtolpose run --replay data/landfill --speed 1 --mavlink udpout:127.0.0.1:14540 --zenoh\n"
         "  vtolpose run --replay data/book --out traj.txt       (same trajectory as `vtolpose replay`)\n"
-        "  vtolpose run --replay data/landfill --start-at 80 --sensors imu,camera   (restarted in flight)",
+        "  vtolpose run --replay data/landfill --start-at 80 --sensors imu,camera   (restarted in flight)\n"
+        "  vtolpose run --replay data/book --speed 1 --foxglove --hold   (watch it in Foxglove: ws://127.0.0.1:8765)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_config_options(p)
@@ -64,10 +66,16 @@ def _start_seconds(text: str) -> float:
 
 
 def add_runtime_options(p: argparse.ArgumentParser) -> None:
-    """--speed, --mavlink, --zenoh: shared by every command that drives the runtime."""
+    """--speed and the output switches: shared by every command that drives the runtime."""
     p.add_argument("--speed", type=float, metavar="X", help="replay speed, x real time; 0 = as fast as possible (replay.speed)")
     p.add_argument("--mavlink", metavar="URL", help="enable the MAVLink output on this link (outputs.mavlink.url)")
     p.add_argument("--zenoh", action="store_true", help="enable the Zenoh output (outputs.zenoh.*)")
+    p.add_argument("--ros2", action="store_true",
+                   help="publish nav_msgs/Odometry and TF for ROS 2 nodes on rmw_zenoh (outputs.ros2.*)")
+    p.add_argument("--foxglove", nargs="?", type=int, const=FOXGLOVE_CONFIG_PORT, metavar="PORT",
+                   help="serve the live 3-D view to Foxglove on ws://HOST:PORT (outputs.foxglove.*; default port 8765)")
+    p.add_argument("--mcap", metavar="FILE", help="record the view, every estimate, the raw samples and the status "
+                   "into this new MCAP file (outputs.mcap.file)")
 
 
 def config_for(args: argparse.Namespace) -> dict:
@@ -78,6 +86,15 @@ def config_for(args: argparse.Namespace) -> dict:
         outputs.setdefault("mavlink", {}).update(enabled=True, url=args.mavlink)
     if args.zenoh:
         outputs.setdefault("zenoh", {})["enabled"] = True
+    if args.ros2:
+        outputs.setdefault("ros2", {})["enabled"] = True
+    if args.foxglove is not None:
+        view = outputs.setdefault("foxglove", {})
+        view["enabled"] = True
+        if args.foxglove != FOXGLOVE_CONFIG_PORT:
+            view["port"] = args.foxglove
+    if args.mcap:
+        outputs.setdefault("mcap", {})["file"] = args.mcap
     if args.speed is not None:
         overrides.setdefault("replay", {})["speed"] = args.speed
     if getattr(args, "record", None):

@@ -6,9 +6,11 @@ import argparse
 import importlib.util
 import time
 
+from vtolpose.drivers.files.dataset import refuse_existing_dataset
 from vtolpose.drivers.simulator import SCENARIOS, SimulationOptions, make_scenario, simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
+from vtolpose.service.commands.lidar_options import add_lidar_options, lidar_from_args
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -35,8 +37,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DATASET", help="folder to write")
     p.add_argument("--force", action="store_true", help="replace an existing dataset in --out")
     p.add_argument("--no-camera", action="store_true", help="do not render camera frames")
-    p.add_argument("--start-in-flight", nargs="?", type=_seconds, const=-1.0, default=None, metavar="S",
-                   help="start S seconds into the scenario's trajectory, moving (default: the scenario's in-flight point)")
+    start = p.add_mutually_exclusive_group()
+    start.add_argument("--start-in-flight", nargs="?", type=_seconds, const=-1.0, default=None, metavar="S",
+                       help="start S seconds into the scenario's trajectory, moving (default: the scenario's in-flight point)")
+    start.add_argument("--rest", type=float, metavar="S", help="seconds at rest on the ground before the motion (default: "
+                       "the scenario's, 10 s); e.g. --rest 600 for a record that `calibrate imu` can use")
+    add_lidar_options(p)
     p.set_defaults(run=run)
 
 
@@ -48,7 +54,8 @@ def _seconds(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    options = SimulationOptions()
+    refuse_existing_dataset(args.out, args.force)
+    options = SimulationOptions(rest_s=args.rest)
     if args.start_in_flight is not None:
         start_s = make_scenario(args.scenario).in_flight_s if args.start_in_flight < 0.0 else args.start_in_flight
         options = SimulationOptions(start_s=start_s)
@@ -56,14 +63,16 @@ def run(args: argparse.Namespace) -> int:
     camera = None
     if not args.no_camera:
         if importlib.util.find_spec("skimage") is None:
-            print("no camera frames: rendering needs scikit-image (pip install 'vtolpose[sim]'); use --no-camera to silence this")
+            print("no camera frames: rendering needs scikit-image (pip install scikit-image; from a checkout: pip install -e '.[sim]'); use --no-camera to silence this")
         else:
             camera = default_camera()
             print(f"rendering {int(args.duration * camera.rate_hz)} camera frames "
                   f"({camera.width} x {camera.height} at {camera.rate_hz:g} Hz) ...")
+    lidar = lidar_from_args(args, flight)
     started = time.perf_counter()
-    out = write_flight(flight, args.out, overwrite=args.force, camera=camera)
+    out = write_flight(flight, args.out, overwrite=args.force, camera=camera, lidar=lidar)
     print(f"wrote {out}: {flight.description}")
     frames = f", camera frames in {time.perf_counter() - started:.1f} s" if camera is not None else ", no camera"
-    print(f"  imu {len(flight.imu.t_ns)} samples, gps {len(flight.gps.t_ns)} fixes, truth {len(flight.truth.t_ns)} poses{frames}")
+    scans = f", lidar {len(lidar)} returns ({lidar.spec.model})" if lidar is not None else ""
+    print(f"  imu {len(flight.imu.t_ns)} samples, gps {len(flight.gps.t_ns)} fixes, truth {len(flight.truth.t_ns)} poses{frames}{scans}")
     return 0

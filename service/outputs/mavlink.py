@@ -1,234 +1,368 @@
-"""MAVLink 2 to the flight controller: HEARTBEAT at 1 Hz, ODOMETRY (id 331) at a set rate.
+"""MAVLink 2 to the flight controller and ground stations: ODOMETRY, HEARTBEAT, STATUSTEXT, TIMESYNC answers.
 
-Fields follow ``INTERFACES.md``: position NED, ``q`` body→NED, velocity and angular rate in the
-body (FRD) frame, 21-value upper-triangle covariances, ``reset_counter`` from the estimator,
-``estimator_type = MAV_ESTIMATOR_TYPE_VIO`` and a 0–100 ``quality``. The link is any pymavlink
-connection string; message signing (a shared 32-byte key) is optional, and when required,
-unsigned or wrongly signed incoming messages are refused and counted. Incoming messages of
-interest (e.g. the autopilot's ``GPS_RAW_INT``) are handed to callbacks.
+One output, several endpoints (``outputs.mavlink.url`` and ``outputs.mavlink.endpoints``, see
+config/mavlink.py). Each endpoint has its own transport, signing key, ODOMETRY rate, counters and
+failure book: an endpoint that fails is counted and skipped, the others go on. ODOMETRY fields follow
+the autopilot's profile (:mod:`.mavlink_odometry`); ground stations get the generic fields. Only the
+flight controller's link (``url``) feeds the estimator (``handlers``, e.g. the autopilot's GPS).
+
+Incoming messages are read in slices of bounded work: a UDP link when the loop reports it readable,
+a serial or TCP link every ``STREAM_POLL_S``. A slice stops after ``READ_BUDGET_S``; a link whose
+slice ran out with data still waiting is left alone for ``READ_COOLDOWN_S``. So no input rate holds
+the estimator's loop longer than one slice (a fraction of an IMU period), and a flood of datagrams
+takes at most a fixed share of it; what it crowds out is dropped by the kernel, not queued here.
+
+TIMESYNC: a request (``tc1 = 0``) is answered at once with ``tc1`` = now on the clock ``time_usec`` is
+in (the sensor clock, followed from the poses; a live run stamps the IMU on the host's monotonic
+clock). PX4 asks first and, once its filter converges, maps ``time_usec`` onto its own clock; until a
+first pose there is no sensor clock and requests are counted, not answered.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import math
-from pathlib import Path
-from typing import Any, Callable
+import time
+from collections import Counter
+from typing import Any, Callable, Sequence
 
-import numpy as np
-
-from vtolpose.config.outputs import parse_mavlink_url
+from vtolpose.config.mavlink import EndpointSpec, mavlink_endpoints
+from vtolpose.drivers.links.mavlink_frames import Inbound
+from vtolpose.drivers.links.mavlink_signing import SigningKeyError, read_signing_key, signing_timestamp
+from vtolpose.drivers.links.mavlink_transport import open_transport
 from vtolpose.drivers.links.mavlink_wire import mavutil
 from vtolpose.estimator.fusion import OutputPose
-from vtolpose.estimator.core.rotation import quat_to_rot, skew
-from vtolpose.service.runtime.status import FailureBook, pose_quality, stopped_within
+from vtolpose.service.outputs.mavlink_odometry import (
+    PROFILES, Profile, euler_jacobian, odometry_covariances, odometry_fields, upper_triangle,
+)
+from vtolpose.service.outputs.mavlink_status import StatusEvents, TextLimiter, statustext_chunks
+from vtolpose.service.runtime.status import FailureBook, stopped_within
+
+__all__ = ["COMPONENT_ID", "Endpoint", "MavlinkOutput", "SensorClock", "SigningKeyError", "OdometrySchedule",
+           "euler_jacobian", "mavutil", "odometry_covariances", "odometry_fields", "read_signing_key", "upper_triangle"]
 
 log = logging.getLogger(__name__)
 
 mav = mavutil.mavlink
 COMPONENT_ID = mav.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY  # 197
-_TRIU = np.triu_indices(6)  # row-major upper-right triangle: 21 indices
+READ_BUDGET_S = 0.0005
+READ_COOLDOWN_S = 0.004
+READ_BATCH = 4  # datagrams (or stream reads) between two looks at the clock
+STREAM_POLL_S = 0.005
+AUTOPILOT_NAMES = {mav.MAV_AUTOPILOT_PX4: "px4", mav.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot"}
 
 
-class SigningKeyError(ValueError):
-    """The signing key file is missing or not a 32-byte key."""
+class SensorClock:
+    """The sensor clock (``time_usec``'s) now, followed from the poses as they are published."""
+
+    def __init__(self, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        self._clock = clock
+        self._pose_t: int | None = None
+        self._at = 0
+
+    def follow(self, t_ns: int) -> None:
+        self._pose_t, self._at = t_ns, self._clock()
+
+    def now_ns(self) -> int | None:
+        return None if self._pose_t is None else self._pose_t + (self._clock() - self._at)
 
 
-def read_signing_key(path: str | Path) -> bytes:
-    """32 raw bytes, or 64 hexadecimal characters (whitespace ignored)."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise SigningKeyError(f"signing key file {path}: {exc.strerror or exc}") from None
-    if len(data) == 32:
-        return data
-    text = data.decode("ascii", errors="replace").strip()
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text)
-        except ValueError:
-            raise SigningKeyError(f"signing key file {path}: 64 characters, but not hexadecimal") from None
-    raise SigningKeyError(f"signing key file {path}: expected 32 raw bytes or 64 hex characters, got {len(data)} bytes")
+class OdometrySchedule:
+    """When to send: one every ``period_ns`` of sensor time on average (targets advance by the period, so
+    rounding up to the next IMU sample does not lower the rate), never two closer than ``min_spacing_ns``."""
+
+    def __init__(self, period_ns: int, min_spacing_ns: int = 0) -> None:
+        self.period_ns, self.min_spacing_ns = period_ns, min_spacing_ns
+        self._next: int | None = None
+        self._last: int | None = None
+
+    def due(self, t_ns: int) -> bool:
+        if self._next is None or self._last is None or t_ns < self._last:
+            self._next = t_ns  # the first pose, or time went back (a clock step): start again here
+        elif t_ns < self._next or t_ns - self._last < self.min_spacing_ns:
+            return False
+        if t_ns - self._next >= self.period_ns:
+            self._next = t_ns  # a hole in the poses: no burst to catch up
+        self._next += self.period_ns
+        self._last = t_ns
+        return True
 
 
-def euler_jacobian(q: np.ndarray) -> np.ndarray:
-    """d(roll, pitch, yaw) / dθ for a world-frame attitude error θ (``R_true = Exp(θ) R``).
+class Endpoint:
+    """One MAVLink link: its transport, signing, ODOMETRY schedule, counters and failures."""
 
-    With R = Rz(ψ) Ry(θ) Rx(φ), a world-frame rotation increment is
-    ``δθ = [Rz Ry e_x | Rz e_y | e_z] · (δφ, δθ, δψ)``; this is that matrix's inverse, in closed
-    form. It is singular at ±90° pitch, which a helicopter's estimator never reports:
-    cos(pitch) is floored.
-    """
-    w, x, y, z = q.tolist()
-    sp = min(max(2.0 * (w * y - z * x), -1.0), 1.0)
-    cp = max(math.sqrt(1.0 - sp * sp), 1e-6)
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array([[cy / cp, sy / cp, 0.0], [-sy, cy, 0.0], [sp * cy / cp, sp * sy / cp, 1.0]])
+    def __init__(self, spec: EndpointSpec, key: bytes | None, profile: Profile, system_id: int, component_id: int,
+                 max_peers: int = 4, peer_timeout_s: float = 10.0) -> None:
+        self.spec, self.name = spec, spec.name
+        self.profile = profile if spec.role == "autopilot" else PROFILES["generic"]
+        self.inbound = Inbound(key, spec.require_signing)
+        self.schedule = OdometrySchedule(int(round(1e9 / spec.rate_hz)), self.profile.min_spacing_ns)
+        self._tx = mav.MAVLink(self, srcSystem=system_id, srcComponent=component_id)
+        if key is not None:
+            self._tx.signing.secret_key = key
+            self._tx.signing.sign_outgoing = True
+        self._max_peers, self._peer_timeout_s = max_peers, peer_timeout_s
+        self.transport: Any = None
+        self.stats: Counter[str] = Counter()
+        self.failures = FailureBook()
+        self.paused_until = 0.0  # reading rests until then after a slice ran out of budget
+        self.peer_autopilot: str | None = None
+        self.timesync_offset_ms: float | None = None
+        self._reached = 0
 
+    def open(self) -> None:
+        self.transport = open_transport(self.spec.url, self._max_peers, self._peer_timeout_s)
+        if self.transport.stream:
+            self.transport.service()  # first attempt now; a missing device is retried with back-off
 
-def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """ODOMETRY's two 6 × 6 covariances from the estimator's.
+    def close(self) -> None:
+        if self.transport is not None:
+            self.transport.close()
+            self.transport = None
 
-    Pose: the estimator's covariance is over ``[δp (NED), δθ (world-frame rotation)]``; MAVLink's
-    states are ``x, y, z, roll, pitch, yaw``, so the attitude block is mapped through the Euler
-    Jacobian (first order; at level attitude it is the identity, and yaw's variance is exact).
-    Velocity: body-frame velocity ``v_B = Rᵀ v`` depends on the world velocity error and on the
-    attitude error (``δv_B = Rᵀ δv + Rᵀ [v]× δθ``); the body rates are the bias-corrected gyro,
-    uncorrelated with the velocity, with the gyro noise plus the bias variance.
-    """
-    cov9 = pose.cov9
-    e = euler_jacobian(pose.q)
-    pose_cov = np.empty((6, 6))
-    pose_cov[0:3, 0:3] = cov9[0:3, 0:3]
-    cross = cov9[0:3, 6:9] @ e.T
-    pose_cov[0:3, 3:6] = cross
-    pose_cov[3:6, 0:3] = cross.T
-    pose_cov[3:6, 3:6] = e @ cov9[6:9, 6:9] @ e.T
-    rt = (quat_to_rot(pose.q) if r is None else r).T
-    jv = np.empty((3, 6))
-    jv[:, 0:3] = rt
-    jv[:, 3:6] = rt @ skew(pose.v)
-    vel_cov = np.zeros((6, 6))
-    vel_cov[0:3, 0:3] = jv @ cov9[3:9, 3:9] @ jv.T
-    vel_cov[3, 3], vel_cov[4, 4], vel_cov[5, 5] = pose.omega_var.tolist()
-    return pose_cov, vel_cov
+    def write(self, buf: bytes) -> None:
+        """pymavlink's encoder writes here."""
+        self._reached = self.transport.send(buf)
 
+    def send(self, msg: Any, counter: str) -> None:
+        """Encode (sign) and send ``msg``; ``counter`` counts it when it reached at least one peer."""
+        if self.transport is None:
+            return
+        if self._tx.signing.sign_outgoing:  # never behind the clock, even after a restart
+            self._tx.signing.timestamp = max(self._tx.signing.timestamp, signing_timestamp())
+        self._reached = 0
+        self._tx.send(msg)
+        if self._reached:
+            self.stats[counter] += 1
 
-def upper_triangle(cov: np.ndarray) -> list[float]:
-    """The 21 values of the upper-right triangle, row-major; NaN first value when unknown."""
-    values = cov[_TRIU]
-    if not np.all(np.isfinite(values)):
-        return [math.nan] + [0.0] * 20
-    return values.tolist()
+    def read(self, on_message: Callable[["Endpoint", Any], None], budget_s: float = READ_BUDGET_S) -> bool:
+        """Handle waiting messages for at most ``budget_s``; True when it stopped with data left."""
+        deadline = time.perf_counter() + budget_s
+        while True:
+            frames, more = self.transport.receive(READ_BATCH)
+            for i, (frame, peer) in enumerate(frames):
+                msg = self.inbound.accept(frame)
+                if msg is not None:
+                    self.transport.confirm_peer(peer)
+                    try:
+                        on_message(self, msg)
+                    except Exception as exc:  # a handler's bug: counted, the link keeps reading
+                        self.failures.record(f"MAVLink {self.name} handling {msg.get_type()}", exc)
+                if time.perf_counter() >= deadline and i + 1 < len(frames):
+                    self.stats["frames_dropped_over_budget"] += len(frames) - i - 1
+                    break
+            if not more:
+                return False
+            if time.perf_counter() >= deadline:
+                self.stats["read_budget_exhausted"] += 1
+                return True
 
-
-def odometry_fields(pose: OutputPose) -> dict[str, Any]:
-    """Keyword arguments of ``odometry_send`` for ``pose`` (see :func:`odometry_covariances`)."""
-    r = quat_to_rot(pose.q)
-    pose_cov, vel_cov = odometry_covariances(pose, r)
-    v_body = r.T @ pose.v
-    return dict(
-        time_usec=pose.t_ns // 1000,
-        frame_id=mav.MAV_FRAME_LOCAL_NED,
-        child_frame_id=mav.MAV_FRAME_BODY_FRD,
-        x=float(pose.p[0]), y=float(pose.p[1]), z=float(pose.p[2]),
-        q=[float(x) for x in pose.q],
-        vx=float(v_body[0]), vy=float(v_body[1]), vz=float(v_body[2]),
-        rollspeed=float(pose.omega_b[0]), pitchspeed=float(pose.omega_b[1]), yawspeed=float(pose.omega_b[2]),
-        pose_covariance=upper_triangle(pose_cov),
-        velocity_covariance=upper_triangle(vel_cov),
-        reset_counter=pose.reset_counter % 256,
-        estimator_type=mav.MAV_ESTIMATOR_TYPE_VIO,
-        quality=pose_quality(pose),
-    )
+    def report(self) -> dict[str, Any]:
+        doc: dict[str, Any] = {"url": self.spec.url, "role": self.spec.role, "rate_hz": self.spec.rate_hz}
+        doc.update(self.stats)
+        doc.update(self.inbound.counts)
+        if self.transport is not None:
+            doc.update(self.transport.counts)
+            doc["peers"] = len(self.transport.peers)
+        if self.inbound.check is not None:
+            doc["signing_streams"] = self.inbound.check.streams
+        if self.peer_autopilot is not None:
+            doc["peer_autopilot"] = self.peer_autopilot
+        if self.timesync_offset_ms is not None:
+            doc["timesync_offset_ms"] = round(self.timesync_offset_ms, 3)
+        if self.failures.parts:
+            doc["failures"] = self.failures.report()
+        return doc
 
 
 class MavlinkOutput:
-    """One MAVLink link: sends HEARTBEAT and ODOMETRY, reads incoming messages for callbacks."""
+    """The MAVLink output: every endpoint, fed from the runtime's hot path and its status loop."""
 
     name = "mavlink"
 
-    def __init__(
-        self,
-        url: str,
-        system_id: int,
-        component_id: int = COMPONENT_ID,
-        rate_hz: float = 50.0,
-        signing_key: bytes | None = None,
-        require_signing: bool = False,
-    ) -> None:
-        self.url = url
-        self.system_id = system_id
-        self.component_id = component_id
-        self.period_ns = int(1e9 / rate_hz) if rate_hz > 0 else 0
-        self.signing_key = signing_key
-        self.require_signing = require_signing
+    def __init__(self, endpoints: Sequence[Endpoint], autopilot: str = "generic", statustext_per_minute: int = 20,
+                 clock: SensorClock | None = None) -> None:
+        self.endpoints = list(endpoints)
+        self.autopilot = autopilot
+        primary = next((e for e in self.endpoints if e.spec.role == "autopilot"), None)
+        self.url = primary.spec.url if primary is not None else None  # the link the estimator's inputs may come from
+        self._primary = primary
         self.handlers: dict[str, Callable[[Any], None]] = {}
-        self.conn: Any = None
-        self._next_odometry_t: int | None = None
+        self.clock = clock or SensorClock()
+        self.events = StatusEvents()
+        self.limiter = TextLimiter(statustext_per_minute) if statustext_per_minute > 0 else None
+        self._chunk_id = 0
         self._active = False
-        self.stats = {"odometry_sent": 0, "heartbeats_sent": 0, "received": 0, "bad_data": 0, "serve_errors": 0}
-        self.failures = FailureBook()
+        self._loop: asyncio.AbstractEventLoop | None = None
 
+    @classmethod
+    def from_config(cls, cfg: dict[str, Any]) -> "MavlinkOutput":
+        """Endpoints from ``outputs.mavlink.*``; ValueError naming the key of an unusable signing key."""
+        profile = PROFILES[cfg["outputs.mavlink.autopilot"]]
+        endpoints = []
+        for spec in mavlink_endpoints(cfg):
+            key = None
+            if spec.signing_key_file is not None:
+                try:
+                    key = read_signing_key(spec.signing_key_file)
+                except SigningKeyError as exc:
+                    raise ValueError(f"key '{spec.key}.signing_key_file': {exc}") from None
+            endpoints.append(Endpoint(spec, key, profile, cfg["vehicle.system_id"], cfg["outputs.mavlink.component_id"],
+                                      cfg["outputs.mavlink.max_udp_peers"], cfg["outputs.mavlink.udp_peer_timeout_s"]))
+        return cls(endpoints, cfg["outputs.mavlink.autopilot"], cfg["outputs.mavlink.statustext_per_minute"])
+
+    # ------------------------------------------------------------------------------ lifetime
     def open(self) -> None:
-        device, baud = parse_mavlink_url(self.url)
-        self.conn = mavutil.mavlink_connection(
-            device, baud=baud or 115200, source_system=self.system_id, source_component=self.component_id, autoreconnect=True
-        )
-        if self.signing_key is not None:
-            # A callback that says no makes pymavlink count the refusal (reject_count).
-            self.conn.setup_signing(self.signing_key, sign_outgoing=True,
-                                    allow_unsigned_callback=lambda _mav, _msg_id: not self.require_signing)
-        log.info("MAVLink link %s open (system %d, component %d%s)", self.url, self.system_id, self.component_id,
-                 ", signed" if self.signing_key else "")
+        try:
+            for endpoint in self.endpoints:
+                try:
+                    endpoint.open()
+                except OSError as exc:
+                    raise OSError(f"MAVLink endpoint {endpoint.name} ({endpoint.spec.url}): {exc}") from exc
+                log.info("MAVLink endpoint %s open: %s, %s%s", endpoint.name, endpoint.spec.url, endpoint.spec.role,
+                         ", signed" if endpoint.inbound.check is not None else "")
+        except OSError:
+            self.close()
+            raise
 
     def close(self) -> None:
-        if self.conn is not None:
-            self.conn.close()
-            self.conn = None
+        for endpoint in self.endpoints:
+            endpoint.close()
 
+    # ------------------------------------------------------------------------------ outgoing
     def publish(self, pose: OutputPose) -> bool:
-        """Send ODOMETRY if the configured period (in sensor time) has passed. True when sent."""
-        if self.conn is None:
-            return False
-        if self._next_odometry_t is not None and pose.t_ns < self._next_odometry_t:
-            return False
-        self._next_odometry_t = pose.t_ns + self.period_ns
-        fields = odometry_fields(pose)
-        self._active = fields["quality"] > 0
-        self.conn.mav.odometry_send(**fields)
-        self.stats["odometry_sent"] += 1
-        return True
-
-    def publish_status(self, status: dict[str, Any]) -> None:
-        """The status document is Zenoh's; on MAVLink the HEARTBEAT's system state says it."""
+        """ODOMETRY to every endpoint whose schedule is due. True when at least one was sent."""
+        self.clock.follow(pose.t_ns)
+        fields: dict[str, dict[str, Any]] = {}
+        sent = False
+        for endpoint in self.endpoints:
+            if endpoint.transport is None or not endpoint.schedule.due(pose.t_ns):
+                continue
+            try:
+                profile = endpoint.profile
+                if profile.name not in fields:
+                    fields[profile.name] = odometry_fields(pose, profile)
+                f = fields[profile.name]
+                endpoint.send(mav.MAVLink_odometry_message(**f), "odometry_sent")
+                sent = True
+                if endpoint is self._primary:
+                    self._active = f["quality"] > 0
+            except Exception as exc:  # this endpoint only; the others still get their pose
+                endpoint.failures.record(f"MAVLink {endpoint.name} ODOMETRY", exc)
+        return sent
 
     def heartbeat(self) -> None:
-        if self.conn is None:
-            return
         state = mav.MAV_STATE_ACTIVE if self._active else mav.MAV_STATE_STANDBY
-        self.conn.mav.heartbeat_send(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, state)
-        self.stats["heartbeats_sent"] += 1
+        msg = mav.MAVLink_heartbeat_message(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0, state, 3)
+        self._each(lambda e: e.send(msg, "heartbeats_sent"), "HEARTBEAT")
 
-    def poll(self) -> int:
-        """Read every message waiting, without blocking; dispatch to ``handlers`` by type."""
-        if self.conn is None:
-            return 0
-        n = 0
-        while (msg := self.conn.recv_match(blocking=False)) is not None:
-            kind = msg.get_type()
-            if kind == "BAD_DATA":
-                self.stats["bad_data"] += 1
-                continue
-            n += 1
-            self.stats["received"] += 1
+    def statustext(self, severity: int, text: str) -> None:
+        """``text`` to every endpoint (and the log), chunked when longer than one message holds."""
+        log.log(logging.WARNING if severity <= mav.MAV_SEVERITY_WARNING else logging.INFO, "STATUSTEXT: %s", text)
+        self._chunk_id = self._chunk_id % 65535 + 1
+        for data, chunk_id, seq in statustext_chunks(text, self._chunk_id):
+            msg = mav.MAVLink_statustext_message(severity, data, chunk_id, seq)
+            self._each(lambda e: e.send(msg, "statustext_sent"), "STATUSTEXT")
+
+    def publish_status(self, status: dict[str, Any]) -> None:
+        """Resets, stale sensors and the heading, as STATUSTEXT (rate-limited)."""
+        changes = self.events.changes(status)
+        if self.limiter is None or not changes:
+            return
+        for severity, text in self.limiter.admit(changes):
+            self.statustext(severity, text)
+
+    def _each(self, action: Callable[[Endpoint], None], what: str) -> None:
+        for endpoint in self.endpoints:
+            try:
+                action(endpoint)
+            except Exception as exc:
+                endpoint.failures.record(f"MAVLink {endpoint.name} {what}", exc)
+
+    # ------------------------------------------------------------------------------ incoming
+    def _on_message(self, endpoint: Endpoint, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind == "TIMESYNC":
+            self._timesync(endpoint, msg)
+        elif kind == "HEARTBEAT" and endpoint.spec.role == "autopilot" and msg.autopilot in AUTOPILOT_NAMES:
+            seen = AUTOPILOT_NAMES[msg.autopilot]
+            if seen != endpoint.peer_autopilot:
+                endpoint.peer_autopilot = seen
+                if self.autopilot != "generic" and seen != self.autopilot:
+                    log.warning("MAVLink %s: the flight controller says it is %s, but outputs.mavlink.autopilot is %s",
+                                endpoint.name, seen, self.autopilot)
+        if endpoint is self._primary:
             handler = self.handlers.get(kind)
             if handler is not None:
                 handler(msg)
-        return n
 
-    def link_stats(self) -> dict[str, int]:
-        out = dict(self.stats)
-        if self.conn is not None and self.signing_key is not None:
-            signing = self.conn.mav.signing
-            out.update(good_signatures=signing.goodsig_count, bad_signatures=signing.badsig_count,
-                       unsigned_accepted=signing.unsigned_count, refused=signing.reject_count)
-        return out
+    def _timesync(self, endpoint: Endpoint, msg: Any) -> None:
+        if msg.tc1 != 0:
+            endpoint.stats["timesync_responses_ignored"] += 1  # we ask nobody: not ours
+            return
+        now = self.clock.now_ns()
+        if now is None:
+            endpoint.stats["timesync_unanswered_no_pose_yet"] += 1
+            return
+        endpoint.send(mav.MAVLink_timesync_message(now, msg.ts1), "timesync_answered")
+        endpoint.timesync_offset_ms = (msg.ts1 - now) * 1e-6  # their clock minus ours, plus the one-way delay
 
-    async def serve(self, stop: asyncio.Event, poll_s: float = 0.02) -> None:
-        """HEARTBEAT every second and incoming messages every ``poll_s`` until ``stop`` is set."""
-        loop = asyncio.get_running_loop()
+    def poll(self, endpoint: Endpoint | None = None) -> None:
+        """Read what waits on ``endpoint`` (every endpoint if None), one budgeted slice each."""
+        for e in [endpoint] if endpoint is not None else self.endpoints:
+            if e.transport is not None:
+                e.read(self._on_message)
+
+    def _on_readable(self, endpoint: Endpoint) -> None:
+        try:
+            exhausted = endpoint.read(self._on_message)
+        except Exception as exc:
+            endpoint.failures.record(f"MAVLink {endpoint.name} reading", exc)
+            exhausted = True
+        if exhausted and self._loop is not None and endpoint.transport is not None:
+            fd = endpoint.transport.fileno()
+            self._loop.remove_reader(fd)
+            self._loop.call_later(READ_COOLDOWN_S, self._resume, endpoint, fd)
+
+    def _resume(self, endpoint: Endpoint, fd: int) -> None:
+        if endpoint.transport is not None and self._loop is not None:
+            self._loop.add_reader(fd, self._on_readable, endpoint)
+
+    def link_stats(self) -> dict[str, Any]:
+        """Totals over the endpoints, and each endpoint's own report under ``endpoints``."""
+        reports = {e.name: e.report() for e in self.endpoints}
+        totals = {key: sum(r.get(key, 0) for r in reports.values())
+                  for key in ("odometry_sent", "heartbeats_sent", "statustext_sent", "received", "bad_data")}
+        return {**totals, "statustext_held_back": self.limiter.suppressed_total if self.limiter else 0,
+                "endpoints": reports}
+
+    async def serve(self, stop: asyncio.Event) -> None:
+        """HEARTBEAT every second; UDP read when readable, serial and TCP polled; links kept open."""
+        loop = self._loop = asyncio.get_running_loop()
+        datagram = [e for e in self.endpoints if e.transport is not None and not e.transport.stream]
+        for endpoint in datagram:
+            loop.add_reader(endpoint.transport.fileno(), self._on_readable, endpoint)
+        streams = [e for e in self.endpoints if e.transport is not None and e.transport.stream]
+        tick = STREAM_POLL_S if streams else 0.1
         next_beat = loop.time()
-        while not stop.is_set():
-            try:
+        try:
+            while not stop.is_set():
                 if loop.time() >= next_beat:
                     next_beat = max(next_beat + 1.0, loop.time())
                     self.heartbeat()
-                self.poll()
-            except Exception as exc:  # a socket error or a handler's bug: counted, the link keeps serving
-                self.stats["serve_errors"] += 1
-                self.failures.record(f"MAVLink link {self.url}", exc)
-            await stopped_within(stop, poll_s)
+                for endpoint in self.endpoints:
+                    if endpoint.transport is None:
+                        continue
+                    try:
+                        endpoint.transport.service()
+                        if endpoint.transport.stream and loop.time() >= endpoint.paused_until:
+                            if endpoint.read(self._on_message):
+                                endpoint.paused_until = loop.time() + READ_COOLDOWN_S
+                    except Exception as exc:  # a socket error or a bug: counted, the link keeps serving
+                        endpoint.failures.record(f"MAVLink {endpoint.name}", exc)
+                await stopped_within(stop, tick)
+        finally:
+            for endpoint in datagram:
+                if endpoint.transport is not None:
+                    loop.remove_reader(endpoint.transport.fileno())
+            self._loop = None

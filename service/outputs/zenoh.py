@@ -21,7 +21,7 @@ import zenoh
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.pose_history import OutsideHistory, PoseHistory
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
-from vtolpose.service.runtime.status import pose_quality
+from vtolpose.service.runtime.status import heading_weak, pose_quality
 
 log = logging.getLogger(__name__)
 
@@ -30,10 +30,14 @@ Origin = tuple[float, float, float] | None
 
 
 def pose_status(pose: OutputPose, quality: int) -> str:
+    if pose.initialising:
+        return "initialising"
     if not pose.position_initialized:
         return "no_position"
     if not pose.heading_aligned:
         return "heading_unaligned"
+    if heading_weak(pose):
+        return "heading_weak"
     return "ok" if quality > 0 else "poor"
 
 

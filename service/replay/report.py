@@ -30,12 +30,12 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         "estimates": int(len(traj.t_ns)),
         "initialised": est.initialized,
         "heading_aligned": est.heading_aligned,
-        "heading_source": "in-motion alignment" if est.alignment is not None else "visual-inertial start (own frame)"
-        if est.heading_local else "known" if est.heading_aligned else "unknown",
+        "heading_source": "heading bank" if est.heading_placement is not None else "known" if est.heading_aligned
+        else "own frame (visual-inertial start)" if est.local_position else "unknown",
         "reset_counter": est.reset_counter,
         "sensors": est.counts_report(),
         "skipped_lines": dict(dataset.skipped),
-        "events": [{"t_s": round((t - int(traj.t_ns[0])) * 1e-9, 3) if len(traj.t_ns) else None, "message": m} for t, m in est.events],
+        "events": [{"t_s": round((t - result.data_t0_ns) * 1e-9, 3), "message": m} for t, m in est.events],
         "notes": list(result.notes),
     }
     if result.faults is not None:
@@ -44,15 +44,10 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         report["health"] = result.health
     if result.failures:
         report["failures"] = result.failures
-    if est.alignment is not None:
-        a = est.alignment
-        report["alignment"] = {
-            "t_s": round((a.t_ns - int(traj.t_ns[0])) * 1e-9, 3) if len(traj.t_ns) else None,
-            "sigma_roll_pitch_heading_deg": np.degrees(np.sqrt(np.diag(a.cov)[6:9])).tolist(),
-            "residual_ratio": a.residual_ratio,
-            "window_s": a.window_s,
-            "fixes": a.n_fixes,
-        }
+    if est.heading_placement is not None:
+        placed = dict(est.heading_placement)
+        t_placed = placed.pop("t_ns")
+        report["heading_placement"] = {"t_s": round((t_placed - result.data_t0_ns) * 1e-9, 3), **placed}
     if est.state is not None:
         report["final_biases"] = {"gyro_rad_s": est.state.b_g.tolist(), "accel_m_s2": est.state.b_a.tolist()}
     camera = camera_summary(result)
@@ -66,11 +61,11 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
     valid = traj.valid
     if not np.any(valid):
         report["truth"] = None
-        report["never_valid"] = "every pose was published as initialising (not to be used)"
+        report["never_valid"] = "no pose could be scored: every one was initialising (not to be used) or had no position"
         return report
     if not np.all(valid):
         first = int(np.argmax(valid))
-        report["initialising_s"] = round((int(traj.t_ns[first]) - int(traj.t_ns[0])) * 1e-9, 3)
+        report["first_scored_s"] = round((int(traj.t_ns[first]) - int(traj.t_ns[0])) * 1e-9, 3)
     align = start_alignment(result, truth, point_b)
     if align is not None:
         report["position_reference"] = {
@@ -88,6 +83,12 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
     report["position_rmse_m"] = scores["position_rmse_m"]
     if truth.q is not None:
         report["attitude_rmse_deg"] = scores["attitude_rmse_deg"]
+        if est.heading_placement is not None:  # before it the outputs said the heading was unknown
+            placed = t_data >= est.heading_placement["t_ns"]
+            if np.count_nonzero(placed) >= 2:
+                report["attitude_rmse_with_heading_deg"] = evaluate(
+                    t_data[placed], align.points(traj.p[valid][placed]), align.attitudes(traj.q[valid][placed]), truth,
+                    point_b)["attitude_rmse_deg"]
     report["final_drift_m"] = scores["final_drift_m"]
     report["distance_travelled_m"] = scores["distance_travelled_m"]
     report["drift_percent"] = scores["drift_percent"]
@@ -153,7 +154,7 @@ def start_alignment(result: ReplayResult, truth, point_b: np.ndarray) -> StartAl
         return None
     p_true, q_true = interpolate_poses(np.array([traj.t_ns[k]]), truth.t_ns, truth.p, truth.q)
     rotation = np.eye(3)
-    if est.heading_local and q_true is not None:
+    if not est.heading_aligned and q_true is not None:
         rotation = so3_exp(np.array([0.0, 0.0, float(yaw_of(q_true[0]) - yaw_of(traj.q[k]))]))
     return StartAlignment(rotation, traj.p[k] + quat_to_rot(traj.q[k]) @ point_b, p_true[0])
 
@@ -195,6 +196,26 @@ def camera_summary(result: ReplayResult) -> dict | None:
     }
 
 
+# What each measurement count is, for a person reading the summary (the JSON keeps the short names).
+COUNT_LABELS = {
+    "imu": "IMU samples",
+    "gps": "GPS fixes",
+    "still": "still-period updates (zero velocity and gyro bias while at rest)",
+    "level": "levelling updates (gravity as a tilt reference while the heading is unknown)",
+    "camera_match": "camera matches",
+    "camera": "camera frames",
+}
+
+
+def event_lines(report: dict, limit: int = 20) -> list[str]:
+    """The estimator's events (start-up, alignment, resets), times from the first IMU sample."""
+    events = sorted(report.get("events", []), key=lambda e: e["t_s"])
+    lines = [f"  t={e['t_s']:8.3f} s  {e['message']}" for e in events[:limit]]
+    if len(events) > limit:
+        lines.append(f"  … {len(events) - limit} more in the report's events")
+    return (["events (seconds from the first IMU sample):"] + lines) if lines else []
+
+
 def summary_lines(report: dict) -> list[str]:
     """The few numbers a person looks at first."""
     def fmt(key: str, unit: str = "", scale: float = 1.0, digits: int = 4) -> str:
@@ -204,7 +225,12 @@ def summary_lines(report: dict) -> list[str]:
     lines = [
         f"dataset {report['dataset']}  variant {report['variant']}  sensors {','.join(report['sensor_set'])}",
         f"  position RMSE {fmt('position_rmse_m', ' m')}   GPS RMSE {fmt('gps_rmse_m', ' m')}   ratio {fmt('position_rmse_over_gps', '', 1, 3)}",
-        f"  attitude RMSE {fmt('attitude_rmse_deg', ' deg', 1, 3)}   final drift {fmt('final_drift_m', ' m')} ({fmt('drift_percent', ' %', 1, 2)} of {fmt('distance_travelled_m', ' m', 1, 1)})",
+        f"  attitude RMSE {fmt('attitude_rmse_deg', ' deg', 1, 3)}"
+        + (f" ({fmt('attitude_rmse_with_heading_deg', ' deg', 1, 3)} once the heading is placed)"
+           if "attitude_rmse_with_heading_deg" in report else "")
+        + f"   final drift {fmt('final_drift_m', ' m')}"
+        + (f" ({fmt('drift_percent', ' %', 1, 2)} of {fmt('distance_travelled_m', ' m', 1, 1)} travelled)"
+           if report.get("distance_travelled_m") else ""),
     ]
     if "nees" in report:
         n = report["nees"]
@@ -223,9 +249,12 @@ def summary_lines(report: dict) -> list[str]:
         )
     lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time")
     for name, c in report["sensors"].items():
+        if not c["received"]:
+            continue  # e.g. no levelling updates when the heading was known from the start
         rej = ", ".join(f"{k} {v}" for k, v in c["rejected"].items()) or "none"
         flagged = ", ".join(f"{k} {v}" for k, v in c.get("flagged", {}).items())
-        lines.append(f"  {name}: {c['used']} used of {c['received']}; rejected: {rej}" + (f"; flagged: {flagged}" if flagged else ""))
+        label = COUNT_LABELS.get(name, name)
+        lines.append(f"  {label}: {c['used']} used of {c['received']}; rejected: {rej}" + (f"; flagged: {flagged}" if flagged else ""))
     for fault in report.get("faults", []):
         lines.append(f"  fault {fault['spec']}: {fault['samples_affected']} samples dropped or changed")
     health = report.get("health") or {}

@@ -18,6 +18,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.lidar import lidar_summary
 from vtolpose.estimator.vision.camera_pipeline import FrameReport
 from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
 from vtolpose.estimator.filter import Estimator
@@ -40,11 +41,11 @@ class Trajectory:
     p: np.ndarray
     v: np.ndarray
     q: np.ndarray
-    initialising: np.ndarray | None = None  # (N,) bool: published as not to be used (quality −1)
+    unscored: np.ndarray | None = None  # (N,) bool: initialising (not to be used), or no position yet
 
     @property
     def valid(self) -> np.ndarray:
-        return np.ones(len(self.t_ns), dtype=bool) if self.initialising is None else ~self.initialising
+        return np.ones(len(self.t_ns), dtype=bool) if self.unscored is None else ~self.unscored
 
 
 @dataclass
@@ -60,31 +61,28 @@ class CovarianceSamples:
 class Recorder:
     """Every fused pose, and its covariance at a lower rate (called on the runtime's loop)."""
 
-    def __init__(self, cov_period_ns: int, absolute_position: bool = True,
-                 on_progress: Callable[[int], None] | None = None) -> None:
+    def __init__(self, cov_period_ns: int, absolute_position: bool = True) -> None:
         self._rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, bool]] = []
         self.cov_period_ns = cov_period_ns
         # Without an absolute position source the start is the origin and the covariance is
         # meaningful from the first step; with one, only once the position is initialised.
         self.absolute_position = absolute_position
-        self.on_progress = on_progress
         self._next_cov_t = 0
         self._cov: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
 
     def record(self, pose: OutputPose) -> None:
-        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q, pose.initialising))
-        # A pose offered as not to be used (initialising) is not scored.
-        if not pose.initialising and pose.t_ns >= self._next_cov_t and (pose.position_initialized or not self.absolute_position):
+        # A pose offered as not to be used (initialising), or before the position it is to have, is not scored.
+        unscored = pose.initialising or (self.absolute_position and not pose.position_initialized)
+        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q, unscored))
+        if not unscored and pose.t_ns >= self._next_cov_t:
             self._cov.append((pose.t_ns, pose.p, pose.q, pose.pose_cov))
             self._next_cov_t = pose.t_ns + self.cov_period_ns
-        if self.on_progress is not None and len(self._rows) % 2000 == 0:
-            self.on_progress(pose.t_ns)
 
     def trajectory(self) -> Trajectory:
         if not self._rows:
             return Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0, bool))
-        t, p, v, q, initialising = zip(*self._rows)
-        return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q), np.array(initialising, bool))
+        t, p, v, q, unscored = zip(*self._rows)
+        return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q), np.array(unscored, bool))
 
     def covariance_samples(self) -> CovarianceSamples:
         if not self._cov:
@@ -109,6 +107,7 @@ class ReplayResult:
     faults: FaultInjector | None = None  # the faults played on the stream, with what each did
     health: dict = field(default_factory=dict)  # the estimator's health at the end (estimator.health)
     failures: dict = field(default_factory=dict)  # isolated failures of outputs and the trajectory file
+    data_t0_ns: int = 0  # the first IMU sample: event times are counted from here
 
 
 class FrameProcessor:
@@ -159,34 +158,38 @@ def replay(
     stream; ``start_at_s``: joined that far into the recording, as a service restarted in flight."""
     sensors = checked_sensors(sensors or cfg["replay.sensors"])
     notes: list[str] = []
-    has_gps = "gps" in sensors and dataset.gps() is not None
-    if "gps" in sensors and not has_gps:
-        notes.append("no GPS stream in the dataset: position is inertial dead reckoning from the origin and will drift")
-        log.warning("%s: %s", dataset.root, notes[-1])
-        sensors = [s for s in sensors if s != "gps"]
+    lidar = lidar_summary(dataset.root)
+    if lidar is not None:  # an extra stream the estimator does not fuse: said, not read
+        notes.append(f"{lidar['stream']}: {lidar['lines']} returns of the {lidar['model']} passed through, not fused "
+                     "(map them with `vtolpose map`)")
+    for name in [s for s in sensors if s != "imu"]:
+        reason = missing_sensor(dataset, name)
+        if reason is not None:
+            notes.append(f"{reason}: {WITHOUT[name]}")
+            log.warning("%s: %s", dataset.root, notes[-1])
+            sensors = [s for s in sensors if s != name]
+    has_gps = "gps" in sensors
     processor = None
     if "camera" in sensors:
-        if _camera_usable(dataset, notes):
-            cam = dataset.calibration.camera
-            processor = FrameProcessor(feature_options(cfg), (cam.height, cam.width), on_frame)
-            limit_blas_threads(1)  # idle BLAS threads would spin on the core feature extraction needs
-        else:
-            sensors = [s for s in sensors if s != "camera"]
+        cam = dataset.calibration.camera
+        processor = FrameProcessor(feature_options(cfg), (cam.height, cam.width), on_frame)
+        limit_blas_threads(1)  # idle BLAS threads would spin on the core feature extraction needs
     recorder = Recorder(int(1e9 / cfg["replay.nees_rate_hz"]), absolute_position=has_gps)
-    total = {"t0": None, "span": 0.0}
+    imu_t = dataset.imu_raw().t_ns
+    if len(imu_t) == 0:
+        raise ValueError(f"{dataset.root}: the IMU stream has no valid samples")
+    span_s = (int(imu_t[-1]) - int(imu_t[0])) * 1e-9
+    progress = None
     if on_progress is not None:
-        def progress(t_ns: int) -> None:
-            if total["t0"] is None:
-                total["t0"] = t_ns
-            on_progress((t_ns - total["t0"]) * 1e-9, total["span"])
-        recorder.on_progress = progress
-        imu_t = dataset.imu().t_ns
-        total["span"] = (int(imu_t[-1]) - int(imu_t[0])) * 1e-9
+        on_progress(0.0, span_s)
+
+        def progress(done_s: float) -> None:
+            on_progress(done_s, span_s)
     injector = FaultInjector(faults, fault_seed) if faults else None
     wall0 = time.perf_counter()
     summary, runtime = run_replay(
         dataset, cfg, sensors=sensors, speed=speed, trajectory_path=trajectory_path,
-        camera_processor=processor, handle_signals=False, faults=injector, start_at_s=start_at_s,
+        camera_processor=processor, handle_signals=False, faults=injector, on_progress=progress, start_at_s=start_at_s,
         on_fused=recorder.record if on_fused is None else lambda pose: (recorder.record(pose), on_fused(pose)),
     )
     wall = time.perf_counter() - wall0
@@ -194,25 +197,30 @@ def replay(
     if bug is not None:  # the live service carries on past it; an offline replay is a test and says so
         raise bug
     if on_progress is not None:
-        on_progress(total["span"], total["span"])
+        on_progress(span_s, span_s)
     fusion_counts = {k: v for k, v in runtime.fusion.counts_report().items() if v["rejected"]}
     return ReplayResult(
         runtime.est, recorder.trajectory(), recorder.covariance_samples(), sensors, wall, summary.data_s, notes,
         list(processor.reports) if processor else [], list(processor.extract_ms) if processor else [],
         processor.options.detector if processor else None, fusion_counts, injector, summary.status.get("health", {}),
-        summary.status.get("failures", {}),
+        summary.status.get("failures", {}), int(imu_t[0]),
     )
 
 
-def _camera_usable(dataset: Dataset, notes: list[str]) -> bool:
-    """Whether the dataset's camera can be used; if not, a note says why."""
-    if dataset.calibration.camera is None:
-        notes.append("no camera calibration in dataset.yaml: camera frames are not used")
-    elif not dataset.has_camera:
-        notes.append("no camera stream (mav0/cam0/data.csv) in the dataset: the camera is not used")
-    elif not dataset.camera_frames():
-        notes.append("the camera index lists no valid frames: the camera is not used")
-    else:
-        return True
-    log.warning("%s: %s", dataset.root, notes[-1])
-    return False
+WITHOUT = {"gps": "position is inertial dead reckoning from the origin and will drift",
+           "camera": "camera frames are not used"}
+
+
+def missing_sensor(dataset: Dataset, sensor: str) -> str | None:
+    """Why ``dataset`` cannot feed ``sensor`` ("gps" or "camera"), or None when it can."""
+    if sensor == "gps":
+        if dataset.gps() is None:
+            return "no GPS stream (mav0/gps0/data.csv) in the dataset"
+    elif sensor == "camera":
+        if not dataset.has_camera:
+            return "no camera stream (mav0/cam0/data.csv) in the dataset"
+        if dataset.calibration.camera is None:
+            return "no camera calibration in dataset.yaml"
+        if not dataset.camera_frames():
+            return "the camera index (mav0/cam0/data.csv) lists no valid frames"
+    return None

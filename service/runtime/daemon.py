@@ -22,6 +22,7 @@ from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import FusionOptions, OutputPose
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
+from vtolpose.service.text import describe
 from vtolpose.service.runtime.wiring import calibration_with_overrides, filter_options
 
 log = logging.getLogger(__name__)
@@ -72,24 +73,60 @@ def build_runtime(
                       trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused)
     runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
     if cfg["outputs.mavlink.enabled"]:
-        from vtolpose.service.outputs.mavlink import MavlinkOutput, read_signing_key
+        from vtolpose.service.outputs.mavlink import MavlinkOutput
 
-        key_file = cfg["outputs.mavlink.signing_key_file"]
         try:
-            key = read_signing_key(key_file) if key_file else None
-        except ValueError as exc:
-            raise ConfigError(f"key 'outputs.mavlink.signing_key_file': {exc}") from None
-        runtime.outputs.append(MavlinkOutput(
-            cfg["outputs.mavlink.url"], cfg["vehicle.system_id"], cfg["outputs.mavlink.component_id"],
-            cfg["outputs.mavlink.rate_hz"], key, cfg["outputs.mavlink.require_signing"],
-        ))
+            runtime.outputs.append(MavlinkOutput.from_config(cfg))
+        except ValueError as exc:  # an unusable signing key file: the message names its key
+            raise ConfigError(str(exc)) from None
     if cfg["outputs.zenoh.enabled"]:
         from vtolpose.service.outputs.zenoh import ZenohOutput
         from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
         runtime.outputs.append(ZenohOutput(ZenohSettings.from_config(cfg), zenoh_prefix(cfg), runtime.history,
                                            runtime.history_lock, lambda: runtime.origin()))
+    add_interop_outputs(runtime, cfg, camera_processor)
     return runtime
+
+
+def add_interop_outputs(runtime: Runtime, cfg: dict[str, Any], camera_processor: CameraProcessor | None) -> None:
+    """ROS 2 over Zenoh, the Foxglove view and the MCAP recording (``outputs.ros2|foxglove|mcap``); the
+    latter two also see raw samples (``Runtime.sample_taps``) and camera frames (the processor's ``on_frame``)."""
+    origin = lambda: runtime.origin()  # noqa: E731 - read late: a live GPS fixes its origin at its first fix
+    if cfg["outputs.ros2.enabled"]:
+        from vtolpose.service.outputs.ros2 import Ros2Output
+        from vtolpose.service.outputs.zenoh_session import ZenohSettings
+
+        zenoh_out = next((o for o in runtime.outputs if o.name == "zenoh"), None)  # opened before this one
+        runtime.outputs.append(Ros2Output(cfg, ZenohSettings.from_config(cfg),
+                                          lambda: zenoh_out.session if zenoh_out is not None else None))
+    viewers: list[Any] = []
+    if cfg["outputs.foxglove.enabled"] or cfg["outputs.mcap.file"]:
+        from vtolpose.service.outputs.foxglove import FoxgloveOutput, estimator_landmarks
+
+        view = dict(rate_hz=cfg["outputs.foxglove.rate_hz"], path_points=cfg["outputs.foxglove.path_points"],
+                    origin=origin, landmarks=lambda: estimator_landmarks(runtime.est))
+        if cfg["outputs.foxglove.enabled"]:
+            viewers.append(FoxgloveOutput(cfg["outputs.foxglove.host"], cfg["outputs.foxglove.port"], **view))
+        if cfg["outputs.mcap.file"]:
+            from vtolpose.service.outputs.mcap import McapOutput
+
+            viewers.append(McapOutput(cfg["outputs.mcap.file"], **view))
+    runtime.outputs += viewers
+    runtime.sample_taps += [v.on_sample for v in viewers]
+    if viewers and camera_processor is not None and hasattr(camera_processor, "on_frame"):
+        before = camera_processor.on_frame  # e.g. the replay's overlay pictures
+
+        def on_frame(*frame: Any) -> None:
+            if before is not None:
+                before(*frame)
+            for viewer in viewers:
+                try:
+                    viewer.on_frame(*frame)
+                except Exception as exc:  # a viewer's failure must not fail the camera update it watches
+                    runtime.failures.record(f"output {viewer.name} frame", exc)
+
+        camera_processor.on_frame = on_frame
 
 
 async def serve(
@@ -126,15 +163,15 @@ def summary_lines(summary: RunSummary) -> list[str]:
         lines.append("latency IMU in -> outputs out: p50 {p50:.3f} ms, p99 {p99:.3f} ms, max {max:.3f} ms".format(**summary.latency_ms))
     status = summary.status
     if status.get("rejected"):
-        lines.append(f"rejected by the filter: {status['rejected']}")
+        lines.append(f"rejected by the filter: {describe(status['rejected'])}")
     if status["fusion"]["rejected"]:
-        lines.append(f"refused by the fusion order: {status['fusion']['rejected']}")
+        lines.append(f"refused by the fusion order: {describe(status['fusion']['rejected'])}")
     if status.get("events"):
-        lines.append(f"runtime events: {status['events']}")
+        lines.append(f"runtime events: {describe(status['events'])}")
     health = status.get("health") or {}
     if health.get("resets"):
         last = health["last_reset"]
-        lines.append(f"filter resets: {health['resets']}; the last: {last['reason']}")
+        lines.append(f"filter resets: {describe(health['resets'])}; the last: {last['reason']}")
     if health.get("degraded"):
         lines.append(f"degraded at the end: {', '.join(health['degraded'])}")
     if status.get("failures"):

@@ -33,7 +33,8 @@ from vtolpose.estimator.fusion import Apply, FusionCore, FusionOptions, OutputPo
 from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
 from vtolpose.estimator.pose_history import PoseHistory
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
-from vtolpose.service.runtime.status import FailureBook, LatencyProbe, StatusTracker, pose_quality, stopped_within
+from vtolpose.service.runtime.status import (FailureBook, LatencyProbe, StatusTracker, pose_problem, pose_quality,
+                                             stopped_within)
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +144,7 @@ class Runtime:
         self.origin: Callable[[], tuple[float, float, float] | None] = lambda: None  # geodetic origin of NED
         self.last_pose: OutputPose | None = None
         self.recorder: Any | None = None  # set by `vtolpose run --record`
+        self.sample_taps: list[Callable[[Any], None]] = []  # see every raw sample as it arrives (MCAP, Foxglove)
         self.poses_published = 0
         self._executor: ThreadPoolExecutor | None = None
         self._camera_jobs: list[tuple[int, asyncio.Future]] = []
@@ -152,6 +154,11 @@ class Runtime:
     # ---------------------------------------------------------------------------- samples
     def handle(self, sample: ImuSample | GpsFix | CameraFrame, arrived_ns: int | None = None) -> None:
         """Dispatch one sample (synchronous: called on the loop for every sample)."""
+        for tap in self.sample_taps:
+            try:
+                tap(sample)
+            except Exception as exc:  # a viewer's or recorder's failure must not cost the estimator a sample
+                self.failures.record("sample tap", exc)
         if isinstance(sample, ImuSample):
             self._on_imu(sample, arrived_ns)
         elif isinstance(sample, GpsFix):
@@ -270,6 +277,7 @@ class Runtime:
             "history": {"poses": held, "from_t_ns": bounds[0] if bounds else None, "to_t_ns": bounds[1] if bounds else None},
             "outputs": links,
             "quality": pose_quality(self.last_pose) if self.last_pose is not None else 0,
+            "pose_problem": pose_problem(self.last_pose) if self.last_pose is not None else "no pose yet",
             "failures": self.failures.report(),  # isolated failures of outputs, sources, the trajectory file
         }
         if self.recorder is not None:  # a live run's flight recording (its own status, never an error here)

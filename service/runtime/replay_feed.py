@@ -52,9 +52,12 @@ async def replay_async(
     on_hold: Callable[[str], None] | None = None,
     on_fused: Callable[[OutputPose], None] | None = None,
     faults: FaultInjector | None = None,
+    on_progress: Callable[[float], None] | None = None,
     start_at_s: float | None = None,
 ) -> tuple[RunSummary, Runtime]:
     """Replay ``dataset`` through a runtime built from ``cfg`` (outputs included); returns its summary.
+
+    ``on_progress``: called with the seconds of data fed so far, from the first IMU sample on.
 
     ``hold``: after the data, keep the outputs up (queries answered from the history) until stopped.
     ``faults``: played on the stream between the dataset and the runtime (``vtolpose.service.replay.faults``).
@@ -70,7 +73,7 @@ async def replay_async(
         frames, load = dataset.camera_frames(), dataset.load_frame
         if not frames:
             log.warning("%s: no camera frames in the dataset; replaying IMU and GPS", dataset.root)
-    source = ReplaySource(dataset, sensors, ReplayClock(speed), stop_after_data_s, frames, load, start_at_s)
+    source = ReplaySource(dataset, sensors, ReplayClock(speed), stop_after_data_s, frames, load, on_progress, start_at_s)
     origin = source.gps.origin_lla if source.gps is not None else dataset.calibration.gps.origin_lla
     calibration = dataset.calibration
     if start_at_s:

@@ -64,6 +64,9 @@ def merged_order(*times: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     return kinds[order], index[order]
 
 
+PROGRESS_EVERY = 100  # IMU samples between progress calls (0.5 s of data at 200 Hz)
+
+
 class ReplaySource:
     """A dataset's IMU, GPS and (optionally) camera streams in time order, paced by ``clock``.
 
@@ -81,6 +84,7 @@ class ReplaySource:
         stop_after_s: float | None = None,
         frames: Sequence[tuple[int, Any]] | None = None,
         load: Callable[[Any], np.ndarray | None] | None = None,
+        on_progress: Callable[[float], None] | None = None,
         start_after_s: float | None = None,
     ) -> None:
         self.imu = dataset.imu()
@@ -101,6 +105,7 @@ class ReplaySource:
         self.last_arrival_ns: int | None = None
         self.unreadable_frames = 0
         self.duration_s = (int(self.imu.t_ns[-1]) - int(self.imu.t_ns[0])) * 1e-9
+        self.on_progress = on_progress  # seconds of data handed out, every PROGRESS_EVERY IMU samples
 
     async def _frame(self, k: int, ahead: dict[int, asyncio.Future]) -> CameraFrame | None:
         t_ns, path = self.frames[k]
@@ -125,12 +130,15 @@ class ReplaySource:
         t_end = imu_t[0] + self.stop_after_ns if self.stop_after_ns is not None else None
         t_start = imu_t[0] + self.start_after_ns
         ahead: dict[int, asyncio.Future] = {}
+        progress = self.on_progress
         for kind, i in zip(kinds.tolist(), indices.tolist()):
             if (imu_t[i] if kind == 0 else int(gps.t_ns[i]) if kind == 1 else self.frames[i][0]) < t_start:
                 continue
             if kind == 0:
                 t = imu_t[i]
                 sample: Sample | None = ImuSample(t, imu.gyro[i], imu.accel[i])
+                if progress is not None and i % PROGRESS_EVERY == 0:
+                    progress((t - imu_t[0]) * 1e-9)
             elif kind == 1:
                 t = int(gps.t_ns[i])
                 sample = GpsFix(t, gps.p_ned[i], float(gps.sigma_h[i]), float(gps.sigma_v[i]))

@@ -27,19 +27,45 @@ _POS_SIGMA_GOOD_M, _POS_SIGMA_POOR_M = 0.1, 10.0
 _ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD = math.radians(0.5), math.radians(20.0)
 
 
-def pose_quality(pose: OutputPose) -> int:
-    """−1 = must not be used (the filter is initialising: MAVLink's "failed"); 0 = invalid (no heading, no
-    position, non-finite); else 1–100 from the largest position and attitude sigmas, never above the
-    filter's health cap (a stale sensor, a recent reset, innovations out of band: ``estimator.health``).
-    A camera-only filter's position is relative to its own origin, and counts as a position."""
+def pose_problem(pose: OutputPose) -> str | None:
+    """Why ``pose`` must not be used for navigation, or None: the filter is initialising (it started
+    moving and has no start it can stand on yet), no position yet, heading not aligned, a covariance
+    that is not finite (or a negative variance), or the filter's health capping it to 0.
+
+    A camera-only filter that never heard a GPS works in a frame of its own (``local_position``):
+    its origin is where it started and its heading, unless one was known, the one it started with.
+    Such a pose is usable relative to that frame, and its covariance says so (``published_cov9``)."""
     if pose.initialising:
-        return -1
-    if not (pose.heading_aligned and (pose.position_initialized or pose.local_position)):
+        return "initialising"
+    if not (pose.position_initialized or pose.local_position):
+        return "no position"
+    if not (pose.heading_aligned or pose.local_position):
+        return "heading not aligned"
+    d = pose.cov9.diagonal().tolist()
+    if not all(math.isfinite(x) and x >= 0.0 for x in d[0:3] + d[6:9]):
+        return "covariance not finite"
+    if pose.quality_cap <= 0:
+        return "health"
+    return None
+
+
+# A placed heading is "weak" while its sigma exceeds this: 5° puts a point 20 m away 1.7 m off sideways.
+HEADING_WEAK_SIGMA_RAD = math.radians(5.0)
+
+
+def heading_weak(pose: OutputPose) -> bool:
+    """Whether the heading, placed but still poorly known, deserves a word in the pose's status."""
+    var = float(pose.cov9[8, 8])
+    return pose.heading_aligned and not (math.isfinite(var) and var <= HEADING_WEAK_SIGMA_RAD**2)
+
+
+def pose_quality(pose: OutputPose) -> int:
+    """0 = invalid (:func:`pose_problem`); else 1–100 from the largest position and attitude sigmas, never
+    above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
+    if pose_problem(pose) is not None:
         return 0
     d = pose.cov9.diagonal().tolist()
     var_p, var_a = max(d[0:3]), max(d[6:9])
-    if not (math.isfinite(var_p) and math.isfinite(var_a)) or min(d[0:3] + d[6:9]) < 0.0:
-        return 0
 
     def score(sigma: float, good: float, poor: float) -> float:
         return 1.0 - min(max(math.log10(max(sigma, 1e-12) / good) / math.log10(poor / good), 0.0), 1.0)
@@ -166,7 +192,8 @@ class StatusTracker:
             "initialized": state is not None,
             "initialising": state is None or est.initialising,  # no pose to use yet (quality −1)
             "heading_aligned": est.heading_aligned,
-            "heading_local": est.heading_local,  # the visual-inertial start's own heading, not north
+            "local_frame": est.initialized and est.local_position,  # position (and an unknown heading) the filter's own
+            "heading_sigma_deg": None if state is None else round(math.degrees(math.sqrt(est.published_cov9()[8, 8])), 3),
             "landmarks": int(state.n_landmarks) if state is not None else 0,
             "rejected": rejected,
             "fusion": {

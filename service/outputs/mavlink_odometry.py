@@ -1,0 +1,139 @@
+"""ODOMETRY (id 331) fields from a pose, as each autopilot's receiving code reads them.
+
+Position NED, ``q`` body→frame, velocity and angular rate in the body (FRD) frame, 21-value
+upper-triangle covariances, the estimator's ``reset_counter``, ``MAV_ESTIMATOR_TYPE_VIO``.
+What differs per autopilot (docs/mavlink.md has the sources):
+
+- ``frame_id``: ArduPilot takes ODOMETRY only with ``MAV_FRAME_LOCAL_FRD`` (its MAVLink backend feeds
+  the position to EKF3 unrotated, so a north-aligned FRD frame is our NED); PX4 and generic
+  receivers get ``MAV_FRAME_LOCAL_NED``.
+- A pose that must not be used (:func:`pose_problem`) always has ``quality = -1`` ("failed"). ArduPilot
+  drops it below ``VISO_QUAL_MIN`` (default 0). PX4 ignores the quality unless ``EKF2_EV_QMIN`` > 0,
+  so the PX4 profile also sends position, attitude and velocity as NaN: EKF2 takes no part of an
+  ODOMETRY whose values are not finite, whatever its parameters.
+- Unknown covariance is NaN in all 21 places (the definition's invalid value): PX4 reads the diagonal
+  elements one by one and falls back to its noise parameters unless a whole triple is finite;
+  ArduPilot looks at the first element only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from vtolpose.drivers.links.mavlink_wire import mavutil
+from vtolpose.estimator.core.rotation import quat_to_rot, skew
+from vtolpose.estimator.fusion import OutputPose
+from vtolpose.service.runtime.status import pose_problem, pose_quality
+
+__all__ = ["PROFILES", "Profile", "euler_jacobian", "odometry_covariances", "odometry_fields", "odometry_quality",
+           "upper_triangle"]
+
+mav = mavutil.mavlink
+_TRIU = np.triu_indices(6)  # row-major upper-right triangle: 21 indices
+NAN21 = [math.nan] * 21
+
+
+@dataclass(frozen=True, slots=True)
+class Profile:
+    name: str
+    frame_id: int
+    nan_when_unusable: bool  # send the values of an unusable pose as NaN (PX4 ignores quality by default)
+    min_spacing_ns: int = 0  # never two ODOMETRY closer than this (ArduPilot's EKF3 drops them)
+
+
+PROFILES = {
+    "px4": Profile("px4", mav.MAV_FRAME_LOCAL_NED, True),
+    "ardupilot": Profile("ardupilot", mav.MAV_FRAME_LOCAL_FRD, False, min_spacing_ns=21_000_000),
+    "generic": Profile("generic", mav.MAV_FRAME_LOCAL_NED, False),
+}
+
+
+def odometry_quality(pose: OutputPose) -> int:
+    """-1 when the pose must not be used (:func:`pose_problem`), else 1-100 (the status's quality)."""
+    return -1 if pose_problem(pose) is not None else pose_quality(pose)
+
+
+def euler_jacobian(q: np.ndarray) -> np.ndarray:
+    """d(roll, pitch, yaw) / dθ for a world-frame attitude error θ (``R_true = Exp(θ) R``).
+
+    With R = Rz(ψ) Ry(θ) Rx(φ), a world-frame rotation increment is
+    ``δθ = [Rz Ry e_x | Rz e_y | e_z] · (δφ, δθ, δψ)``; this is that matrix's inverse, in closed
+    form. It is singular at ±90° pitch, which a helicopter's estimator never reports:
+    cos(pitch) is floored.
+    """
+    w, x, y, z = q.tolist()
+    sp = min(max(2.0 * (w * y - z * x), -1.0), 1.0)
+    cp = max(math.sqrt(1.0 - sp * sp), 1e-6)
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array([[cy / cp, sy / cp, 0.0], [-sy, cy, 0.0], [sp * cy / cp, sp * sy / cp, 1.0]])
+
+
+def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """ODOMETRY's two 6 × 6 covariances from the estimator's.
+
+    Pose: the estimator's covariance is over ``[δp (NED), δθ (world-frame rotation)]``; MAVLink's
+    states are ``x, y, z, roll, pitch, yaw``, so the attitude block is mapped through the Euler
+    Jacobian (first order; at level attitude it is the identity, and yaw's variance is exact).
+    Velocity: body-frame velocity ``v_B = Rᵀ v`` depends on the world velocity error and on the
+    attitude error (``δv_B = Rᵀ δv + Rᵀ [v]× δθ``); the body rates are the bias-corrected gyro,
+    uncorrelated with the velocity, with the gyro noise plus the bias variance.
+    """
+    cov9 = pose.cov9
+    e = euler_jacobian(pose.q)
+    pose_cov = np.empty((6, 6))
+    pose_cov[0:3, 0:3] = cov9[0:3, 0:3]
+    cross = cov9[0:3, 6:9] @ e.T
+    pose_cov[0:3, 3:6] = cross
+    pose_cov[3:6, 0:3] = cross.T
+    pose_cov[3:6, 3:6] = e @ cov9[6:9, 6:9] @ e.T
+    rt = (quat_to_rot(pose.q) if r is None else r).T
+    jv = np.empty((3, 6))
+    jv[:, 0:3] = rt
+    jv[:, 3:6] = rt @ skew(pose.v)
+    vel_cov = np.zeros((6, 6))
+    vel_cov[0:3, 0:3] = jv @ cov9[3:9, 3:9] @ jv.T
+    vel_cov[3, 3], vel_cov[4, 4], vel_cov[5, 5] = pose.omega_var.tolist()
+    return pose_cov, vel_cov
+
+
+def upper_triangle(cov: np.ndarray) -> list[float]:
+    """The 21 values of the upper-right triangle, row-major; all NaN when any is not finite (unknown)."""
+    values = cov[_TRIU]
+    if not np.all(np.isfinite(values)):
+        return list(NAN21)
+    return values.tolist()
+
+
+def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) -> dict[str, Any]:
+    """Keyword arguments of ``odometry_encode`` for ``pose`` as ``profile``'s autopilot reads them."""
+    quality = odometry_quality(pose)
+    fields: dict[str, Any] = dict(
+        time_usec=pose.t_ns // 1000,
+        frame_id=profile.frame_id,
+        child_frame_id=mav.MAV_FRAME_BODY_FRD,
+        reset_counter=pose.reset_counter % 256,
+        estimator_type=mav.MAV_ESTIMATOR_TYPE_VIO,
+        quality=quality,
+    )
+    if quality < 0 and profile.nan_when_unusable:
+        nan = math.nan
+        fields.update(x=nan, y=nan, z=nan, q=[nan] * 4, vx=nan, vy=nan, vz=nan, rollspeed=nan, pitchspeed=nan,
+                      yawspeed=nan, pose_covariance=list(NAN21), velocity_covariance=list(NAN21))
+        return fields
+    r = quat_to_rot(pose.q)
+    pose_cov, vel_cov = odometry_covariances(pose, r)
+    v_body = r.T @ pose.v
+    fields.update(
+        x=float(pose.p[0]), y=float(pose.p[1]), z=float(pose.p[2]),
+        q=[float(x) for x in pose.q],
+        vx=float(v_body[0]), vy=float(v_body[1]), vz=float(v_body[2]),
+        rollspeed=float(pose.omega_b[0]), pitchspeed=float(pose.omega_b[1]), yawspeed=float(pose.omega_b[2]),
+        pose_covariance=upper_triangle(pose_cov),
+        velocity_covariance=upper_triangle(vel_cov),
+    )
+    return fields
