@@ -52,6 +52,7 @@ from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector,
 HEADING_SOURCES = ("auto", "dataset", "gps")
 _POSE = np.r_[0:3, 6:9]  # [δp, δθ] within [δp, δv, δθ]
 VELOCITY_FIT_S = 1.0  # the fixes before the start that give its velocity (a constant acceleration holds that long)
+HEADING_WEAK_SIGMA_RAD = math.radians(5.0)  # a placed heading the camera waits for the GPS to narrow below this
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
 
 
@@ -638,6 +639,8 @@ class Estimator:
             self.visual_inertial.observe(features)  # does the scene move? (a cruise feels still to the IMU)
         if reason is None and self.initialising:
             reason = "initialising"  # a GPS is joining: until then the state is the accelerometer's alone
+        if reason is None and self._heading_weak():
+            reason = "heading_weak"
         if reason is not None:
             counts.reject(reason)
             self.health.measured("camera", t_ns, used=False)  # alive (frames arrive), not usable
@@ -686,6 +689,13 @@ class Estimator:
         self._apply_visual_start(start)
         counts.used += 1
         return FrameReport(t_ns, True, "visual-inertial start", n_features=len(features), n_landmarks=len(start.landmarks))
+
+    def _heading_weak(self) -> bool:
+        """The bank placed the heading, but it is still tens of degrees uncertain: the camera waits. A map
+        started under such a heading grows overconfident in it (and in the tilt) faster than the GPS
+        corrects it — a flight joined in the air ended 7-9 sigma off; the IMU and GPS narrow it alone."""
+        return (self.heading_aligned and self.heading_placement is not None
+                and self.state.cov[YAW, YAW] > HEADING_WEAK_SIGMA_RAD**2)
 
     def _frame_rejection(self, features: FrameFeatures, t_ns: int) -> str | None:
         if self.camera is None:
