@@ -138,6 +138,7 @@ class Estimator:
         cam = calibration.camera
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
+        self._moving_start = False  # no still window began it: the camera waits for the heading bank
         self._joining = False  # a GPS appeared in a filter without a world frame: its first second is being collected
         self.initialising = False  # started moving with no GPS: nothing to stand on until the visual-inertial start
         self._gps_seen = False
@@ -371,6 +372,7 @@ class Estimator:
         if not init.static and not self._gps_seen and self.visual_inertial is not None and camera is not None and camera.received:
             self.initialising = True
             how += "; initialising until the visual-inertial start"
+        self._moving_start = not init.static
         self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
         if not (self.heading_aligned or self.initialising):
             self._bank = self._new_bank(state, None)
@@ -641,6 +643,8 @@ class Estimator:
             reason = "initialising"  # a GPS is joining: until then the state is the accelerometer's alone
         if reason is None and self._heading_weak():
             reason = "heading_weak"
+        if reason is None and self._moving_start and not (self.heading_aligned or self.local_position):
+            reason = "heading_unknown"  # the bank places it from the GPS first
         if reason is not None:
             counts.reject(reason)
             self.health.measured("camera", t_ns, used=False)  # alive (frames arrive), not usable
@@ -691,7 +695,9 @@ class Estimator:
         return FrameReport(t_ns, True, "visual-inertial start", n_features=len(features), n_landmarks=len(start.landmarks))
 
     def _heading_weak(self) -> bool:
-        """The bank placed the heading, but it is still tens of degrees uncertain: the camera waits. A map
+        """(And before it, after a start in motion: a map in the frame of arbitrary yaw, with the horizontal
+        acceleration misplaced by the unknown heading, refused the GPS in a cruise until it reset twice.)
+        The bank placed the heading, but it is still tens of degrees uncertain: the camera waits. A map
         started under such a heading grows overconfident in it (and in the tilt) faster than the GPS
         corrects it — a flight joined in the air ended 7-9 sigma off; the IMU and GPS narrow it alone."""
         return (self.heading_aligned and self.heading_placement is not None
