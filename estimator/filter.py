@@ -10,10 +10,19 @@ force with wider sigmas. The heading comes from the dataset or operator, or is u
 filter then works in a frame of arbitrary yaw, levelled by gravity, publishes that its heading
 is unknown (a variance for a heading anywhere on the circle), and a bank of heading
 hypotheses (``inertial/heading_bank.py``) places it from GPS once the motion shows it.
+
+A vehicle that is moving from the start with a camera and no GPS is *initialising*: it runs
+from the accelerometer alone and what it says must not be used, until the visual-inertial
+start (``vtolpose.estimator.init``) has solved a window of tracked features and IMU deltas and
+the EKF-SLAM starts from it. Without GPS ever, position and (unless known) heading are then
+the filter's own frame's: its origin and heading where it started (``local_position``). A GPS
+that appears later places both, as at any start: the first fix the position, the heading bank
+the heading; while initialising, its first second of fixes the velocity too.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -25,7 +34,7 @@ from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipel
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
-from vtolpose.estimator.health import GapWidener, HealthMonitor, HealthOptions
+from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonitor, HealthOptions
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
@@ -37,11 +46,13 @@ from vtolpose.estimator.core.rotation import quat_from_euler, yaw_of
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.inertial.startup import state_from_static, velocity_from_fixes
 from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
 _POSE = np.r_[0:3, 6:9]  # [δp, δθ] within [δp, δv, δθ]
 VELOCITY_FIT_S = 1.0  # the fixes before the start that give its velocity (a constant acceleration holds that long)
+HEADING_WEAK_SIGMA_RAD = math.radians(5.0)  # a placed heading the camera waits for the GPS to narrow below this
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
 
 
@@ -63,6 +74,7 @@ class FilterOptions:
     align: HeadingBankOptions = field(default_factory=HeadingBankOptions)
     still: StillnessOptions = field(default_factory=StillnessOptions)
     camera: CameraOptions = field(default_factory=CameraOptions)
+    visual_inertial: VisualInertialOptions = field(default_factory=VisualInertialOptions)
     health: HealthOptions = field(default_factory=HealthOptions)
 
     def __post_init__(self) -> None:
@@ -88,7 +100,10 @@ class PoseEstimate:
 
 class Estimator:
     def __init__(self, calibration: Calibration, options: FilterOptions | None = None) -> None:
-        self.options = opts = options or FilterOptions()
+        opts = options or FilterOptions()
+        if calibration.initial_gyro_bias_sigma is not None:  # the vehicle's IMU says how large its turn-on bias is
+            opts = dataclasses.replace(opts, init=dataclasses.replace(opts.init, sigma_gyro_bias=calibration.initial_gyro_bias_sigma))
+        self.options = opts
         self.calibration = calibration
         self.layout = StateLayout(opts.variant)
         self.noise = opts.noise or calibration.imu.noise
@@ -124,10 +139,25 @@ class Estimator:
         cam = calibration.camera
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
+        self._moving_start = False  # no still window began it: the camera waits for the heading bank
+        self._joining = False  # a GPS appeared in a filter without a world frame: its first second is being collected
+        self.initialising = False  # started moving with no GPS: nothing to stand on until the visual-inertial start
+        self._gps_seen = False
+        self.visual_inertial = None
+        if cam is not None and opts.visual_inertial.enabled:
+            self.visual_inertial = VisualInertialInitializer(cam, self.noise, calibration.imu.gravity, opts.camera.pixel_sigma,
+                                                             opts.visual_inertial, opts.camera.association)
 
     @property
     def initialized(self) -> bool:
         return self.state is not None
+
+    @property
+    def local_position(self) -> bool:
+        """No GPS heard at all, but the camera holds the filter's own frame: its origin where it started and,
+        unless one was known, its heading the one it started with (the yaw gauge of an unknown heading)."""
+        camera = self.counts.get("camera")
+        return not (self.position_initialized or self._gps_seen) and camera is not None and camera.used > 0
 
     def _known_heading(self) -> tuple[float | None, float]:
         """Initial heading and its sigma [rad]; (None, 0) when it must come from GPS."""
@@ -163,6 +193,8 @@ class Estimator:
         self._gyro = gyro
         delta = self._downsampler.add(t_ns, gyro, accel)
         if self.state is None:
+            if delta is not None and self._visual_start_pending():
+                self.visual_inertial.add_delta(delta)
             # Not still within max_wait_s (rotors turning, carried, flying): start from the
             # accelerometer alone rather than wait for a rest or a manoeuvre that may never come.
             init = self._initializer.add(t_ns, gyro, accel)
@@ -185,9 +217,11 @@ class Estimator:
 
     def _propagate(self, delta: ImuDelta) -> None:
         extra = 0.0
-        if not self.heading_aligned:
-            if self._bank is not None:
-                self._bank.propagate(delta)
+        if self._visual_start_pending():
+            self.visual_inertial.add_delta(delta)
+        if not self.heading_aligned and self._bank is not None:
+            self._bank.propagate(delta)
+        if not (self.heading_aligned or self.local_position):  # a frame of its own needs no world heading
             # An unknown heading misplaces the horizontal acceleration by up to twice its size;
             # at rest that is nothing, so the filter can still tell it is at rest. The vehicle's
             # acceleration, that is: vibration (zero mean, tens of hertz) is in the IMU noise
@@ -210,12 +244,18 @@ class Estimator:
 
     def published_cov9(self) -> np.ndarray:
         """Covariance of [δp, δv, δθ] as the outputs publish it: the filter's, except that an unknown
-        heading has the variance of a heading uniform on the circle, uncorrelated with the rest."""
+        heading has the variance of a heading uniform on the circle, uncorrelated with the rest. In a
+        frame of its own (``local_position``) the heading is the frame's: its variance is the filter's,
+        what the heading may have drifted since the start (never below the start's own gauge sigma)."""
         cov9 = self.state.cov[:9, :9].copy()
-        if not self.heading_aligned:
-            cov9[YAW, :] = 0.0
-            cov9[:, YAW] = 0.0
-            cov9[YAW, YAW] = UNKNOWN_HEADING_VAR
+        if self.heading_aligned:
+            return cov9
+        if self.local_position:
+            cov9[YAW, YAW] = max(cov9[YAW, YAW], math.radians(self.options.visual_inertial.heading_sigma_deg) ** 2)
+            return cov9
+        cov9[YAW, :] = 0.0
+        cov9[:, YAW] = 0.0
+        cov9[YAW, YAW] = UNKNOWN_HEADING_VAR
         return cov9
 
     def imu_discontinuity(self, lost_s: float) -> None:
@@ -313,10 +353,13 @@ class Estimator:
         fixes say the vehicle moves, it is no still start."""
         opts = self.options
         window = [f for f in self._fixes_before_start if init.t_ns - f.t_ns < VELOCITY_FIT_S * 1e9]
+        spread = self._fixes_moved(init.t_ns)
         self._fixes_before_start.clear()
         velocity = velocity_from_fixes(window, init.t_ns, opts.gps_sigma_floor_m)
-        moving = velocity is not None and chi2_gate(3, 0.999) < float(velocity[0] @ np.linalg.solve(velocity[1], velocity[0]))
-        if init.static and moving:
+        moving = spread or (velocity is not None
+                            and chi2_gate(3, 0.999) < float(velocity[0] @ np.linalg.solve(velocity[1], velocity[0])))
+        seen = self._camera_sees_motion(init.t_ns)
+        if init.static and (moving or seen):
             init = self._initializer.as_moving(init)
         state = state_from_static(self.layout, init, opts.init, self._heading_sigma)
         if velocity is not None and not init.static:
@@ -324,14 +367,110 @@ class Estimator:
             state.cov[3:6, 3:6] = velocity[1]
         self._fixed_bias_var = np.full(3, init.sigma_gyro_bias**2)
         self.heading_aligned = self._heading_known
-        how = ("still" if init.static else "moving (GPS)" if moving
+        how = ("still" if init.static else "moving (GPS)" if moving else "moving (camera), from the mean specific force" if seen
                else f"not still within {opts.init.max_wait_s:g} s: from the mean specific force")
+        camera = self.counts.get("camera")
+        if not init.static and not self._gps_seen and self.visual_inertial is not None and camera is not None and camera.received:
+            self.initialising = True
+            how += "; initialising until the visual-inertial start"
+        self._moving_start = not init.static
         self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
-        if not self.heading_aligned:
+        if not (self.heading_aligned or self.initialising):
             self._bank = self._new_bank(state, None)
         # The last fix places a still vehicle; a moving one waits for the next fix.
         if init.static and window and (init.t_ns - window[-1].t_ns) < 1e9:
             self._init_position(window[-1])
+
+    def _fixes_moved(self, t_ns: int) -> bool:
+        """The fixes over the IMU's window lie further apart than their noise allows (5 σ): a cruise that a
+        noisy GPS's one-second velocity fit cannot tell from rest (1 m fixes, 8 m/s)."""
+        window_ns = int(self.options.init.static_window_s * 1e9)
+        fixes = [f for f in self._fixes_before_start if t_ns - f.t_ns <= window_ns]
+        if len(fixes) < 2:
+            return False
+        first, last = fixes[0], fixes[-1]
+        moved = float(np.linalg.norm((np.asarray(last.p_ned) - np.asarray(first.p_ned))[:2]))
+        return moved > 5.0 * math.hypot(first.sigma_h, last.sigma_h)
+
+    def _camera_sees_motion(self, t_ns: int) -> bool:
+        """The camera saw the scene move while the IMU's window filled: a steady cruise, not rest."""
+        return self.visual_inertial is not None and self.visual_inertial.image_moving(t_ns)
+
+    def _visual_start_pending(self) -> bool:
+        """Whether the visual-inertial start is wanted: no GPS heard, and not started or still initialising."""
+        return self.visual_inertial is not None and not self._gps_seen and (self.state is None or self.initialising)
+
+    def _gauge(self) -> Gauge:
+        """What a visual-inertial start cannot observe: the filter's position and heading, or the known heading."""
+        state = self.state
+        if state is not None:
+            p, heading = state.p.copy(), yaw_of(state.q)
+        else:
+            p, heading = np.zeros(3), self._initializer.heading_rad
+        return Gauge(p, heading, self._heading_sigma if self._heading_known else None)
+
+    def _apply_visual_start(self, start: VisualInertialStart) -> None:
+        """Start (or restart) EKF-SLAM from a converged visual-inertial window, its landmarks included. An
+        unknown heading stays unknown: the frame's yaw is a gauge (its variance zero, held by the camera)."""
+        n = self.layout.robot_dim
+        keep = np.r_[0:n, 15 : len(start.cov)]
+        state = FilterState(self.layout)
+        state.t_ns = start.t_ns
+        state.p, state.v, state.q, state.b_g = start.p.copy(), start.v.copy(), start.q.copy(), start.b_g.copy()
+        if self.layout.estimates_biases:
+            state.b_a = start.b_a.copy()
+        state.landmarks = start.landmarks.copy()
+        state.cov = start.cov[np.ix_(keep, keep)].copy()
+        self._fixed_bias_var = np.diag(start.cov)[9:12].copy()
+        message = start.describe()
+        if self.state is None:
+            self._begin(state, self.calibration.imu.gravity, message)
+            self.heading_aligned = self._heading_known
+        else:
+            self.state = state
+            self.events.append((state.t_ns, message))
+            self.reset_counter += 1  # the initialising estimate is replaced: a jump
+        if not self.heading_aligned:
+            self._forget_heading()
+        self.camera.adopt(state, start.descriptors, np.sqrt(np.diag(start.cov)[15 + 5 :: 6]))
+        self.initialising = False
+        self.visual_inertial.reset()
+
+    def _join_gps(self, fix: GpsFix) -> bool:
+        """A GPS heard for the first time by a filter without a world frame (initialising, or in the camera's
+        own frame): its fixes are collected for ``VELOCITY_FIT_S``; then they give the velocity, the last
+        one the position, the heading bank the heading — the moving start the GPS would have given. The
+        map, placed in the old frame, goes. Returns True once joined."""
+        self._fixes_before_start.append(fix)
+        first = self._fixes_before_start[0]
+        if (fix.t_ns - first.t_ns) * 1e-9 < VELOCITY_FIT_S:
+            return False
+        fixes = list(self._fixes_before_start)
+        self._fixes_before_start.clear()
+        floor = self.options.gps_sigma_floor_m
+        recent = [f for f in fixes if fix.t_ns - f.t_ns <= VELOCITY_FIT_S * 1e9]
+        velocity = velocity_from_fixes(recent, fix.t_ns, floor) or velocity_from_fixes(fixes, fix.t_ns, floor)
+        state = self.state
+        state.cov[3:6, :] = 0.0
+        state.cov[:, 3:6] = 0.0
+        if velocity is not None:
+            state.v = velocity[0]
+            state.cov[3:6, 3:6] = velocity[1]
+        else:
+            state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
+        if self.camera is not None:
+            self.camera.clear(state)
+        self.initialising = False
+        if self.visual_inertial is not None:
+            self.visual_inertial.reset()
+        self._init_position(fix)
+        self.reset_counter += 1  # the frame jumps to the GPS's
+        self.events.append((fix.t_ns, f"GPS joined: velocity from {len(recent if velocity is not None else fixes)} fixes, "
+                            f"position from the last; reset #{self.reset_counter}"))
+        if not self.heading_aligned:
+            self._bank = self._new_bank(state, None)
+            self._bank.update(fix)  # positions the hypotheses
+        return True
 
     def _new_bank(self, state: FilterState, velocity_sigma: float | None) -> HeadingBank:
         """Hypotheses around ``state``; they always carry bias states (the thesis model takes its fixed
@@ -373,11 +512,22 @@ class Estimator:
             counts.reject("older_than_filter")
             return None
         if state is None:
+            self._gps_seen = True
             self._fixes_before_start.append(fix)
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)
         self._last_fix = fix
+        if self._joining or self.initialising or self.local_position:
+            self._joining = self._gps_seen = True
+            if not self._join_gps(fix):
+                counts.reject("joining")
+                return None
+            self._joining = False
+            counts.used += 1
+            self.health.measured("gps", fix.t_ns, used=True)
+            return UpdateOutcome(True, 0.0, 3, "GPS joined")
+        self._gps_seen = True
         if not self.position_initialized:
             self._init_position(fix)
             counts.used += 1
@@ -391,6 +541,9 @@ class Estimator:
             counts.used += 1
         else:
             counts.reject(outcome.reason.replace(" ", "_"))
+        gated = outcome.accepted or outcome.reason == "chi2 gate"
+        self.health.innovations("gps", fix.t_ns, outcome.accepted if gated else None,
+                                "" if outcome.accepted else f"fix refused by the gate (NIS {outcome.nis:.1f})")
         if self.health.measured("gps", fix.t_ns, outcome.accepted, gated=True):
             self._reset_from_gps(fix)
         if not self.heading_aligned:
@@ -430,17 +583,19 @@ class Estimator:
         state, after_s = self.state, self.options.gps_reset_after_s
         again = self._gps_reset_t is not None and (fix.t_ns - self._gps_reset_t) * 1e-9 <= 2.0 * after_s
         self._gps_reset_t = fix.t_ns
+        what = "position and velocity re-initialised from GPS"
         if self.heading_placement is not None and self.heading_aligned:
             self.heading_aligned = False  # and _reset restarts the hypotheses
+            what += "; the heading searched for again"
+        if again:
+            self._relevel()
+            what += "; still refused after the last reset: attitude levelled again"
+        if not self.heading_aligned:
             self._forget_heading()
         self._init_position(fix)
         state.cov[3:6, :] = 0.0
         state.cov[:, 3:6] = 0.0
         state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
-        what = "position and velocity re-initialised from GPS"
-        if again:
-            self._relevel()
-            what += "; still refused after the last reset: attitude levelled again, heading searched for again"
         self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {after_s:g} s; {what}")
 
     def _relevel(self) -> None:
@@ -457,6 +612,26 @@ class Estimator:
         self._forget_heading()
         self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, state.t_ns
 
+    def _reset_camera_lost(self, t_ns: int, why: str) -> None:
+        """The camera's innovations say the filter is lost: map cleared, velocity, attitude and biases
+        re-initialised as for a start in motion; without GPS the visual-inertial start begins again."""
+        self._reset(t_ns, "camera_lost", f"camera innovations out of band for {self.options.health.innovation_reset_s:g} s "
+                    f"({why}): map cleared, velocity, attitude and biases re-initialised")
+        state, init = self.state, self.options.init
+        n = self.layout.robot_dim
+        var_p = np.diagonal(state.cov)[0:3].copy()
+        sigmas = [init.sigma_velocity_moving] * 3 + [math.radians(init.sigma_attitude_moving_deg)] * 3
+        if self.layout.estimates_biases:
+            sigmas += [init.sigma_gyro_bias] * 3 + [init.sigma_accel_bias] * 3
+        state.cov = np.diag(np.concatenate([var_p, np.square(sigmas)]))[:n, :n]
+        if not self.heading_aligned:
+            self._forget_heading()
+        if self.position_initialized and self._last_fix is not None and self.health.fresh("gps", t_ns):
+            self._init_position(self._last_fix)
+        elif self.visual_inertial is not None and not self._gps_seen:
+            self.initialising = True
+            self.visual_inertial.reset()
+
     # ------------------------------------------------------------------------------ camera
     def process_features(self, features: FrameFeatures) -> FrameReport:
         """Fuse one frame's features at its own time (EKF-SLAM, ``vtolpose.estimator.vision.camera_pipeline``).
@@ -469,6 +644,16 @@ class Estimator:
         t_ns = features.t_ns  # already on the IMU clock (the runtime applies camera.time_offset_s)
         reason = self._frame_rejection(features, t_ns)
         self._last_frame = (t_ns, features.digest) if reason != "out_of_order" else self._last_frame
+        if reason in (None, "before_start") and self._visual_start_pending():
+            return self._visual_start_frame(features, counts)
+        if reason == "before_start" and self.visual_inertial is not None:
+            self.visual_inertial.observe(features)  # does the scene move? (a cruise feels still to the IMU)
+        if reason is None and self.initialising:
+            reason = "initialising"  # a GPS is joining: until then the state is the accelerometer's alone
+        if reason is None and self._heading_weak():
+            reason = "heading_weak"
+        if reason is None and self._moving_start and not (self.heading_aligned or self.local_position):
+            reason = "heading_unknown"  # the bank places it from the GPS first
         if reason is not None:
             counts.reject(reason)
             self.health.measured("camera", t_ns, used=False)  # alive (frames arrive), not usable
@@ -487,6 +672,10 @@ class Estimator:
         else:
             counts.reject(report.reason)
         self.health.measured("camera", t_ns, report.accepted)
+        lost, why = self.health.camera_frame(FrameInnovations(
+            t_ns, report.candidates, report.n_matches, len(report.new_ids), report.nis, 2 * report.n_matches))
+        if lost:
+            self._reset_camera_lost(t_ns, why)
         matches = self.counts.setdefault("camera_match", RejectionCounts())
         matches.received += report.candidates
         matches.used += report.n_matches
@@ -495,6 +684,33 @@ class Estimator:
         if report.behind_camera:
             matches.flag("behind_camera", report.behind_camera)
         return report
+
+    def _visual_start_frame(self, features: FrameFeatures, counts: RejectionCounts) -> FrameReport:
+        """A frame for the visual-inertial start (the IMU brought to its time first); the start once it converges."""
+        t_ns = features.t_ns
+        if self.state is not None:
+            self._propagate_to(t_ns)
+        else:
+            for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
+                if delta is not None:
+                    self.visual_inertial.add_delta(delta)
+        start = self.visual_inertial.add_frame(features, self._gauge())
+        self.health.measured("camera", t_ns, used=True)  # alive and in use, by the start
+        if start is None:
+            counts.reject("initialising")
+            return FrameReport(t_ns, False, "initialising", n_features=len(features))
+        self._apply_visual_start(start)
+        counts.used += 1
+        return FrameReport(t_ns, True, "visual-inertial start", n_features=len(features), n_landmarks=len(start.landmarks))
+
+    def _heading_weak(self) -> bool:
+        """(And before it, after a start in motion: a map in the frame of arbitrary yaw, with the horizontal
+        acceleration misplaced by the unknown heading, refused the GPS in a cruise until it reset twice.)
+        The bank placed the heading, but it is still tens of degrees uncertain: the camera waits. A map
+        started under such a heading grows overconfident in it (and in the tilt) faster than the GPS
+        corrects it — a flight joined in the air ended 7-9 sigma off; the IMU and GPS narrow it alone."""
+        return (self.heading_aligned and self.heading_placement is not None
+                and self.state.cov[YAW, YAW] > HEADING_WEAK_SIGMA_RAD**2)
 
     def _frame_rejection(self, features: FrameFeatures, t_ns: int) -> str | None:
         if self.camera is None:

@@ -80,6 +80,8 @@ class OutputPose:
     reset_counter: int
     fused_t_ns: int
     quality_cap: int = 100  # ceiling on the published quality from the filter's health (estimator.health)
+    initialising: bool = False  # started moving, no in-motion start yet: must not be used (quality −1)
+    local_position: bool = False  # no absolute position: relative to the filter's own origin (camera, no GPS)
 
     @property
     def fused(self) -> bool:
@@ -347,7 +349,8 @@ class FusionCore:
             t_ns=pred.t_ns, p=np.array(pred.p), v=np.array(pred.v), q=np.array(pred.q), omega_b=pred.gyro - s.b_g,
             cov9=cov9, pose_cov=pose_cov, omega_var=omega_var, heading_aligned=self.est.heading_aligned,
             position_initialized=self.est.position_initialized, reset_counter=self.est.reset_counter,
-            fused_t_ns=s.t_ns, quality_cap=self.est.health.quality_cap(s.t_ns),
+            fused_t_ns=s.t_ns, quality_cap=self.est.health.quality_cap(s.t_ns), initialising=self.est.initialising,
+            local_position=self.est.local_position,
         )
 
     def _predicted_covariance(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -395,7 +398,7 @@ class FusionCore:
             t_ns=s.t_ns, p=s.p.copy(), v=s.v.copy(), q=s.q.copy(), omega_b=gyro - s.b_g, cov9=cov9,
             pose_cov=cov9[_POSE_IX], omega_var=self._omega_var(), heading_aligned=est.heading_aligned,
             position_initialized=est.position_initialized, reset_counter=est.reset_counter, fused_t_ns=s.t_ns,
-            quality_cap=est.health.quality_cap(s.t_ns),
+            quality_cap=est.health.quality_cap(s.t_ns), initialising=est.initialising, local_position=est.local_position,
         )
 
     # --------------------------------------------------------------------------- status

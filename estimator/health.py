@@ -7,7 +7,15 @@ The estimator (``vtolpose.estimator.filter``) asks short questions at the points
   quality is capped. Nothing is reset: the covariance grows on its own, honestly.
 - A sensor's innovations stay beyond its gate (every GPS fix rejected for
   ``gps_reset_after_s``): the estimate, not the sensor, is wrong — the filter re-initialises
-  position and velocity from that sensor (:meth:`HealthMonitor.measured` says when).
+  position and velocity from that sensor, and its attitude too when it is lost again right
+  after (:meth:`HealthMonitor.measured` says when).
+- Innovations out of their band say the filter is lost, without any truth
+  (:meth:`HealthMonitor.innovations`): for the camera, a frame whose landmarks in view are not
+  found where predicted (few re-observed), whose matches' NIS is beyond its χ² band, or a
+  map that keeps initialising landmarks it never sees again (churn); for the GPS, fixes the
+  gate refuses. Out of band for ``innovation_cap_s`` caps the quality at
+  ``innovation_quality_cap``; for ``innovation_reset_s`` the filter resets, attitude included,
+  and says why (:func:`camera_verdict`).
 - The filter itself breaks: a nominal state or covariance that is not finite, or a covariance
   that is not positive definite (:func:`state_problem`, every ``check_period_s``). The filter
   goes back to the last nominal state that passed the check, re-initialises its covariance
@@ -30,9 +38,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vtolpose.estimator.core.kalman import chi2_gate
 from vtolpose.estimator.core.state import FilterState
 
-RESET_KINDS = ("gps_rejected", "imu_gap", "state_invalid")
+RESET_KINDS = ("gps_rejected", "imu_gap", "state_invalid", "camera_lost")
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,6 +55,14 @@ class HealthOptions:
     stale_quality_cap: int = 50  # quality ceiling while a sensor that was in use is stale
     reset_quality_cap: int = 20  # quality ceiling for reset_hold_s after a reset
     reset_hold_s: float = 5.0
+    innovation_cap_s: float = 1.0  # innovations out of band this long: quality capped ...
+    innovation_quality_cap: int = 50  # ... at this
+    innovation_reset_s: float = 3.0  # and this long: the filter is lost, reset
+    camera_nis_probability: float = 0.999  # a frame's NIS beyond this χ² quantile is out of band
+    min_in_view: int = 8  # landmarks predicted in view for a frame to be judged at all
+    min_reobserved: float = 0.2  # fraction of them matched below this: out of band
+    max_churn: float = 2.0  # landmarks initialised per match over the last second above this: out of band
+    min_churn_landmarks: int = 10  # (once at least this many were initialised in it)
 
     def __post_init__(self) -> None:
         for name in ("imu_gap_reset_s", "check_period_s", "gps_stale_s", "camera_stale_s"):
@@ -53,8 +70,13 @@ class HealthOptions:
                 raise ValueError(f"health {name} must be positive, got {getattr(self, name)}")
         if not (self.gap_accel_sigma >= 0.0 and self.gap_rate_sigma_deg >= 0.0 and self.reset_hold_s >= 0.0):
             raise ValueError("health gap sigmas and reset_hold_s must be >= 0")
-        if not (0 <= self.reset_quality_cap <= 100 and 0 <= self.stale_quality_cap <= 100):
+        if not (0 <= self.reset_quality_cap <= 100 and 0 <= self.stale_quality_cap <= 100
+                and 0 <= self.innovation_quality_cap <= 100):
             raise ValueError("health quality caps must be within 0..100")
+        if not (0.0 < self.innovation_cap_s <= self.innovation_reset_s):
+            raise ValueError("health innovation_cap_s must be positive and at most innovation_reset_s")
+        if not (0.0 < self.camera_nis_probability < 1.0 and 0.0 <= self.min_reobserved <= 1.0):
+            raise ValueError("health camera_nis_probability must be in (0, 1) and min_reobserved in [0, 1]")
 
 
 @dataclass(slots=True)
@@ -65,6 +87,46 @@ class SensorHealth:
     last_used_t_ns: int | None = None  # last one it fused
     rejected_since_ns: int | None = None  # start of the current run of gate rejections
     used: int = 0
+
+
+@dataclass(slots=True)
+class InnovationRun:
+    """A sensor's current run of out-of-band innovations (filter time)."""
+
+    since_ns: int | None = None
+    why: str = ""
+    capped: int = 0  # runs that lasted long enough to cap the quality
+    counted: bool = False  # the current run is among them
+
+
+@dataclass(frozen=True, slots=True)
+class FrameInnovations:
+    """What one camera frame says about the filter: landmarks predicted in view, matched, new, and the NIS."""
+
+    t_ns: int
+    in_view: int
+    matched: int
+    initialised: int
+    nis: float  # of the frame's update, NaN if none
+    dof: int
+
+
+def camera_verdict(frame: FrameInnovations, recent: deque[FrameInnovations], options: HealthOptions) -> tuple[bool | None, str]:
+    """Whether a frame's innovations are in band (None: too little in view to say), and why not.
+
+    ``recent`` holds the frames of the last second, this one included (for the churn).
+    """
+    initialised = sum(f.initialised for f in recent)
+    matched = sum(f.matched for f in recent)
+    if initialised >= options.min_churn_landmarks and initialised > options.max_churn * max(matched, 1):
+        return False, f"{initialised} landmarks initialised in the last second for {matched} matches (churn)"
+    if frame.in_view < options.min_in_view:
+        return None, ""
+    if frame.matched < options.min_reobserved * frame.in_view:
+        return False, f"{frame.matched} of {frame.in_view} landmarks in view re-observed"
+    if frame.dof and math.isfinite(frame.nis) and frame.nis > chi2_gate(frame.dof, options.camera_nis_probability):
+        return False, f"frame NIS {frame.nis:.1f} beyond its {100 * options.camera_nis_probability:g} % band ({frame.dof} dof)"
+    return True, ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,6 +247,10 @@ class HealthMonitor:
         self._next_check_ns: int | None = None
         self._hold_ns = int(round(options.reset_hold_s * 1e9))
         self._period_ns = int(round(options.check_period_s * 1e9))
+        self.runs: dict[str, InnovationRun] = {}
+        self.frames: deque[FrameInnovations] = deque(maxlen=64)  # the camera's last second of frames
+        self._cap_ns = int(round(options.innovation_cap_s * 1e9))
+        self._lost_ns = int(round(options.innovation_reset_s * 1e9))
 
     # ------------------------------------------------------------------------ measurements
     def measured(self, sensor: str, t_ns: int, used: bool, gated: bool = False) -> bool:
@@ -205,6 +271,37 @@ class HealthMonitor:
             s.rejected_since_ns = t_ns
             return False
         return t_ns - s.rejected_since_ns >= limit
+
+    def innovations(self, sensor: str, t_ns: int, in_band: bool | None, why: str = "") -> bool:
+        """Record whether ``sensor``'s latest innovations are in band (None: no verdict). True when they
+        have been out of band for ``innovation_reset_s``: the filter is lost, the caller resets."""
+        run = self.runs.get(sensor)
+        if run is None:
+            run = self.runs[sensor] = InnovationRun()
+        if in_band is None:
+            return False
+        if in_band:
+            run.since_ns, run.why = None, ""
+            return False
+        if run.since_ns is None:
+            run.since_ns, run.counted = t_ns, False
+        if not run.counted and t_ns - run.since_ns >= self._cap_ns:
+            run.capped, run.counted = run.capped + 1, True
+        run.why = why
+        return t_ns - run.since_ns >= self._lost_ns
+
+    def camera_frame(self, frame: FrameInnovations) -> tuple[bool, str]:
+        """A camera frame's innovations: (lost, why) — lost when out of band for ``innovation_reset_s``."""
+        self.frames.append(frame)
+        while self.frames and frame.t_ns - self.frames[0].t_ns > 1_000_000_000:
+            self.frames.popleft()
+        verdict, why = camera_verdict(frame, self.frames, self.options)
+        return self.innovations("camera", frame.t_ns, verdict, why), why
+
+    def out_of_band(self, t_ns: int) -> list[tuple[str, float, str]]:
+        """Sensors whose innovations are out of band at ``t_ns``: (name, for how long [s], why)."""
+        return [(name, (t_ns - r.since_ns) * 1e-9, r.why) for name, r in sorted(self.runs.items())
+                if r.since_ns is not None and t_ns >= r.since_ns]
 
     def gap_needs_reset(self, gap_s: float) -> bool:
         return gap_s > self.options.imu_gap_reset_s
@@ -230,6 +327,9 @@ class HealthMonitor:
         self.reset_counts[kind] = self.reset_counts.get(kind, 0) + 1
         for s in self.sensors.values():
             s.rejected_since_ns = None
+        for run in self.runs.values():
+            run.since_ns = None
+        self.frames.clear()
 
     def fresh(self, sensor: str, t_ns: int) -> bool:
         """Whether ``sensor`` had a measurement used within its stale limit before ``t_ns``."""
@@ -251,6 +351,9 @@ class HealthMonitor:
             limit = self.stale_ns.get(name)
             if limit is not None and s.last_used_t_ns is not None and t_ns - s.last_used_t_ns > limit:
                 cap = min(cap, self.options.stale_quality_cap)
+        for run in self.runs.values():
+            if run.since_ns is not None and t_ns - run.since_ns >= self._cap_ns:
+                cap = min(cap, self.options.innovation_quality_cap)
         return cap
 
     def report(self, t_ns: int | None) -> dict:
@@ -267,6 +370,11 @@ class HealthMonitor:
             sensors[name]["stale"] = True
         last = self.resets[-1] if self.resets else None
         degraded = [f"{name}_stale" for name in sorted(stale)]
+        innovations = {}
+        for name, seconds, why in (self.out_of_band(t_ns) if t_ns is not None else []):
+            innovations[name] = {"out_of_band_s": round(seconds, 3), "why": why}
+            if seconds >= self.options.innovation_cap_s:
+                degraded.append(f"{name}_innovations")
         if last is not None and t_ns is not None and t_ns - last.t_ns < self._hold_ns:
             degraded.append(f"recent_reset_{last.kind}")
         return {
@@ -274,5 +382,6 @@ class HealthMonitor:
             "resets": dict(sorted(self.reset_counts.items())),
             "last_reset": None if last is None else {"t_ns": last.t_ns, "kind": last.kind, "reason": last.reason},
             "degraded": degraded,
+            "innovations_out_of_band": innovations,
             "quality_cap": self.quality_cap(t_ns) if t_ns is not None else 0,
         }

@@ -11,7 +11,9 @@ from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, 
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline
 from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
 from vtolpose.estimator.filter import Estimator, FilterOptions
+from vtolpose.estimator.init.visual_inertial import VisualInertialOptions
 from vtolpose.estimator.vision.map_manager import LandmarkBook, MapOptions, deletions, depth_priors, select_new_features
+from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import yaw_of, quat_from_euler
 from vtolpose.estimator.core.state import FilterState, StateLayout
 
@@ -105,15 +107,22 @@ def test_duplicate_and_out_of_order_frames(detector):
 
 
 def test_frames_before_the_filter_starts_are_counted():
+    """Before the start a frame goes to the visual-inertial start (it may be moving); without it, it waits."""
     cal = Calibration(imu=ImuCalibration(125.0, ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4)), camera=CAM)
+    frame = extract_features(textured(4), EPOCH, FeatureOptions(max_features=50))
     est = Estimator(cal)
-    report = est.process_features(extract_features(textured(4), EPOCH, FeatureOptions(max_features=50)))
-    assert report.reason == "before_start" and est.counts["camera"].rejected == {"before_start": 1}
+    report = est.process_features(frame)
+    assert report.reason == "initialising" and est.counts["camera"].rejected == {"initialising": 1}
+    assert len(est.visual_inertial.tracker.frames) == 1
+    plain = Estimator(cal, FilterOptions(visual_inertial=VisualInertialOptions(enabled=False)))
+    report = plain.process_features(frame)
+    assert report.reason == "before_start" and plain.counts["camera"].rejected == {"before_start": 1}
 
 
 def test_unknown_heading_maps_in_the_frame_of_arbitrary_yaw():
     """Before the heading is known the camera maps in the filter's own frame (its yaw a gauge it does not
-    touch); the outputs still say the heading is unknown."""
+    touch). Without any GPS that frame is what the outputs publish: the heading the filter started with,
+    its variance the drift since; once a GPS is heard they say the heading is unknown in the world."""
     cal = Calibration(imu=ImuCalibration(125.0, ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4)), camera=CAM)
     est = Estimator(cal)  # no initial heading, no GPS: the heading stays unknown
     for k in range(320):
@@ -123,7 +132,9 @@ def test_unknown_heading_maps_in_the_frame_of_arbitrary_yaw():
     for k, t_ns in enumerate((3_000_000_000, 3_133_333_333)):
         assert est.process_features(extract_features(textured(5 + k), EPOCH + t_ns, FeatureOptions())).accepted
     assert est.state.n_landmarks > 0 and yaw_of(est.state.q) == pytest.approx(yaw, abs=1e-12)
-    assert est.pose().pose_cov[5, 5] == pytest.approx(np.pi**2 / 3)
+    assert est.local_position and est.pose().pose_cov[5, 5] < np.radians(5.0) ** 2
+    est.process_gps(GpsFix(EPOCH + 3_200_000_000, np.zeros(3), 0.02, 0.03))
+    assert not est.local_position and est.pose().pose_cov[5, 5] == pytest.approx(np.pi**2 / 3)
 
 
 # --------------------------------------------------------------------------- map management

@@ -37,6 +37,23 @@ def test_simulate_writes_the_same_bytes_for_the_same_seed(book_dir, tmp_path):
         assert (again / rel).read_bytes() == (book_dir / rel).read_bytes(), rel
 
 
+def test_simulate_can_start_in_flight(book_dir, tmp_path, capsys):
+    """--start-in-flight: the scenario's in-flight point (book: 20 s in), or the seconds given."""
+    default, given = tmp_path / "default", tmp_path / "given"
+    assert main(["-q", "simulate", "--scenario", "book", "--duration", "5", "--seed", "2", "--out", str(default),
+                 "--no-camera", "--start-in-flight"]) == 0
+    assert main(["-q", "simulate", "--scenario", "book", "--duration", "5", "--seed", "2", "--out", str(given),
+                 "--no-camera", "--start-in-flight", "20"]) == 0
+    rel = "mav0/state_groundtruth_estimate0/data.csv"
+    assert (default / rel).read_bytes() == (given / rel).read_bytes() != (book_dir / rel).read_bytes()
+    joined, from_rest = Dataset.open(default), Dataset.open(book_dir)
+    np.testing.assert_allclose(joined.truth().p[0], from_rest.truth().p[2000], atol=1e-6)
+    assert joined.calibration.initial_heading_rad is None  # nobody states a heading in the air
+    with pytest.raises(SystemExit):
+        main(["simulate", "--out", str(tmp_path / "x"), "--start-in-flight", "-2"])
+    assert "must be a finite number of seconds >= 0" in capsys.readouterr().err
+
+
 def test_simulate_refuses_to_overwrite_without_force(book_dir, capsys):
     assert main(["simulate", "--scenario", "book", "--duration", "5", "--out", str(book_dir), "--no-camera"]) == 1
     assert "already holds a dataset" in capsys.readouterr().err

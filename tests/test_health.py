@@ -15,7 +15,15 @@ from vtolpose.config import load_config
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import FusionOptions
-from vtolpose.estimator.health import GapWidener, HealthMonitor, HealthOptions, gap_variances, state_problem
+from vtolpose.estimator.health import (
+    FrameInnovations,
+    GapWidener,
+    HealthMonitor,
+    HealthOptions,
+    camera_verdict,
+    gap_variances,
+    state_problem,
+)
 from vtolpose.estimator.core.measurements import GpsFix, ImuSample
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.service.runtime.loop import Runtime, RuntimeOptions
@@ -94,11 +102,52 @@ def test_monitor_stale_sensors_and_resets_cap_the_quality():
     assert not mon.measured("gps", 8 * S, used=False, gated=False)  # non-finite fixes never reset
 
 
+def test_camera_frames_are_judged_by_reobservation_nis_and_churn():
+    opts = HealthOptions()
+    frame = FrameInnovations(0, in_view=20, matched=12, initialised=3, nis=20.0, dof=24)
+    assert camera_verdict(frame, [frame], opts) == (True, "")
+    few = FrameInnovations(0, in_view=5, matched=0, initialised=0, nis=float("nan"), dof=0)
+    assert camera_verdict(few, [few], opts)[0] is None  # too little in view to say anything
+    lost = FrameInnovations(0, in_view=20, matched=2, initialised=3, nis=1.0, dof=4)
+    verdict, why = camera_verdict(lost, [lost], opts)
+    assert verdict is False and "2 of 20 landmarks in view re-observed" in why
+    wild = FrameInnovations(0, in_view=20, matched=12, initialised=0, nis=80.0, dof=24)  # χ²(24) 99.9 %: 51.2
+    assert camera_verdict(wild, [wild], opts)[0] is False and "NIS" in camera_verdict(wild, [wild], opts)[1]
+    churning = [FrameInnovations(k, in_view=3, matched=1, initialised=8, nis=float("nan"), dof=2) for k in range(4)]
+    verdict, why = camera_verdict(churning[-1], churning, opts)
+    assert verdict is False and "32 landmarks initialised in the last second for 4 matches" in why
+
+
+def test_innovations_out_of_band_cap_the_quality_after_a_second_and_reset_after_three():
+    mon = HealthMonitor(HealthOptions(innovation_cap_s=1.0, innovation_quality_cap=50, innovation_reset_s=3.0), 3.0)
+    good = FrameInnovations(0, 20, 15, 2, 10.0, 30)
+    assert mon.camera_frame(good) == (False, "")
+    t = 0
+    lost = False
+    while not lost:
+        t += S // 8
+        lost, why = mon.camera_frame(FrameInnovations(t, 20, 1, 2, 1.0, 2))
+        assert mon.quality_cap(t) == (50 if t - S // 8 >= S else 100)
+        assert t <= 4 * S
+    assert t == S // 8 + 3 * S and "re-observed" in why
+    report = mon.report(t)
+    assert "camera_innovations" in report["degraded"] and report["innovations_out_of_band"]["camera"]["out_of_band_s"] == 3.0
+    mon.record_reset(t, "camera_lost", why)
+    assert mon.out_of_band(t) == [] and mon.runs["camera"].capped == 1
+    # In band again ends a run; no verdict (little in view) neither starts nor ends one.
+    assert not mon.innovations("gps", 10 * S, False, "refused") and mon.out_of_band(10 * S)[0][0] == "gps"
+    assert not mon.innovations("gps", 11 * S, None)
+    assert mon.quality_cap(int(11.5 * S)) == 50
+    assert not mon.innovations("gps", 12 * S, True) and mon.out_of_band(12 * S) == []
+
+
 def test_health_options_are_checked():
     with pytest.raises(ValueError, match="imu_gap_reset_s"):
         HealthOptions(imu_gap_reset_s=0.0)
     with pytest.raises(ValueError, match="quality caps"):
         HealthOptions(stale_quality_cap=101)
+    with pytest.raises(ValueError, match="innovation_cap_s"):
+        HealthOptions(innovation_cap_s=4.0, innovation_reset_s=3.0)
 
 
 # ------------------------------------------------------------------------ the filter

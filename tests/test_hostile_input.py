@@ -138,7 +138,7 @@ def test_a_reset_after_a_corrupted_attitude_restores_the_attitude(tmp_path):
     damaged = damaged_copy(root, tmp_path / "turned", {n // 2: {1: "20.0", 3: "30.0"}})
     result = replay(Dataset.open(damaged), load_config())
     events = " ".join(e for _, e in result.estimator.events)
-    assert "attitude levelled again, heading searched for again" in events and "heading placed" in events
+    assert "attitude levelled again" in events and "heading placed" in events
     truth = Dataset.open(root).truth()
     k = min(np.searchsorted(truth.t_ns, result.trajectory.t_ns[-1]), len(truth.t_ns) - 1)
     assert np.linalg.norm(result.trajectory.p[-1] - truth.p[k]) < 10.0

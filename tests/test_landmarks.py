@@ -7,7 +7,9 @@ import pytest
 
 from vtolpose.estimator.core.calibration import CameraCalibration
 from vtolpose.estimator.vision.camera_model import CameraModel
-from vtolpose.estimator.vision.camera_update import iterated_update, predict, predict_h, stacked_update
+from vtolpose.estimator.vision.camera_update import (
+    _stacked_jacobian, iterated_update, observability_constrained, predict, predict_h, stacked_update, unobservable_directions,
+)
 from vtolpose.estimator.vision.landmarks import (
     ROBOT_POSE_COLS,
     add_landmarks,
@@ -225,3 +227,27 @@ def test_iterated_update_keeps_a_far_off_depth_guess_consistent():
     assert np.all(sigmas_off(once) > 3.0)  # overconfident
     assert np.all(sigmas_off(iterated) < 3.0)
     np.testing.assert_allclose(predict(iterated, CAMERA, R_BC, T_BC, 1.0).uv, measured, atol=0.5)
+
+
+def test_the_camera_is_blind_to_a_shift_and_a_turn_about_down_and_the_iterated_update_stays_blind():
+    """The four directions are those the measurement does not change: moved along each, every predicted pixel
+    stays (central differences, not the analytic Jacobian). After an iterated update relinearised away from
+    the prior, the heading gained no information: the variance along the turn is what it was."""
+    s = make_state(n_landmarks=5, seed=3)
+    idx = np.arange(5)
+    N = unobservable_directions(s, idx)
+    base = predict(s, CAMERA, R_BC, T_BC, 1.0).uv
+    for k in range(4):
+        moved = [predict(perturbed(s, sign * 1e-6 * N[:, k]), CAMERA, R_BC, T_BC, 1.0).uv for sign in (1.0, -1.0)]
+        assert np.abs(moved[0] - moved[1]).max() / 2e-6 < 1e-3, k  # pixels per unit move: none
+    assert np.abs(N[:, 3] @ N[:, 3]) > 1.0  # the turn moves the landmarks' angles, not only the heading
+    cols, H = _stacked_jacobian(s, predict(s, CAMERA, R_BC, T_BC, 1.0), idx)
+    np.testing.assert_allclose(observability_constrained(H, N), H, atol=1e-9 * np.abs(H).max())  # blind already here
+    far = s.copy()
+    measured = base + np.random.default_rng(1).normal(0.0, 3.0, base.shape)
+    assert iterated_update(far, CAMERA, R_BC, T_BC, idx, measured, 1.0, iterations=5).accepted
+    turn = np.zeros(s.dim)
+    turn[cols] = N[:, 3]
+    info_before = turn @ np.linalg.solve(s.cov, turn)
+    info_after = turn @ np.linalg.solve(far.cov, turn)
+    assert info_after == pytest.approx(info_before, rel=1e-6)

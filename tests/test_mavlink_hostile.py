@@ -24,6 +24,9 @@ from test_mavlink_out import endpoint, free_udp_port, make_pose, settle
 REPO_ROOT = Path(__file__).resolve().parents[1]
 mav = mavutil.mavlink
 IMU_PERIOD_S = 0.008  # the simulated IMU: 125 Hz
+# The defect this guards against held ODOMETRY for 0.9-6.2 s. A loaded 2-core test machine adds
+# scheduling noise of a few IMU periods (16.6 ms seen in CI), so the bound sits between the two.
+MAX_GAP_S = 0.1
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; Python does not always export it
 KEY, WRONG_KEY = bytes(range(32)), bytes(range(1, 33))
 
@@ -162,7 +165,7 @@ def test_floods_of_junk_and_of_wrongly_signed_messages_never_hold_up_odometry(tm
         assert np.all(np.diff(t_usec[during]) == 8000), name  # no pose skipped or late-bunched in sensor time
         gap = largest_gap_s(t, start, end)
         print(f"{name}: {windows[name][2]} datagrams in {end - start:.1f} s, largest ODOMETRY gap {gap * 1e3:.1f} ms")
-        assert gap <= 2 * IMU_PERIOD_S, name
+        assert gap <= MAX_GAP_S, name
 
 
 def test_thousands_of_one_shot_senders_never_grow_the_receiver_list(tmp_path):

@@ -775,7 +775,8 @@ def calibrations(draw: st.DrawFn) -> Calibration:
         ImuCalibration(draw(st.floats(1.0, 2000.0)), ImuNoise(*(np.broadcast_to(draw(NOISE), 3) for _ in range(4))),
                        draw(ROTATION), draw(st.floats(9.0, 10.0))),
         GpsCalibration(draw(vec), origin, draw(st.floats(-1.0, 1.0))), camera,
-        draw(st.none() | st.floats(-math.pi, math.pi)), draw(st.none() | st.floats(1e-3, 1.0)), draw(vec))
+        draw(st.none() | st.floats(-math.pi, math.pi)), draw(st.none() | st.floats(1e-3, 1.0)), draw(vec),
+        draw(st.none() | st.floats(1e-4, 1.0)))
 
 
 def as_dataset_yaml(cal: Calibration) -> dict:

@@ -224,6 +224,27 @@ def test_calibration_describes_the_simulated_sensors():
     assert abs(book.calibration.initial_heading_rad) > 0.1
 
 
+@pytest.mark.parametrize("scenario", ["book", "landfill"])
+def test_a_flight_can_start_in_the_air(scenario):
+    """``start_s``: the same trajectory joined mid-flight, moving from the first sample, no stated heading."""
+    start = {"book": BookScenario().in_flight_s, "landfill": LandfillScenario().in_flight_s}[scenario]
+    from_rest = simulate_flight(scenario, start + 5.0, 4)
+    joined = simulate_flight(scenario, 5.0, 4, SimulationOptions(start_s=start))
+    assert joined.truth.t_ns[0] == from_rest.truth.t_ns[0] == EPOCH  # the recording's clock starts at the epoch
+    k = int(round(start * 100))
+    np.testing.assert_allclose(joined.truth.p, from_rest.truth.p[k : k + len(joined.truth.p)], atol=1e-9)
+    np.testing.assert_allclose(joined.truth.q, from_rest.truth.q[k : k + len(joined.truth.q)], atol=1e-9)
+    assert np.linalg.norm(joined.truth.v[0]) > 0.1  # moving at the first sample
+    assert joined.calibration.initial_heading_rad is None and joined.calibration.initial_heading_sigma_rad is None
+    assert "starting in flight" in joined.description
+    # Noise-free, its IMU is the exact derivative of the joined truth (nothing of the rest leaks in).
+    exact = simulate_flight(scenario, 5.0, 4, SimulationOptions(imu=ImuErrorModel.perfect(), start_s=start))
+    kin = exact.trajectory.kinematics(_seconds(exact.imu.t_ns))
+    np.testing.assert_allclose(exact.imu.accel, kin.specific_force_b(9.80665), atol=1e-9)
+    with pytest.raises(ValueError, match="start_s"):
+        SimulationOptions(start_s=-1.0)
+
+
 def test_ground_height_of_the_scenes():
     book = BookScenario()
     np.testing.assert_allclose(book.ground_height(np.array([0.0, 0.6, 3.0]), np.zeros(3)), [-0.035, 0.0, 0.75])

@@ -165,9 +165,10 @@ def calibration_from_yaml(doc: Any, source: str = "dataset.yaml") -> Calibration
                              y.number(gps.get("time_offset_s", 0.0), "gps.time_offset_s"))
 
     truth = y.mapping(top.get("truth"), "truth", {"point_b"})
-    init = y.mapping(top.get("init"), "init", {"heading_deg", "heading_sigma_deg"})
+    init = y.mapping(top.get("init"), "init", {"heading_deg", "heading_sigma_deg", "gyro_bias_sigma_deg_s"})
     heading = init.get("heading_deg")
     heading_sigma = init.get("heading_sigma_deg")
+    bias_sigma = init.get("gyro_bias_sigma_deg_s")
     return Calibration(
         imu=imu_cal,
         gps=gps_cal,
@@ -176,6 +177,9 @@ def calibration_from_yaml(doc: Any, source: str = "dataset.yaml") -> Calibration
         initial_heading_sigma_rad=None
         if heading_sigma is None
         else math.radians(y.number(heading_sigma, "init.heading_sigma_deg", positive=True)),
+        initial_gyro_bias_sigma=None
+        if bias_sigma is None
+        else math.radians(y.number(bias_sigma, "init.gyro_bias_sigma_deg_s", positive=True)),
         truth_point_b=y.vector(truth.get("point_b", [0, 0, 0]), "truth.point_b", 3),
     )
 
@@ -233,6 +237,8 @@ def calibration_to_yaml(cal: Calibration) -> dict:
             "heading_sigma_deg": None
             if cal.initial_heading_sigma_rad is None
             else math.degrees(cal.initial_heading_sigma_rad),
+            **({"gyro_bias_sigma_deg_s": math.degrees(cal.initial_gyro_bias_sigma)}
+               if cal.initial_gyro_bias_sigma is not None else {}),
         },
         "camera": None if camera is None else {
             "width": int(camera.width), "height": int(camera.height),

@@ -17,7 +17,7 @@ from vtolpose.drivers.simulator.gps_model import GpsErrorModel, antenna_position
 from vtolpose.drivers.simulator.imu_model import ImuErrorModel, bias_at, corrupt_imu
 from vtolpose.drivers.simulator.scenarios import Scenario, make_scenario
 from vtolpose.drivers.files.series import GpsSeries, ImuSeries, TruthSeries
-from vtolpose.drivers.simulator.trajectory import Trajectory
+from vtolpose.drivers.simulator.trajectory import Kinematics, Trajectory
 from vtolpose.estimator.core.calibration import STANDARD_GRAVITY, Calibration, GpsCalibration, ImuCalibration
 
 STREAM_IMU = 0
@@ -32,7 +32,9 @@ class SimulationOptions:
     """Everything about a simulation that is not the scenario, duration or seed.
 
     ``gps=None`` takes the scenario's receiver (book: σ_h 2 cm, no lever arm; landfill: σ_h
-    1 m, antenna 0.3 m above the IMU).
+    1 m, antenna 0.3 m above the IMU). ``start_s`` > 0 begins the recording that far into the
+    scenario's trajectory, in flight (a service restarted in the air): no rest at the start,
+    and no stated heading, since no crew enters one mid-flight.
     """
 
     imu: ImuErrorModel = field(default_factory=ImuErrorModel)
@@ -40,9 +42,12 @@ class SimulationOptions:
     truth_rate_hz: float = 100.0
     epoch_ns: int = 1_000_000_000
     gravity: float = STANDARD_GRAVITY
+    start_s: float = 0.0  # join the scenario's trajectory this far in (a flight that starts in the air)
     rest_s: float | None = None  # time at rest before the motion; None: the scenario's own
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.start_s) and self.start_s >= 0.0):
+            raise ValueError(f"start_s must be finite and >= 0, got {self.start_s}")
         if self.rest_s is not None and not (np.isfinite(self.rest_s) and self.rest_s >= 0.0):
             raise ValueError(f"rest_s must be zero or positive, got {self.rest_s}")
         if not (np.isfinite(self.truth_rate_hz) and self.truth_rate_hz > 0.0):
@@ -83,6 +88,27 @@ def _rng(seed: int, stream: int) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=(stream,))))
 
 
+@dataclass(frozen=True, slots=True)
+class TimeShifted:
+    """``trajectory`` from ``offset_s`` on: time 0 here is ``offset_s`` there (a flight joined in the air)."""
+
+    trajectory: Trajectory
+    offset_s: float
+
+    def kinematics(self, t: np.ndarray) -> Kinematics:
+        t = np.asarray(t, dtype=float)
+        k = self.trajectory.kinematics(t + self.offset_s)
+        return Kinematics(t, k.p, k.v, k.a, k.euler, k.euler_rate)
+
+
+def _stated_heading(world: Scenario, trajectory: Trajectory, seed: int) -> float:
+    """What the crew would enter before take-off: the truth plus an error of the scenario's stated
+    accuracy, so that a filter trusting it stays honest."""
+    sigma = float(np.radians(world.heading_sigma_deg))
+    true_heading = trajectory.kinematics(np.zeros(1)).euler[0, 2]
+    return float(np.angle(np.exp(1j * (true_heading + sigma * _rng(seed, STREAM_HEADING).standard_normal()))))
+
+
 def simulate_flight(
     scenario: str, duration_s: float, seed: int, options: SimulationOptions | None = None
 ) -> SimulatedFlight:
@@ -96,7 +122,9 @@ def simulate_flight(
     if options.rest_s is not None:
         world = replace(world, static_s=options.rest_s)
     gps_model = options.gps or world.gps_model()
-    trajectory = world.trajectory(duration_s, options.gravity)
+    trajectory = world.trajectory(options.start_s + duration_s, options.gravity)
+    if options.start_s > 0.0:
+        trajectory = TimeShifted(trajectory, options.start_s)
     epoch = options.epoch_ns
 
     def seconds(t_ns: np.ndarray) -> np.ndarray:
@@ -128,19 +156,16 @@ def simulate_flight(
         t_gps, antenna + errors, np.full(n_gps, gps_model.sigma_h), np.full(n_gps, gps_model.sigma_v)
     )
 
-    initial = trajectory.kinematics(np.zeros(1))
-    heading_sigma = float(np.radians(world.heading_sigma_deg))
+    in_flight = options.start_s > 0.0
     calibration = Calibration(
         imu=ImuCalibration(rate_hz=options.imu.rate_hz, noise=options.imu.noise(), gravity=options.gravity),
         gps=GpsCalibration(lever_arm_b=np.array(gps_model.lever_arm_b, dtype=float), origin_lla=world.origin_lla),
-        # The stated heading is what the crew would enter: the truth plus an error of the
-        # scenario's stated accuracy, so that a filter trusting it stays honest.
-        initial_heading_rad=float(
-            np.angle(np.exp(1j * (initial.euler[0, 2] + heading_sigma * _rng(seed, STREAM_HEADING).standard_normal())))
-        ),
-        initial_heading_sigma_rad=heading_sigma,
+        initial_heading_rad=None if in_flight else _stated_heading(world, trajectory, seed),
+        initial_heading_sigma_rad=None if in_flight else float(np.radians(world.heading_sigma_deg)),
+        initial_gyro_bias_sigma=float(options.imu.gyro_turn_on_bias_std) or None,  # the simulated unit's datasheet
     )
-    description = f"{world.description}; simulated {duration_s:g} s with seed {seed}"
+    start = f", starting in flight {options.start_s:g} s into the scenario" if in_flight else ""
+    description = f"{world.description}; simulated {duration_s:g} s with seed {seed}{start}"
     return SimulatedFlight(
         scenario_name=world.name,
         description=description,

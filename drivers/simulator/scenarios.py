@@ -39,6 +39,7 @@ class Scenario(Protocol):
     static_s: float
     origin_lla: tuple[float, float, float] | None
     heading_sigma_deg: float  # accuracy of the initial heading the crew states
+    in_flight_s: float  # where a flight that starts in the air (``--start-in-flight``) joins the trajectory
 
     def ground_height(self, n: np.ndarray, e: np.ndarray) -> np.ndarray: ...
 
@@ -88,6 +89,7 @@ class BookScenario:
     gps_sigma_h: float = 0.02
     origin_lla: tuple[float, float, float] | None = None
     heading_sigma_deg: float = 0.3  # the robot's base frame is surveyed
+    in_flight_s: float = 20.0  # the arm waving at full amplitude
 
     def ground_height(self, n: np.ndarray, e: np.ndarray) -> np.ndarray:
         """Table top at 0, the book's cover at ``-thickness``, the floor beyond the table."""
@@ -141,6 +143,7 @@ class LandfillScenario:
     gps_lever_arm_b: tuple[float, float, float] = (0.0, 0.0, -0.3)
     origin_lla: tuple[float, float, float] | None = (58.43, 15.68, 60.0)
     heading_sigma_deg: float = 0.5  # lined up with the surveyed pad axis (no magnetometer on board)
+    in_flight_s: float = 70.0  # on the first survey leg at 8 m/s, 45 m up, 5 s before the turn to the next lane
 
     def __post_init__(self) -> None:
         if self.lanes < 2:

@@ -103,6 +103,9 @@ class Calibration:
     initial_heading_rad: float | None = None
     initial_heading_sigma_rad: float | None = None  # how well that heading is known (None: config default)
     truth_point_b: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # The IMU's turn-on gyro bias (its datasheet's repeatability) [rad/s]: the bias prior of a start that no
+    # still window measured (None: the config's init.sigma_gyro_bias)
+    initial_gyro_bias_sigma: float | None = None
 
     def __post_init__(self) -> None:
         self.truth_point_b = np.asarray(self.truth_point_b, dtype=float).reshape(3)

@@ -22,7 +22,14 @@ from vtolpose.estimator.vision.camera_model import CameraModel
 from vtolpose.estimator.vision.camera_update import Predictions, assign_state, iterated_update, predict, stacked_update
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.core.kalman import UpdateOutcome
-from vtolpose.estimator.vision.landmarks import add_landmarks, baseline_significance, initial_landmarks, remove_landmarks, world_rays
+from vtolpose.estimator.vision.landmarks import (
+    add_landmarks,
+    baseline_significance,
+    initial_landmarks,
+    map_prior_jacobians,
+    remove_landmarks,
+    world_rays,
+)
 from vtolpose.estimator.vision.map_manager import (
     LandmarkBook,
     MapOptions,
@@ -92,6 +99,12 @@ class CameraPipeline:
             remove_landmarks(state, np.ones(state.n_landmarks, dtype=bool))
         self.book.clear()
         return n
+
+    def adopt(self, state: FilterState, descriptors: np.ndarray, sigma_rho0: np.ndarray) -> None:
+        """Take the landmarks already in ``state`` (a visual-inertial start) as the map, with their descriptors."""
+        self.book.clear()
+        self.book.append(np.asarray(descriptors), np.asarray(sigma_rho0, dtype=float))
+        self.initialized_total += state.n_landmarks
 
     def process(
         self,
@@ -225,14 +238,20 @@ class CameraPipeline:
         rays_w, xn = world_rays(R_WB, self.R_BC, self.camera, uv)
         rays_w /= np.linalg.norm(rays_w, axis=1, keepdims=True)
         rays_c = np.column_stack([xn, np.ones(len(xn))])
-        depth = scene_depth(self.book, state, R_WC, c_w, in_view, mo)
-        rho0, sigma_rho, source = depth_priors(rays_w, rays_c, c_w, absolute_position, depth, mo)
+        reference = scene_depth(self.book, state, R_WC, c_w, in_view, mo)
+        rho0, sigma_rho, source = depth_priors(rays_w, rays_c, c_w, absolute_position,
+                                               None if reference is None else reference[0], mo)
         y, J_x, J_z = initial_landmarks(state.p, R_WB, self.camera, self.R_BC, self.t_BC, uv, rho0)
+        extra_cols = J_extra = None
+        if source == "map":
+            # The prior is the reference landmark's depth, a function of the state: its error is
+            # shared, not new (only the scene's spread, depth_sigma_rel, is independent).
+            extra_cols, J_extra = map_prior_jacobians(state, R_WC, c_w, reference[1], rho0, J_x)
         px2 = self.options.pixel_sigma**2
         R_z = np.zeros((len(chosen), 3, 3))
         R_z[:, 0, 0] = R_z[:, 1, 1] = px2
         R_z[:, 2, 2] = sigma_rho**2
-        add_landmarks(state, y, J_x, J_z, R_z)
+        add_landmarks(state, y, J_x, J_z, R_z, extra_cols, J_extra)
         report.new_ids = self.book.append(features.descriptors[chosen], sigma_rho)
         report.new_features = chosen
         report.depth_source = source

@@ -21,7 +21,7 @@ import numpy as np
 
 from vtolpose.estimator.vision.camera_model import CameraModel
 from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update
-from vtolpose.estimator.vision.landmarks import ROBOT_POSE_COLS, direction, direction_derivatives
+from vtolpose.estimator.vision.landmarks import ROBOT_POSE_COLS, angles_jacobian, direction, direction_derivatives
 from vtolpose.estimator.core.rotation import quat_conj, quat_log, quat_mul, skew
 from vtolpose.estimator.core.state import LANDMARK_DIM, FilterState
 
@@ -117,6 +117,7 @@ def stacked_update(
     each matched landmark, so only those are passed to :func:`vtolpose.estimator.core.kalman.ekf_update`.
     """
     cols, H = _stacked_jacobian(state, predictions, indices)
+    H = observability_constrained(H, unobservable_directions(state, indices))
     residual = (np.asarray(measured_uv, dtype=float) - predictions.uv[indices]).reshape(-1)
     R = np.eye(len(residual)) * pixel_sigma**2
     return ekf_update(state, cols, H, residual, R, gate=None, held=held)
@@ -152,9 +153,12 @@ def iterated_update(
     measured = np.asarray(measured_uv, dtype=float).reshape(-1)
     R = np.eye(len(measured)) * pixel_sigma**2
 
+    gauge = unobservable_directions(state, indices)
+
     def linearise(at: FilterState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         pred = predict(at, camera, R_BC, t_BC, pixel_sigma)
         cols, H = _stacked_jacobian(at, pred, indices)
+        H = observability_constrained(H, gauge)
         moved = np.concatenate([
             state.p - at.p,
             quat_log(quat_mul(state.q, quat_conj(at.q))),
@@ -176,6 +180,38 @@ def iterated_update(
             break
     cols, H, residual = linearise(estimate)
     return ekf_update(state, cols, H, residual, R, gate=None, held=held)
+
+
+_DOWN = np.array([0.0, 0.0, 1.0])
+
+
+def unobservable_directions(state: FilterState, indices: np.ndarray) -> np.ndarray:
+    """The four directions of ``[δp, δθ, landmarks indices]`` (the columns of :func:`_stacked_jacobian`) that no
+    camera measurement can see, at the prior estimate: the whole scene and vehicle shifted (3), or turned
+    about world down through the origin (1) — a heading the camera is blind to."""
+    indices = np.asarray(indices, dtype=int)
+    y = state.landmarks[indices]
+    k = len(indices)
+    N = np.zeros((6 + LANDMARK_DIM * k, 4))
+    N[0:3, 0:3] = np.eye(3)
+    N[0:3, 3] = np.cross(_DOWN, state.p)
+    N[3:6, 3] = _DOWN
+    turned_rays = np.einsum("kij,kj->ki", angles_jacobian(direction(y[:, 3], y[:, 4])), np.cross(_DOWN, direction(y[:, 3], y[:, 4])))
+    rows = 6 + LANDMARK_DIM * np.arange(k)
+    for axis in range(3):
+        N[rows + axis, axis] = 1.0
+    N[rows[:, None] + np.arange(3), 3] = np.cross(_DOWN, y[:, 0:3])
+    N[rows[:, None] + np.arange(3, 5), 3] = turned_rays
+    return N
+
+
+def observability_constrained(H: np.ndarray, N: np.ndarray) -> np.ndarray:
+    """``H`` changed as little as possible (Frobenius norm) so that ``H N = 0``: a camera update then gives no
+    information along the unobservable directions ``N`` of the estimate it is applied to. Jacobians
+    evaluated at other points than that estimate (a relinearised iteration, landmarks and a pose that
+    were each updated since) would otherwise see a little of them — a heading gained from nothing."""
+    HN = H @ N
+    return H - HN @ np.linalg.solve(N.T @ N, N.T)
 
 
 def _nominal_copy(state: FilterState) -> FilterState:

@@ -119,20 +119,27 @@ def initial_landmarks(
     return y, J_x, J_z
 
 
-def add_landmarks(state: FilterState, y: np.ndarray, J_x: np.ndarray, J_z: np.ndarray, R_z: np.ndarray) -> None:
+def add_landmarks(state: FilterState, y: np.ndarray, J_x: np.ndarray, J_z: np.ndarray, R_z: np.ndarray,
+                  extra_cols: np.ndarray | None = None, J_extra: np.ndarray | None = None) -> None:
     """Append landmarks to the state with their first-order covariance.
 
     ``R_z (K, 3, 3)`` is the covariance of ``[u, v, ρ]`` for each new landmark. The new rows
     are ``J_x P[pose, :]`` (cross-covariance to everything), the new diagonal block is
     ``J_x P_pose J_xᵀ`` (the landmarks share the robot's error) plus ``J_z R_z J_zᵀ`` per landmark.
+    ``J_extra (K, 6, E)``: what the new landmarks also take from the state columns ``extra_cols``
+    (a depth prior read off a landmark already in the map), so that taking it is no new information.
     """
     k = len(y)
     if k == 0:
         return
     n = state.dim
     Jx = J_x.reshape(k * LANDMARK_DIM, 6)
-    cross = Jx @ state.cov[ROBOT_POSE_COLS, :]  # (6K, n)
-    new_block = cross[:, ROBOT_POSE_COLS] @ Jx.T
+    cols = ROBOT_POSE_COLS
+    if extra_cols is not None and len(extra_cols):
+        cols = np.concatenate([ROBOT_POSE_COLS, np.asarray(extra_cols, dtype=int)])
+        Jx = np.concatenate([Jx, J_extra.reshape(k * LANDMARK_DIM, len(extra_cols))], axis=1)
+    cross = Jx @ state.cov[cols, :]  # (6K, n)
+    new_block = cross[:, cols] @ Jx.T
     noise = J_z @ R_z @ np.swapaxes(J_z, 1, 2)  # (K, 6, 6)
     for i in range(k):
         s = slice(LANDMARK_DIM * i, LANDMARK_DIM * (i + 1))
@@ -144,6 +151,26 @@ def add_landmarks(state: FilterState, y: np.ndarray, J_x: np.ndarray, J_z: np.nd
     cov[n:, n:] = 0.5 * (new_block + new_block.T)
     state.cov = cov
     state.landmarks = np.vstack([state.landmarks, y])
+
+
+def map_prior_jacobians(state: FilterState, R_WC: np.ndarray, c_w: np.ndarray, reference: int, rho: np.ndarray,
+                        J_x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """New landmarks whose inverse depth is read off landmark ``reference``: ``1/ρ_k = d |x_k|`` with
+    ``d = (P_ref − c) · z`` the reference's depth along the optical axis ``z`` from the camera centre ``c``.
+
+    Fills the ρ row of ``J_x`` (w.r.t. ``[δp, δθ]``: ``∂d/∂δp = −z``, ``∂d/∂δθ = z × (P_ref − p)``
+    with the global attitude error) and returns the reference's six columns and ``∂y_k/∂y_ref``.
+    """
+    y_ref = state.landmarks[reference]
+    point = landmark_points(y_ref[None, :])[0]
+    z = R_WC[:, 2]
+    d = float((point - c_w) @ z)
+    scale = -np.asarray(rho, dtype=float)[:, None] / max(d, 1e-9)  # ∂ρ/∂d = −ρ/d
+    J_x[:, 5, 0:3] = scale * -z
+    J_x[:, 5, 3:6] = scale * np.cross(z, point - state.p)
+    J_extra = np.zeros((len(rho), LANDMARK_DIM, LANDMARK_DIM))
+    J_extra[:, 5, :] = scale * (z @ point_jacobian(y_ref[None, :])[0])
+    return state.robot_dim + LANDMARK_DIM * reference + np.arange(LANDMARK_DIM), J_extra
 
 
 def baseline_significance(state: FilterState, rows: np.ndarray, t_BC: np.ndarray) -> np.ndarray:

@@ -199,8 +199,10 @@ def select_new_features(
 
 def scene_depth(
     book: LandmarkBook, state: FilterState, R_WC: np.ndarray, c_w: np.ndarray, in_view: np.ndarray, options: MapOptions
-) -> float | None:
-    """Median depth (along the optical axis) of the well-observed landmarks in view, or None."""
+) -> tuple[float, int] | None:
+    """Depth (along the optical axis) of the well-observed landmark in view at the median depth, and its
+    row; None without three of them. The new landmarks' prior is read off that one landmark, so that
+    it can be taken as a function of the state (no new information), not as an independent guess."""
     idx = np.flatnonzero(in_view)
     if len(idx) == 0:
         return None
@@ -209,8 +211,11 @@ def scene_depth(
     if len(good) < 3:
         return None
     depth = (landmark_points(state.landmarks[good]) - c_w) @ R_WC[:, 2]
-    depth = depth[depth > 0.0]
-    return float(np.median(depth)) if len(depth) >= 3 else None
+    good, depth = good[depth > 0.0], depth[depth > 0.0]
+    if len(depth) < 3:
+        return None
+    middle = int(np.argsort(depth)[len(depth) // 2])
+    return float(depth[middle]), int(good[middle])
 
 
 def depth_priors(

@@ -9,7 +9,7 @@ from pathlib import Path
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.tum import write_tum
 from vtolpose.service.commands.common import add_config_options, parse_sensors, write_json
-from vtolpose.service.commands.run import add_runtime_options, config_for
+from vtolpose.service.commands.run import add_runtime_options, add_start_option, config_for
 from vtolpose.service.replay.faults import add_fault_options, parse_faults
 from vtolpose.service.replay.overlay import OverlayWriter
 from vtolpose.service.replay.progress import Progress
@@ -41,6 +41,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_runtime_options(p)
     add_fault_options(p)
     p.add_argument("--sensors", metavar="LIST", help="comma-separated streams to use (default: replay.sensors)")
+    add_start_option(p)
     p.add_argument("--out", metavar="TRAJ.txt", help="trajectory file (TUM format)")
     p.add_argument("--report", metavar="REPORT.json", help="JSON report")
     p.add_argument("--overlay", metavar="DIR", help="write a PNG per camera frame into DIR: features, predicted "
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
     overlay = OverlayWriter(args.overlay) if args.overlay else None
     result = replay(dataset, cfg, sensors, on_progress=on_progress if progress.enabled else None, on_frame=overlay,
-                    faults=faults, fault_seed=args.fault_seed)
+                    faults=faults, fault_seed=args.fault_seed, start_at_s=args.start_at)
     progress.finish()
     report = build_report(result, dataset, cfg)
     if args.out:

@@ -29,12 +29,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "  vtolpose run --config vehicle.yaml\n"
         "  vtolpose run --replay data/landfill --speed 1 --mavlink udpout:127.0.0.1:14540 --zenoh\n"
         "  vtolpose run --replay data/book --out traj.txt       (same trajectory as `vtolpose replay`)\n"
+        "  vtolpose run --replay data/landfill --start-at 80 --sensors imu,camera   (restarted in flight)\n"
         "  vtolpose run --replay data/book --speed 1 --foxglove --hold   (watch it in Foxglove: ws://127.0.0.1:8765)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_config_options(p)
     p.add_argument("--replay", metavar="DATASET", help="replay this dataset instead of reading the sensors")
     p.add_argument("--sensors", metavar="LIST", help="replay: streams to use, e.g. imu,gps (replay.sensors)")
+    add_start_option(p)
     add_runtime_options(p)
     add_fault_options(p)  # replay only: faults played on the replayed stream (vtolpose.service.replay.faults)
     p.add_argument("--out", metavar="TRAJ.txt", help="write the fused trajectory here (TUM; run.trajectory)")
@@ -44,6 +46,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hold", action="store_true",
                    help="replay: after the data, keep answering queries (pose/at, trajectory) until stopped")
     p.set_defaults(run=run)
+
+
+def add_start_option(p: argparse.ArgumentParser) -> None:
+    """--start-at: join a replayed recording S seconds in, as a service restarted in flight."""
+    p.add_argument("--start-at", type=_start_seconds, metavar="S",
+                   help="replay: start S seconds into the recording, as a service restarted in flight would "
+                        "(nothing before it is seen, and the recording's stated heading no longer applies)")
+
+
+def _start_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (value >= 0.0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds >= 0")
+    return value
 
 
 def add_runtime_options(p: argparse.ArgumentParser) -> None:
@@ -126,12 +145,14 @@ def run(args: argparse.Namespace) -> int:
         injector = injector_from(args)
         summary, _ = asyncio.run(replay_async(dataset, cfg, sensors, trajectory_path=args.out, camera_processor=processor,
                                               faults=injector, duration_s=args.duration, hold=args.hold,
-                                              on_hold=lambda text: print(text, flush=True)))
+                                              on_hold=lambda text: print(text, flush=True), start_at_s=args.start_at))
         for fault in injector.report() if injector is not None else ():
             print(f"fault {fault['spec']}: {fault['samples_affected']} samples dropped or changed", flush=True)
     else:
         if args.fault:
             raise ConfigError("--fault plays faults on a replayed stream: use it with --replay")
+        if args.start_at is not None:
+            raise ConfigError("--start-at joins a replayed recording later: use it with --replay")
         summary = asyncio.run(_live(cfg, args))
     for line in summary_lines(summary):
         print(line, flush=True)

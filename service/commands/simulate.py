@@ -7,7 +7,7 @@ import importlib.util
 import time
 
 from vtolpose.drivers.files.dataset import refuse_existing_dataset
-from vtolpose.drivers.simulator import SCENARIOS, SimulationOptions, simulate_flight
+from vtolpose.drivers.simulator import SCENARIOS, SimulationOptions, make_scenario, simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
 from vtolpose.service.commands.lidar_options import add_lidar_options, lidar_from_args
@@ -25,6 +25,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "Camera frames (656 x 494 grey at 7.5 Hz, looking down, rendered from the true pose over the\n"
         "scenario's textured ground) are written when scikit-image is installed (the 'sim' extra);\n"
         "--no-camera skips them.\n\n"
+        "--start-in-flight begins the recording in the air, mid-trajectory, with no rest and no stated\n"
+        "heading (a service restarted in flight): book 20 s into the arm's motion, landfill on the first\n"
+        "survey leg 5 s before a turn (70 s in); a number of seconds picks another point.\n\n"
         "The same scenario, duration and seed always give the same bytes.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -34,15 +37,29 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DATASET", help="folder to write")
     p.add_argument("--force", action="store_true", help="replace an existing dataset in --out")
     p.add_argument("--no-camera", action="store_true", help="do not render camera frames")
-    p.add_argument("--rest", type=float, metavar="S", help="seconds at rest on the ground before the motion (default: "
-                   "the scenario's, 10 s); e.g. --rest 600 for a record that `calibrate imu` can use")
+    start = p.add_mutually_exclusive_group()
+    start.add_argument("--start-in-flight", nargs="?", type=_seconds, const=-1.0, default=None, metavar="S",
+                       help="start S seconds into the scenario's trajectory, moving (default: the scenario's in-flight point)")
+    start.add_argument("--rest", type=float, metavar="S", help="seconds at rest on the ground before the motion (default: "
+                       "the scenario's, 10 s); e.g. --rest 600 for a record that `calibrate imu` can use")
     add_lidar_options(p)
     p.set_defaults(run=run)
 
 
+def _seconds(text: str) -> float:
+    value = float(text)
+    if not (value >= 0.0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds >= 0")
+    return value
+
+
 def run(args: argparse.Namespace) -> int:
     refuse_existing_dataset(args.out, args.force)
-    flight = simulate_flight(args.scenario, args.duration, args.seed, SimulationOptions(rest_s=args.rest))
+    options = SimulationOptions(rest_s=args.rest)
+    if args.start_in_flight is not None:
+        start_s = make_scenario(args.scenario).in_flight_s if args.start_in_flight < 0.0 else args.start_in_flight
+        options = SimulationOptions(start_s=start_s)
+    flight = simulate_flight(args.scenario, args.duration, args.seed, options)
     camera = None
     if not args.no_camera:
         if importlib.util.find_spec("skimage") is None:

@@ -63,6 +63,8 @@ class QueryLimits:
 
 
 def pose_status(pose: OutputPose, quality: int) -> str:
+    if pose.initialising:
+        return "initialising"
     if not pose.position_initialized:
         return "no_position"
     if not pose.heading_aligned:

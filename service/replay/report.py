@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.estimator.metrics import evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary, pose_errors_for_nees
-from vtolpose.estimator.core.rotation import quat_to_rot
+from vtolpose.estimator.core.rotation import quat_mul, quat_to_rot, rot_to_quat, so3_exp, so3_log, yaw_of
 from vtolpose.service.replay.session import ReplayResult
 
 REPORT_VERSION = 1
@@ -29,7 +30,8 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         "estimates": int(len(traj.t_ns)),
         "initialised": est.initialized,
         "heading_aligned": est.heading_aligned,
-        "heading_source": "heading bank" if est.heading_placement is not None else "known" if est.heading_aligned else "unknown",
+        "heading_source": "heading bank" if est.heading_placement is not None else "known" if est.heading_aligned
+        else "own frame (visual-inertial start)" if est.local_position else "unknown",
         "reset_counter": est.reset_counter,
         "sensors": est.counts_report(),
         "skipped_lines": dict(dataset.skipped),
@@ -56,17 +58,27 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         report["truth"] = None
         return report
     point_b = dataset.calibration.truth_point_b
-    offset = start_offset(result, truth, point_b)
-    if offset is not None:
+    valid = traj.valid
+    if not np.any(valid):
+        report["truth"] = None
+        report["never_valid"] = "no pose could be scored: every one was initialising (not to be used) or had no position"
+        return report
+    if not np.all(valid):
+        first = int(np.argmax(valid))
+        report["first_scored_s"] = round((int(traj.t_ns[first]) - int(traj.t_ns[0])) * 1e-9, 3)
+    align = start_alignment(result, truth, point_b)
+    if align is not None:
         report["position_reference"] = {
             "kind": "start",
-            "note": "no absolute position in this sensor set: the estimate's origin is where it started, so it is "
-                    "shifted onto the truth at its first pose before scoring",
-            "offset_m": offset.tolist(),
+            "note": "no absolute position in this sensor set: the estimate's origin is where it started (and, for a "
+                    "visual-inertial start, its heading its own), so it is moved onto the truth at its first valid "
+                    "pose before scoring",
+            "offset_m": (align.target - align.pivot).tolist(),
+            "heading_deg": float(np.degrees(so3_log(align.rotation)[2])),
         }
-    shift = np.zeros(3) if offset is None else offset
-    t_data = scoring_times(result, traj.t_ns)
-    scores = evaluate(t_data, traj.p + shift, traj.q, truth, point_b)
+    align = align or StartAlignment(np.eye(3), np.zeros(3), np.zeros(3))
+    t_data = scoring_times(result, traj.t_ns[valid])
+    scores = evaluate(t_data, align.points(traj.p[valid]), align.attitudes(traj.q[valid]), truth, point_b)
     report["truth"] = "full" if truth.q is not None else "position only"
     report["position_rmse_m"] = scores["position_rmse_m"]
     if truth.q is not None:
@@ -75,7 +87,8 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
             placed = t_data >= est.heading_placement["t_ns"]
             if np.count_nonzero(placed) >= 2:
                 report["attitude_rmse_with_heading_deg"] = evaluate(
-                    t_data[placed], traj.p[placed] + shift, traj.q[placed], truth, point_b)["attitude_rmse_deg"]
+                    t_data[placed], align.points(traj.p[valid][placed]), align.attitudes(traj.q[valid][placed]), truth,
+                    point_b)["attitude_rmse_deg"]
     report["final_drift_m"] = scores["final_drift_m"]
     report["distance_travelled_m"] = scores["distance_travelled_m"]
     report["drift_percent"] = scores["drift_percent"]
@@ -88,7 +101,8 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
         report["position_rmse_over_gps"] = report["position_rmse_m"] / gps_scores["rmse_m"]
     cov = result.covariances
     if len(cov.t_ns):
-        err, c, dof = pose_errors_for_nees(scoring_times(result, cov.t_ns), cov.p + shift, cov.q, cov.cov, truth, point_b)
+        err, c, dof = pose_errors_for_nees(scoring_times(result, cov.t_ns), align.points(cov.p), align.attitudes(cov.q),
+                                           align.covariances(cov.cov), truth, point_b)
         if len(err):
             values = nees(err, c)
             summary = nees_summary(values, dof)
@@ -103,17 +117,46 @@ def scoring_times(result: ReplayResult, t_ns: np.ndarray) -> np.ndarray:
     return result.faults.source_time_ns(t_ns) if result.faults is not None else t_ns
 
 
-def start_offset(result: ReplayResult, truth, point_b: np.ndarray) -> np.ndarray | None:
-    """Shift that puts the first estimated pose on the truth, for runs that never had an absolute position."""
+@dataclass(frozen=True, slots=True)
+class StartAlignment:
+    """Moves an estimate made in a frame of its own onto the truth: a turn about world down through
+    ``pivot`` (the estimate's tracked point at its first valid pose) and a shift of it onto ``target``."""
+
+    rotation: np.ndarray
+    pivot: np.ndarray
+    target: np.ndarray
+
+    def points(self, p: np.ndarray) -> np.ndarray:
+        return self.target + (np.asarray(p) - self.pivot) @ self.rotation.T
+
+    def attitudes(self, q: np.ndarray) -> np.ndarray:
+        return quat_mul(np.broadcast_to(rot_to_quat(self.rotation), np.shape(q)), q)
+
+    def covariances(self, cov: np.ndarray) -> np.ndarray:
+        """6 × 6 [δp, δθ] covariances (world frame) seen in the moved frame."""
+        J = np.zeros((6, 6))
+        J[0:3, 0:3] = J[3:6, 3:6] = self.rotation
+        return J @ cov @ J.T
+
+
+def start_alignment(result: ReplayResult, truth, point_b: np.ndarray) -> StartAlignment | None:
+    """For runs that never had an absolute position: the shift (and, when the heading was the
+    visual-inertial start's own, the turn) that puts the first valid estimated pose on the truth."""
     est, traj = result.estimator, result.trajectory
     if est.position_initialized or len(traj.t_ns) == 0:
         return None
-    t0 = max(int(traj.t_ns[0]), int(truth.t_ns[0]))
-    k = int(np.searchsorted(traj.t_ns, t0))
-    if k >= len(traj.t_ns) or t0 > int(truth.t_ns[-1]):
+    valid = np.flatnonzero(traj.valid)
+    if len(valid) == 0:
         return None
-    p_true, _ = interpolate_poses(np.array([traj.t_ns[k]]), truth.t_ns, truth.p, truth.q)
-    return p_true[0] - (traj.p[k] + quat_to_rot(traj.q[k]) @ point_b)
+    t0 = max(int(traj.t_ns[valid[0]]), int(truth.t_ns[0]))
+    k = valid[min(int(np.searchsorted(traj.t_ns[valid], t0)), len(valid) - 1)]
+    if traj.t_ns[k] < t0 or t0 > int(truth.t_ns[-1]):
+        return None
+    p_true, q_true = interpolate_poses(np.array([traj.t_ns[k]]), truth.t_ns, truth.p, truth.q)
+    rotation = np.eye(3)
+    if not est.heading_aligned and q_true is not None:
+        rotation = so3_exp(np.array([0.0, 0.0, float(yaw_of(q_true[0]) - yaw_of(traj.q[k]))]))
+    return StartAlignment(rotation, traj.p[k] + quat_to_rot(traj.q[k]) @ point_b, p_true[0])
 
 
 def _stats(values: list[float] | np.ndarray, digits: int = 3) -> dict:

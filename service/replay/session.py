@@ -41,6 +41,11 @@ class Trajectory:
     p: np.ndarray
     v: np.ndarray
     q: np.ndarray
+    unscored: np.ndarray | None = None  # (N,) bool: initialising (not to be used), or no position yet
+
+    @property
+    def valid(self) -> np.ndarray:
+        return np.ones(len(self.t_ns), dtype=bool) if self.unscored is None else ~self.unscored
 
 
 @dataclass
@@ -57,7 +62,7 @@ class Recorder:
     """Every fused pose, and its covariance at a lower rate (called on the runtime's loop)."""
 
     def __init__(self, cov_period_ns: int, absolute_position: bool = True) -> None:
-        self._rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, bool]] = []
         self.cov_period_ns = cov_period_ns
         # Without an absolute position source the start is the origin and the covariance is
         # meaningful from the first step; with one, only once the position is initialised.
@@ -66,16 +71,18 @@ class Recorder:
         self._cov: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
 
     def record(self, pose: OutputPose) -> None:
-        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q))
-        if pose.t_ns >= self._next_cov_t and (pose.position_initialized or not self.absolute_position):
+        # A pose offered as not to be used (initialising), or before the position it is to have, is not scored.
+        unscored = pose.initialising or (self.absolute_position and not pose.position_initialized)
+        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q, unscored))
+        if not unscored and pose.t_ns >= self._next_cov_t:
             self._cov.append((pose.t_ns, pose.p, pose.q, pose.pose_cov))
             self._next_cov_t = pose.t_ns + self.cov_period_ns
 
     def trajectory(self) -> Trajectory:
         if not self._rows:
-            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)))
-        t, p, v, q = zip(*self._rows)
-        return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q))
+            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0, bool))
+        t, p, v, q, unscored = zip(*self._rows)
+        return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q), np.array(unscored, bool))
 
     def covariance_samples(self) -> CovarianceSamples:
         if not self._cov:
@@ -145,8 +152,10 @@ def replay(
     faults: Sequence[Fault] = (),
     fault_seed: int = 0,
     on_fused: Callable[[OutputPose], None] | None = None,
+    start_at_s: float | None = None,
 ) -> ReplayResult:
-    """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0), ``faults`` played on its stream."""
+    """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0), ``faults`` played on its
+    stream; ``start_at_s``: joined that far into the recording, as a service restarted in flight."""
     sensors = checked_sensors(sensors or cfg["replay.sensors"])
     notes: list[str] = []
     lidar = lidar_summary(dataset.root)
@@ -180,7 +189,7 @@ def replay(
     wall0 = time.perf_counter()
     summary, runtime = run_replay(
         dataset, cfg, sensors=sensors, speed=speed, trajectory_path=trajectory_path,
-        camera_processor=processor, handle_signals=False, faults=injector, on_progress=progress,
+        camera_processor=processor, handle_signals=False, faults=injector, on_progress=progress, start_at_s=start_at_s,
         on_fused=recorder.record if on_fused is None else lambda pose: (recorder.record(pose), on_fused(pose)),
     )
     wall = time.perf_counter() - wall0

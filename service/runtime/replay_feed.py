@@ -9,6 +9,7 @@ the machine: for IMU and GPS it equals the offline ``vtolpose.service.replay.ses
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Any, AsyncIterator, Callable, Sequence
@@ -52,6 +53,7 @@ async def replay_async(
     on_fused: Callable[[OutputPose], None] | None = None,
     faults: FaultInjector | None = None,
     on_progress: Callable[[float], None] | None = None,
+    start_at_s: float | None = None,
 ) -> tuple[RunSummary, Runtime]:
     """Replay ``dataset`` through a runtime built from ``cfg`` (outputs included); returns its summary.
 
@@ -59,6 +61,8 @@ async def replay_async(
 
     ``hold``: after the data, keep the outputs up (queries answered from the history) until stopped.
     ``faults``: played on the stream between the dataset and the runtime (``vtolpose.service.replay.faults``).
+    ``start_at_s``: join the recording this far in, as a service restarted in flight would: the
+    runtime sees nothing before it (no rest, no stated heading it could know).
     """
     sensors = checked_sensors(sensors or cfg["replay.sensors"])
     speed = cfg["replay.speed"] if speed is None else speed
@@ -69,10 +73,14 @@ async def replay_async(
         frames, load = dataset.camera_frames(), dataset.load_frame
         if not frames:
             log.warning("%s: no camera frames in the dataset; replaying IMU and GPS", dataset.root)
-    source = ReplaySource(dataset, sensors, ReplayClock(speed), stop_after_data_s, frames, load, on_progress)
+    source = ReplaySource(dataset, sensors, ReplayClock(speed), stop_after_data_s, frames, load, on_progress, start_at_s)
     origin = source.gps.origin_lla if source.gps is not None else dataset.calibration.gps.origin_lla
+    calibration = dataset.calibration
+    if start_at_s:
+        # The heading a crew stated applied at the recording's start, not to a service joining later.
+        calibration = dataclasses.replace(calibration, initial_heading_rad=None, initial_heading_sigma_rad=None)
     runtime = build_runtime(
-        cfg, dataset.calibration, origin=lambda: origin, trajectory_path=trajectory_path,
+        cfg, calibration, origin=lambda: origin, trajectory_path=trajectory_path,
         camera_processor=camera_processor, lockstep=speed == 0.0, measure_latency=measure_latency, on_fused=on_fused,
     )
     stream = inject(source, faults) if faults is not None and faults.faults else source

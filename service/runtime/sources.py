@@ -85,6 +85,7 @@ class ReplaySource:
         frames: Sequence[tuple[int, Any]] | None = None,
         load: Callable[[Any], np.ndarray | None] | None = None,
         on_progress: Callable[[float], None] | None = None,
+        start_after_s: float | None = None,
     ) -> None:
         self.imu = dataset.imu()
         self.gps = dataset.gps() if "gps" in sensors else None
@@ -96,6 +97,11 @@ class ReplaySource:
         self.load = load
         self.clock = clock
         self.stop_after_ns = None if stop_after_s is None else int(stop_after_s * 1e9)
+        # Joining the recording later (a service restarted in flight): nothing before this is played.
+        self.start_after_ns = 0 if start_after_s is None else int(round(start_after_s * 1e9))
+        if self.start_after_ns < 0 or int(self.imu.t_ns[0]) + self.start_after_ns > int(self.imu.t_ns[-1]):
+            raise ValueError(f"{dataset.root}: start {start_after_s} s is outside the recording "
+                             f"(0 to {(int(self.imu.t_ns[-1]) - int(self.imu.t_ns[0])) * 1e-9:.3f} s of IMU data)")
         self.last_arrival_ns: int | None = None
         self.unreadable_frames = 0
         self.duration_s = (int(self.imu.t_ns[-1]) - int(self.imu.t_ns[0])) * 1e-9
@@ -122,9 +128,12 @@ class ReplaySource:
         kinds, indices = merged_order(imu.t_ns, gps.t_ns if gps is not None else np.zeros(0, np.int64), frame_t)
         imu_t = imu.t_ns.tolist()
         t_end = imu_t[0] + self.stop_after_ns if self.stop_after_ns is not None else None
+        t_start = imu_t[0] + self.start_after_ns
         ahead: dict[int, asyncio.Future] = {}
         progress = self.on_progress
         for kind, i in zip(kinds.tolist(), indices.tolist()):
+            if (imu_t[i] if kind == 0 else int(gps.t_ns[i]) if kind == 1 else self.frames[i][0]) < t_start:
+                continue
             if kind == 0:
                 t = imu_t[i]
                 sample: Sample | None = ImuSample(t, imu.gyro[i], imu.accel[i])

@@ -28,11 +28,18 @@ _ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD = math.radians(0.5), math.radians(20.0)
 
 
 def pose_problem(pose: OutputPose) -> str | None:
-    """Why ``pose`` must not be used for navigation, or None: no position yet, heading not aligned,
-    a covariance that is not finite (or a negative variance), or the filter's health capping it to 0."""
-    if not pose.position_initialized:
+    """Why ``pose`` must not be used for navigation, or None: the filter is initialising (it started
+    moving and has no start it can stand on yet), no position yet, heading not aligned, a covariance
+    that is not finite (or a negative variance), or the filter's health capping it to 0.
+
+    A camera-only filter that never heard a GPS works in a frame of its own (``local_position``):
+    its origin is where it started and its heading, unless one was known, the one it started with.
+    Such a pose is usable relative to that frame, and its covariance says so (``published_cov9``)."""
+    if pose.initialising:
+        return "initialising"
+    if not (pose.position_initialized or pose.local_position):
         return "no position"
-    if not pose.heading_aligned:
+    if not (pose.heading_aligned or pose.local_position):
         return "heading not aligned"
     d = pose.cov9.diagonal().tolist()
     if not all(math.isfinite(x) and x >= 0.0 for x in d[0:3] + d[6:9]):
@@ -183,7 +190,9 @@ class StatusTracker:
         doc = {
             "sensors": sensors,
             "initialized": state is not None,
+            "initialising": state is None or est.initialising,  # no pose to use yet (quality −1)
             "heading_aligned": est.heading_aligned,
+            "local_frame": est.initialized and est.local_position,  # position (and an unknown heading) the filter's own
             "heading_sigma_deg": None if state is None else round(math.degrees(math.sqrt(est.published_cov9()[8, 8])), 3),
             "landmarks": int(state.n_landmarks) if state is not None else 0,
             "rejected": rejected,

@@ -17,6 +17,7 @@ from vtolpose.estimator.vision.frame_quality import FrameQualityOptions
 from vtolpose.estimator.health import HealthOptions
 from vtolpose.estimator.filter import FilterOptions
 from vtolpose.estimator.inertial.initializer import InitOptions
+from vtolpose.estimator.init.visual_inertial import VisualInertialOptions
 from vtolpose.estimator.vision.map_manager import MapOptions
 from vtolpose.estimator.inertial.heading_bank import HeadingBankOptions
 from vtolpose.estimator.inertial.stillness import StillnessOptions
@@ -71,6 +72,7 @@ def filter_options(cfg: dict[str, Any], calibration_noise: ImuNoise) -> FilterOp
         gps_reset_after_s=cfg["estimator.gps_reset_after_s"],
         still=StillnessOptions(**get(cfg, "estimator.stillness")),
         camera=camera_options(cfg),
+        visual_inertial=VisualInertialOptions(**get(cfg, "estimator.visual_inertial")),  # start in motion, no GPS
         health=HealthOptions(**get(cfg, "estimator.health")),  # sensor loss, divergence, IMU gaps
     )
 
