@@ -31,6 +31,7 @@ from vtolpose.estimator.inertial.motion_alignment import MotionAligner, MotionAl
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.inertial.startup import state_from_alignment, state_from_static
 from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator.smoothing.recorder import StepRecorder
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
@@ -114,6 +115,8 @@ class Estimator:
         cam = calibration.camera
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
+        # Sees every propagation (and, through the state, every update) for the smoother; None: off.
+        self.recorder: StepRecorder | None = None
 
     @property
     def initialized(self) -> bool:
@@ -182,9 +185,14 @@ class Estimator:
             # An unknown heading misplaces the horizontal acceleration by up to twice its size;
             # at rest that is nothing, so the filter can still tell it is at rest.
             extra = max(self.options.unaligned_accel_noise, 2.0 * self._horizontal_accel)
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.before_propagation(self.state)
         a_w = self.propagator.propagate(self.state, delta, extra)
         self._horizontal_accel = math.hypot(a_w[0], a_w[1])
         self.state.t_ns = delta.t1_ns
+        if recorder is not None:
+            recorder.after_propagation(self.state, self.propagator.transition)
 
     def imu_discontinuity(self, lost_s: float) -> None:
         """``lost_s`` of IMU data before the next sample were refused (stamped in the past: a backward
