@@ -2,7 +2,8 @@
 
 ``<prefix>/pose`` carries every estimate, ``<prefix>/status`` a status document once a second;
 the queryables ``<prefix>/pose/at?t_ns=…`` and ``<prefix>/trajectory?from=…;to=…`` answer from
-the bounded pose history. Queries are served on Zenoh's own threads, so the history is read
+the bounded pose history, each pose saying its ``kind`` (predicted, filtered, or smoothed once
+the fixed lag has passed). Queries are served on Zenoh's own threads, so the history is read
 under a lock the runtime also takes when it appends; an unanswerable query (time outside the
 history, a malformed parameter) gets an error reply, never silence.
 """
@@ -50,13 +51,13 @@ def _origin_json(origin: Origin) -> dict | None:
 
 
 def pose_message(pose: OutputPose, seq: int, origin: Origin) -> dict[str, Any]:
-    """The ``<prefix>/pose`` document (INTERFACES.md), plus ``fused`` and ``quality``."""
+    """The ``<prefix>/pose`` document (INTERFACES.md), plus ``fused``, ``kind`` and ``quality``."""
     quality = pose_quality(pose)
     return {
         "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(origin),
         "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.omega_b),
         "cov": _floats(pose.pose_cov.reshape(36)), "status": pose_status(pose, quality),
-        "seq": seq, "fused": pose.fused, "quality": quality,
+        "seq": seq, "fused": pose.fused, "kind": "filtered" if pose.fused else "predicted", "quality": quality,
     }
 
 
@@ -148,7 +149,7 @@ class ZenohOutput:
         doc = {
             "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(self.origin()),
             "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.w),
-            "cov": _floats(pose.cov.reshape(36)), "fused": pose.fused,
+            "cov": _floats(pose.cov.reshape(36)), "fused": pose.fused, "kind": pose.kind,
         }
         query.reply(query.key_expr, json.dumps(doc), encoding=JSON)
 
@@ -164,6 +165,6 @@ class ZenohOutput:
         doc = {
             "frame": "NED", "origin": _origin_json(self.origin()), "t_ns": window.t_ns.tolist(),
             "p": _floats(window.p), "q": _floats(window.q), "v": _floats(window.v), "w": _floats(window.w),
-            "fused": window.fused.tolist(),
+            "fused": window.fused.tolist(), "kind": window.kind.tolist(), "cov": _floats(window.cov.reshape(-1, 36)),
         }
         query.reply(query.key_expr, json.dumps(doc), encoding=JSON)
