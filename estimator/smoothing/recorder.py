@@ -104,3 +104,27 @@ class StepRecorder:
         if self._state.observer is self:
             self._state.observer = None
         self._state, self._ref_P, self._ref_x, self._ref_nominal = None, None, None, ()
+
+
+class Recorders:
+    """Several recorders on one filter (e.g. the step recorder and a reference beside it)."""
+
+    def __init__(self, *recorders: object) -> None:
+        self.recorders = recorders
+
+    def before_propagation(self, state: FilterState) -> None:
+        for r in self.recorders:
+            r.before_propagation(state)
+        state.observer = self  # updates reach all of them
+
+    def after_propagation(self, state: FilterState, F: np.ndarray) -> None:
+        for r in self.recorders:
+            r.after_propagation(state, F)
+
+    def updated(self, state: FilterState) -> None:
+        for r in self.recorders:
+            r.updated(state)
+
+    def finish(self, state: FilterState | None) -> None:
+        for r in self.recorders:
+            r.finish(state)

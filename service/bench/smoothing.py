@@ -1,0 +1,194 @@
+"""Smoothing benchmarks: accuracy of filtered, smoothed and fixed-lag poses, and what smoothing costs.
+
+``smoothing-euroc``: every EuRoC flight under ``../shared/data`` that the importer takes, imported
+with the real-flights settings (GPS 10 Hz from the truth, σ_xy 2 cm, σ_z² = 2σ_xy², seed 1),
+replayed with ``--smooth``, scored from 15 s: the three kinds side by side against the GPS, and
+the backward pass against the replay's wall time. ``smoothing-sim``: the same on simulated book
+and landfill flights, Test 1 (IMU+GPS) and Test 3 (IMU+camera+GPS). ``smoothing-landmarks``: the
+robot-block smoother against the exact full-state one on a book Test 3 flight (how much the
+marginalised landmarks cost). ``smoothing-hour``: resident memory of ``replay --smooth`` over a
+simulated hour.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.euroc_import import import_euroc
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.drivers.simulator.render import default_camera
+from vtolpose.estimator.metrics import evaluate
+from vtolpose.estimator.smoothing.full_state import FullStateRecorder
+from vtolpose.estimator.smoothing.recorder import Recorders, StepRecorder
+from vtolpose.estimator.smoothing.rts import smooth_steps
+from vtolpose.service.bench.rows import Row
+from vtolpose.service.replay.report import build_report
+from vtolpose.service.replay.session import replay
+from vtolpose.service.replay.smoothing import replay_smoothed
+from vtolpose.service.runtime.status import resident_memory_mb
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+SCORE_FROM_S = 15.0
+
+
+def _kind_rows(label: str, report: dict, targets: dict[str, str]) -> list[Row]:
+    """Position / GPS, attitude and NEES of each kind; the smoothed-over-filtered ratio; the cost."""
+    sm = report["smoothing"]
+    rows = []
+    for kind in ("filtered", "smoothed", "fixed_lag"):
+        k = sm.get(kind)
+        if k is None:
+            continue
+        name = f"{label} {kind.replace('_', '-')}"
+        if "position_rmse_over_gps" in k:
+            rows.append(Row(f"{name} position / GPS RMSE", k["position_rmse_over_gps"], "x",
+                            f"{k['position_rmse_m']:.4f} m", targets.get(f"{kind} position")))
+        else:
+            rows.append(Row(f"{name} position RMSE", k["position_rmse_m"], "m", "", None))
+        if k.get("attitude_rmse_deg") is not None:
+            rows.append(Row(f"{name} attitude RMSE", k["attitude_rmse_deg"], "deg", "", targets.get(f"{kind} attitude")))
+        if "nees" in k:
+            lo, hi = k["nees"]["band_per_sample"]
+            rows.append(Row(f"{name} NEES mean", k["nees_mean"], f"({k['nees']['dof']} dof)", f"band {lo:.2f}-{hi:.2f}"))
+    rows.append(Row(f"{label} smoothed / filtered position", sm["smoothed_over_filtered"], "x", "",
+                    targets.get("smoothed/filtered")))
+    rows.append(Row(f"{label} backward pass / replay wall time", sm["backward_over_replay"], "x",
+                    f"{sm['backward_s']:.2f} s; {sm['steps']} steps, {sm['segments']} segment(s)", "<= 0.5"))
+    return rows
+
+
+def _smoothed_report(dataset: Dataset, sensors: list[str], overrides: dict | None = None) -> dict:
+    cfg = load_config(None, overrides or {})
+    result = replay_smoothed(dataset, cfg, sensors=sensors)
+    return build_report(result, dataset, cfg, SCORE_FROM_S)
+
+
+EUROC_TARGETS = {"smoothed position": "<= 0.3", "smoothed attitude": "<= 1.0", "fixed_lag position": "<= 0.45"}
+
+
+def euroc_flights() -> list[tuple[str, Path]]:
+    """The EuRoC folders under ../shared/data: MH01 and the development flights."""
+    found = [("MH01", SHARED / "euroc_mh01")]
+    found += [(p.name, p) for p in sorted((SHARED / "euroc_dev").glob("*")) if (p / "mav0").is_dir()]
+    return [(name, path) for name, path in found if (path / "mav0" / "imu0" / "data.csv").is_file()]
+
+
+def bench_smoothing_euroc() -> list[Row]:
+    """EuRoC flights with --smooth from 15 s (targets: smoothed ≤ 0.3 × GPS and ≤ 1°, fixed lag ≤ 0.45 × GPS)."""
+    rows: list[Row] = []
+    flights = euroc_flights()
+    if not flights:
+        return [Row("EuRoC smoothing: no flights under ../shared/data (skipped)", float("nan"), "")]
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, src in flights:
+            out = Path(tmp) / name
+            try:
+                import_euroc(src, out, gps_rate_hz=10.0, gps_sigma_m=0.02, seed=1)
+            except (ValueError, FileNotFoundError, OSError) as exc:
+                rows.append(Row(f"{name}: not imported ({str(exc).splitlines()[0][:80]})", float("nan"), ""))
+                continue
+            report = _smoothed_report(Dataset.open(out), ["imu", "gps"])
+            rows += _kind_rows(name, report, EUROC_TARGETS)
+    return rows
+
+
+SIM_TARGETS = {"smoothed/filtered": "<= 0.7"}
+
+
+def bench_smoothing_sim(scenarios: tuple[tuple[str, float], ...] = (("book", 120.0), ("landfill", 300.0))) -> list[Row]:
+    """Simulated Test 1 and Test 3 with --smooth from 15 s (target: smoothed ≤ 0.7 × filtered)."""
+    rows: list[Row] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for scenario, duration in scenarios:
+            path = Path(tmp) / scenario
+            write_flight(simulate_flight(scenario, duration, 1), path, camera=default_camera())
+            dataset = Dataset.open(path)
+            for test, sensors in (("Test 1", ["imu", "gps"]), ("Test 3", ["imu", "camera", "gps"])):
+                report = _smoothed_report(dataset, sensors)
+                rows += _kind_rows(f"{scenario} {duration:g} s {test}", report, SIM_TARGETS)
+    return rows
+
+
+def bench_smoothing_landmarks(duration_s: float = 40.0) -> list[Row]:
+    """Book Test 3: the robot-block smoother against the exact full-state one (landmarks kept)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "book"
+        flight = simulate_flight("book", duration_s, 1)
+        write_flight(flight, root, camera=default_camera())
+        dataset = Dataset.open(root)
+        steps: list = []
+        held: dict = {}
+
+        def prepare(runtime) -> None:
+            held["full"] = full = FullStateRecorder(lambda: runtime.est.camera.book.ids)
+            runtime.est.recorder = Recorders(StepRecorder(steps.append), full)
+
+        t0 = time.perf_counter()
+        result = replay(dataset, load_config(), ["imu", "camera", "gps"], prepare=prepare)
+        wall = time.perf_counter() - t0
+        result.estimator.recorder.finish(result.estimator.state)
+    block = smooth_steps(steps)
+    t_full, x_full = held["full"].smooth()
+    start = int(flight.imu.t_ns[0] + SCORE_FROM_S * 1e9)
+    traj = result.trajectory
+
+    def score(t: np.ndarray, p: np.ndarray, q: np.ndarray) -> dict:
+        keep = t >= start
+        return evaluate(t[keep], p[keep], q[keep], flight.truth)
+
+    f, b, x = score(traj.t_ns, traj.p, traj.q), score(block.t_ns, block.p, block.q), score(t_full, x_full[:, 0:3], x_full[:, 6:10])
+    common = np.intersect1d(block.t_ns[block.t_ns >= start], t_full)
+    gap = x_full[np.searchsorted(t_full, common), 0:3] - block.p[np.searchsorted(block.t_ns, common)]
+    landmarks = max((r.n_landmarks for r in result.frames), default=0)
+    return [
+        Row("book Test 3 filtered position RMSE", f["position_rmse_m"], "m", f"attitude {f['attitude_rmse_deg']:.3f} deg"),
+        Row("book Test 3 robot-block smoothed position RMSE", b["position_rmse_m"], "m",
+            f"attitude {b['attitude_rmse_deg']:.3f} deg; {b['position_rmse_m'] / f['position_rmse_m']:.2f} x filtered"),
+        Row("book Test 3 full-state smoothed position RMSE", x["position_rmse_m"], "m",
+            f"attitude {x['attitude_rmse_deg']:.3f} deg; {x['position_rmse_m'] / f['position_rmse_m']:.2f} x filtered"),
+        Row("robot-block minus full-state smoothed position, RMS", float(np.sqrt(np.mean(np.sum(gap**2, axis=1)))), "m",
+            f"max {np.max(np.linalg.norm(gap, axis=1)):.4f} m; up to {landmarks} landmarks; {duration_s:g} s, "
+            f"replay with the full-state recorder {wall:.0f} s"),
+    ]
+
+
+def bench_smoothing_hour(duration_s: float = 3600.0) -> list[Row]:
+    """One hour of IMU+GPS (landfill) through replay --smooth: resident memory, disk, backward pass."""
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "hour"
+        write_flight(simulate_flight("landfill", duration_s, 1), root)
+        dataset = Dataset.open(root)
+        samples: list[float] = []
+        done = threading.Event()
+
+        def watch() -> None:
+            while not done.wait(5.0):
+                samples.append(resident_memory_mb() or float("nan"))
+
+        rss0 = resident_memory_mb() or float("nan")
+        watcher = threading.Thread(target=watch, daemon=True)
+        watcher.start()
+        try:
+            cfg = load_config(None, {"smoothing": {"temp_dir": tmp}})
+            result = replay_smoothed(dataset, cfg, out=Path(tmp) / "smoothed.txt", sensors=["imu", "gps"])
+        finally:
+            done.set()
+            watcher.join()
+    sm = result.smoothing
+    return [
+        Row("resident memory before the replay", rss0, "MB", ""),
+        Row("resident memory, max during replay --smooth", max(samples, default=float("nan")), "MB",
+            f"{len(samples)} samples every 5 s"),
+        Row("forward record on disk (deleted after)", sm.disk_bytes / 1e6, "MB", f"{sm.steps} steps"),
+        Row("replay wall time (forward, recording, fixed lag)", result.wall_s, "s",
+            f"{result.duration_s / result.wall_s:.1f} x real time"),
+        Row("backward pass", sm.backward_s, "s", f"{sm.backward_s / result.wall_s:.2f} x the replay", "<= 1800"),
+    ]
