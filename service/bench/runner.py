@@ -31,7 +31,7 @@ from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.camera import bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.smoothing import (bench_smoothing_euroc, bench_smoothing_hour, bench_smoothing_landmarks,
-                                              bench_smoothing_sim)
+                                              bench_smoothing_latency, bench_smoothing_sim)
 from vtolpose.service.replay.session import replay
 
 
@@ -100,12 +100,13 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "smoothing-sim": bench_smoothing_sim,
     "smoothing-landmarks": bench_smoothing_landmarks,
     "smoothing-hour": bench_smoothing_hour,
+    "smoothing-latency": bench_smoothing_latency,
 }
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
 LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "smoothing-euroc", "smoothing-sim",
-                   "smoothing-landmarks", "smoothing-hour")
+                   "smoothing-landmarks", "smoothing-hour", "smoothing-latency")
 
 
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:

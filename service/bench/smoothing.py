@@ -7,7 +7,8 @@ the backward pass against the replay's wall time. ``smoothing-sim``: the same on
 and landfill flights, Test 1 (IMU+GPS) and Test 3 (IMU+camera+GPS). ``smoothing-landmarks``: the
 robot-block smoother against the exact full-state one on a book Test 3 flight (how much the
 marginalised landmarks cost). ``smoothing-hour``: resident memory of ``replay --smooth`` over a
-simulated hour.
+simulated hour. ``smoothing-latency``: the daemon's pose latency with the fixed-lag smoother on
+and off, in the same run.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from vtolpose.estimator.smoothing.full_state import FullStateRecorder
 from vtolpose.estimator.smoothing.recorder import Recorders, StepRecorder
 from vtolpose.estimator.smoothing.rts import smooth_steps
 from vtolpose.service.bench.rows import Row
+from vtolpose.service.bench.runtime import latency_run
 from vtolpose.service.replay.report import build_report
 from vtolpose.service.replay.session import replay
 from vtolpose.service.replay.smoothing import replay_smoothed
@@ -192,3 +194,10 @@ def bench_smoothing_hour(duration_s: float = 3600.0) -> list[Row]:
             f"{result.duration_s / result.wall_s:.1f} x real time"),
         Row("backward pass", sm.backward_s, "s", f"{sm.backward_s / result.wall_s:.2f} x the replay", "<= 1800"),
     ]
+
+
+def bench_smoothing_latency(duration_s: float = 15.0) -> list[Row]:
+    """Pose latency (IMU in → MAVLink and Zenoh out) with the live fixed-lag smoother on, then off."""
+    rows = latency_run(duration_s, None, "fixed lag 2 s")
+    rows += latency_run(duration_s, None, "smoothing off", {"smoothing": {"fixed_lag_s": 0.0}})
+    return rows
