@@ -61,6 +61,8 @@ class _Sweep:
 
 
 class FixedLagSmoother:
+    """Feed it the recorder's steps (:meth:`add`), call :meth:`work` after each IMU sample; see the module docstring."""
+
     def __init__(self, lag_s: float, steps_per_call: int = 4, max_window_s: float = 10.0) -> None:
         if not lag_s > 0.0:
             raise ValueError(f"fixed lag must be positive, got {lag_s}")
@@ -117,6 +119,8 @@ class FixedLagSmoother:
             if done:
                 out += poses
                 self._sweep = None
+            if not used:
+                break
         return out
 
     def flush(self) -> list[SmoothedPose]:
@@ -138,7 +142,25 @@ class FixedLagSmoother:
         if first_waiting >= len(self._times) or self._times[first_waiting] > threshold:
             return False
         self._sweep = _Sweep(self._base + len(self._steps) - 1, threshold)
+        self._cache_gains()
         return True
+
+    def _cache_gains(self) -> None:
+        """Gains and corrections of every step that has a successor and none yet, in one batch."""
+        todo = []
+        for i in range(len(self._steps) - 2, -1, -1):  # the newest has no successor yet
+            if self._gains[i] is not None:
+                break  # older ones were done by an earlier sweep
+            if not self._steps[i].ends_segment:
+                todo.append(i)
+        if not todo:
+            return
+        steps, successors = [self._steps[i] for i in todo], [self._steps[i + 1] for i in todo]
+        n = steps[0].P.shape[0]
+        C, D = gains(np.array([s.P for s in steps]), np.array([s.F for s in steps]), np.array([s.P_pred for s in steps]))
+        u = error_between(np.array([s.x for s in successors]), np.array([s.x_pred for s in steps]), n)
+        for k, i in enumerate(todo):
+            self._gains[i] = (C[k], D[k], u[k])
 
     def _run(self, sweep: _Sweep, budget: int) -> tuple[bool, int, list[SmoothedPose]]:
         """Advance ``sweep`` by up to ``budget`` steps. Done: the estimates it makes final, in time order."""
