@@ -5,6 +5,10 @@ the autopilot's limits on the ODOMETRY rate, and the signing key files, checked 
 ``signing_key_file`` and ``require_signing`` beside it); ``endpoints`` adds more links, each a
 mapping ``{name, url, role, rate_hz, signing_key_file, require_signing}`` with ``role`` either
 ``autopilot`` or ``ground_station``. Why the rate limits are what they are: docs/mavlink.md.
+
+The autopilot's GPS (``sensors.gps.type: mavlink``) is read from ``sensors.gps.mavlink_url`` with its own
+``signing_key_file`` and ``require_signing``, or, when that URL is the flight controller's link, from that
+link, whose signing settings then apply (the GPS's own may only repeat them, never differ).
 """
 
 from __future__ import annotations
@@ -16,8 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-__all__ = ["AUTOPILOT_RATES", "EndpointSpec", "OUTPUT_SCHEMES", "check_mavlink", "key_file_problem",
-           "mavlink_endpoints", "parse_mavlink_url"]
+__all__ = ["AUTOPILOT_RATES", "EndpointSpec", "OUTPUT_SCHEMES", "check_gps_link", "check_mavlink", "gps_shared_link",
+           "key_file_problem", "mavlink_endpoints", "parse_mavlink_url"]
 
 OUTPUT_SCHEMES = ("udpin", "udp", "udpout", "tcp")  # udp is udpin, as pymavlink reads it
 NOT_SERVED = ("udpbcast", "tcpin")
@@ -157,3 +161,42 @@ def check_mavlink(cfg: dict[str, Any], fail: Callable[[str, str], Exception]) ->
             problem = key_file_problem(spec.signing_key_file)
             if problem is not None:
                 raise fail(f"{spec.key}.signing_key_file", problem)
+    check_gps_link(cfg, fail)
+
+
+def gps_shared_link(cfg: dict[str, Any]) -> EndpointSpec | None:
+    """The output's flight-controller link the MAVLink GPS is read from (same URL), or None for a link of its own."""
+    if not cfg["outputs.mavlink.enabled"]:
+        return None
+    primary = next((spec for spec in mavlink_endpoints(cfg) if spec.role == "autopilot"), None)
+    return primary if primary is not None and primary.url == cfg["sensors.gps.mavlink_url"] else None
+
+
+def check_gps_link(cfg: dict[str, Any], fail: Callable[[str, str], Exception]) -> None:
+    """Raise ``fail(key, problem)`` for a ``sensors.gps`` MAVLink setting that cannot work (type mavlink only)."""
+    if cfg["sensors.gps.type"] != "mavlink":
+        return
+    url, key_file, require = (cfg[f"sensors.gps.{k}"] for k in ("mavlink_url", "signing_key_file", "require_signing"))
+    if require and key_file is None:
+        raise fail("sensors.gps.require_signing", "needs sensors.gps.signing_key_file")
+    shared = gps_shared_link(cfg)
+    if shared is not None:
+        here = f"the GPS is read from the flight controller's link ({url}), checked with {shared.key}'s signing settings"
+        if key_file is not None and key_file != shared.signing_key_file:
+            raise fail("sensors.gps.signing_key_file", f"{here}: set {shared.key}.signing_key_file, not this")
+        if require and not shared.require_signing:
+            raise fail("sensors.gps.require_signing", f"{here}: set {shared.key}.require_signing: true")
+        return
+    scheme = url.partition(":")[0]
+    if scheme in ("udpout", *NOT_SERVED):
+        why = "binds no port to receive on" if scheme == "udpout" else "is not served"
+        raise fail("sensors.gps.mavlink_url", f"{url!r}: {scheme} {why}; the GPS link receives on udpin:HOST:PORT, "
+                                              "tcp:HOST:PORT or a serial port")
+    try:
+        parse_mavlink_url(url)
+    except ValueError as exc:
+        raise fail("sensors.gps.mavlink_url", str(exc)) from None
+    if key_file is not None:
+        problem = key_file_problem(key_file)
+        if problem is not None:
+            raise fail("sensors.gps.signing_key_file", problem)

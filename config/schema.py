@@ -162,6 +162,8 @@ SCHEMA: dict[str, Field] = {
     "sensors.gps.port": Field("str"),
     "sensors.gps.baud": Field("int", positive=True),
     "sensors.gps.mavlink_url": Field("str"),
+    "sensors.gps.signing_key_file": Field("str", nullable=True),
+    "sensors.gps.require_signing": Field("bool"),
     "sensors.gps.uere_m": POS,
     "sensors.gps.origin": Field("vector3", nullable=True),
     "sensors.gps.silence_timeout_s": POS,

@@ -2,7 +2,7 @@
 
 ``imu`` (Crossbow IMU400CC framing and serial driver), ``gps`` (NMEA and MAVLink receivers,
 geodetic → local NED), ``camera`` (libdc1394 for the Marlin, OpenCV for anything else),
-``files`` (the dataset layout, CSV, TUM, dataset.yaml, the EuRoC importer), ``links`` (serial
-ports and the MAVLink 2 wire), ``simulator`` (flights with exact truth) and ``emulators``
+``files`` (the dataset layout, CSV, TUM, dataset.yaml, LIDAR returns, the EuRoC importer), ``links`` (serial
+ports and the MAVLink 2 wire), ``simulator`` (flights with exact truth, and their LIDAR) and ``emulators``
 (the devices on pseudo-terminals, for tests).
 """

@@ -4,6 +4,6 @@
 replay alike, its wiring from configuration, status and health), ``outputs`` (MAVLink to the
 flight controller, Zenoh for the mapper and its client, the trajectory file, flight
 recording), ``replay`` (offline replays, their report, fault injection, overlays, progress),
-``calibration`` (calibration results as YAML and plots), ``bench`` (the benchmarks) and
-``commands`` (one module per subcommand).
+``calibration`` (calibration results as YAML and plots), ``bench`` (the benchmarks),
+``mapping`` (the reference LIDAR mapper) and ``commands`` (one module per subcommand).
 """

@@ -20,6 +20,7 @@ import yaml
 from vtolpose.drivers.files.calibration_yaml import DATASET_FORMAT, CalibrationError, calibration_from_yaml, calibration_to_yaml, load_yaml_file
 from vtolpose.drivers.files.csvio import read_numeric_csv, write_numeric_csv
 from vtolpose.drivers.files.frames_csv import load_grey, read_frame_index, write_frame_index, write_png
+from vtolpose.drivers.files.lidar import LIDAR_CSV, LidarReturns, read_lidar, write_lidar
 from vtolpose.drivers.files.series import GpsSeries, ImuSeries, TruthSeries
 from vtolpose.estimator.core.calibration import Calibration
 
@@ -160,6 +161,13 @@ class Dataset:
             return TruthSeries(t, v)
         return None
 
+    def lidar(self) -> LidarReturns | None:
+        """The LIDAR's returns and scanner (``mav0/lidar0``, not fused: for the mapper), or None."""
+        returns = read_lidar(self.root)
+        if returns is not None:
+            self.skipped[LIDAR_CSV] = returns.skipped
+        return returns
+
 
 def _gps_frame(path: Path) -> str:
     if not path.is_file():
@@ -257,3 +265,7 @@ class DatasetWriter:
         values = np.hstack([truth.p, truth.q, truth.v, bg, ba])
         formats = ["%.9f"] * 3 + ["%.12f"] * 4 + ["%.9f"] * 9
         write_numeric_csv(self.root / GT_CSV, GT_HEADER, truth.t_ns, values, formats)
+
+    def write_lidar(self, returns: LidarReturns) -> None:
+        """Every return as ``lidar0/data.csv`` and the scanner with its mounting as ``lidar0/sensor.yaml``."""
+        write_lidar(self.root, returns)

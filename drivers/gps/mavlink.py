@@ -7,40 +7,85 @@ MAVLink 2 extensions) when set, else ``eph``/``epv`` (DOP × 100) × UERE. Heigh
 ellipsoidal ``alt_ellipsoid`` when given, else MSL ``alt``. Fixes below 3-D, repeats of the same
 receiver time, messages without any accuracy figure, and positions off the globe (latitude beyond
 ±90°, longitude beyond ±180°: a corrupted or uninitialised message) are counted and skipped.
+
+The link is built from the MAVLink output's parts (:mod:`vtolpose.drivers.links`): a non-blocking
+transport, and whole frames checked by :class:`~vtolpose.drivers.links.mavlink_frames.Inbound` (with a
+key, a signature is verified before its stream's timestamp moves; with ``require_signing``, unsigned,
+forged, replayed and unknown-id messages are refused and counted). Only the configured system's
+messages are used; other known message ids are counted and skipped without being decoded.
+
+The reader spends at most ``READ_BUDGET_S`` of its thread's CPU time in one go and at most
+``MAX_CPU_SHARE`` of a core over time (a budget that refills at that rate; spent, the reader sleeps until
+it is whole again), however the input is paced. Frames already read when the budget runs out wait
+for the next slice (at most ``MAX_HELD_FRAMES``). What a flood crowds out is dropped, by the kernel or
+here, and counted (``kernel_dropped_datagrams``, ``frames_dropped_over_budget``), never queued without
+bound: a flood beyond the budget costs fixes (the GPS goes stale, and the status says so), never more
+of the process's time than that share.
+The driver never sends; a ``udpin`` link remembers at most ``MAX_PEERS`` senders of valid fixes (for
+the report), however many addresses send.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import select
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
+from vtolpose.config import ConfigError
 from vtolpose.drivers.gps.common import GpsReading, LocalNed, dop_sigmas, horizontal_per_axis
+from vtolpose.drivers.links.mavlink_frames import Inbound, frame_header
+from vtolpose.drivers.links.mavlink_signing import SigningKeyError, read_signing_key
+from vtolpose.drivers.links.mavlink_transport import open_transport
 from vtolpose.drivers.links.mavlink_wire import ensure_mavlink2, mavutil
 from vtolpose.estimator.core.measurements import GpsFix
 
-__all__ = ["GPS_FIX_TYPE_3D", "MavlinkGps", "MavlinkGpsConfig"]
+__all__ = ["GPS_FIX_TYPE_3D", "MavlinkGps", "MavlinkGpsConfig", "mavutil"]
 
 log = logging.getLogger(__name__)
 
+mav = mavutil.mavlink
 GPS_FIX_TYPE_3D = 3
 UNKNOWN_DOP = 65535
+GPS_RAW_INT_ID = mav.MAVLINK_MSG_ID_GPS_RAW_INT
+READ_BUDGET_S = 0.001  # most CPU time the reader spends in one go
+MAX_CPU_SHARE = 0.2  # ... and over time: its budget refills at this many CPU seconds per second
+READ_BATCH = 4  # datagrams (or stream reads) taken at once
+MAX_HELD_FRAMES = 1024  # frames read but not yet handled when a slice's budget ran out; more are dropped, counted
+CONNECT_POLL_S = 0.05  # a serial port or TCP link not (yet) open: look again this often
+MAX_PEERS = 4  # udpin senders of valid fixes remembered
+PEER_TIMEOUT_S = 10.0
+WORTH_A_WARNING = ("refused_", "kernel_dropped", "frames_dropped", "read_budget", "peers_refused")  # counters
 
 
 @dataclass(slots=True)
 class MavlinkGpsConfig:
-    url: str                                  # pymavlink connection string, e.g. udpin:0.0.0.0:14550
+    url: str                                  # udpin:HOST:PORT, tcp:HOST:PORT or /dev/ttyX[,BAUD]
     uere_m: float = 4.0
     origin: tuple[float, float, float] | None = None
     system_id: int | None = None              # only this vehicle's messages (None: any)
+    signing_key: bytes | None = None          # 32 bytes: signed messages are checked with it
+    require_signing: bool = False             # refuse every message not signed with the key
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], url: str | None = None) -> "MavlinkGpsConfig":
+        """From ``sensors.gps.*`` and ``vehicle.system_id``; ConfigError naming the key of an unusable signing key."""
         origin = cfg["sensors.gps.origin"]
+        key_file = cfg["sensors.gps.signing_key_file"]
+        key = None
+        if key_file is not None:
+            try:
+                key = read_signing_key(key_file)
+            except SigningKeyError as exc:
+                raise ConfigError(f"key 'sensors.gps.signing_key_file': {exc}") from None
+        if cfg["sensors.gps.require_signing"] and key is None:
+            raise ConfigError("key 'sensors.gps.require_signing': needs sensors.gps.signing_key_file")
         return cls(url or cfg["sensors.gps.mavlink_url"], cfg["sensors.gps.uere_m"],
-                   None if origin is None else tuple(origin), cfg.get("vehicle.system_id"))
+                   None if origin is None else tuple(origin), cfg.get("vehicle.system_id"), key,
+                   cfg["sensors.gps.require_signing"])
 
 
 class MavlinkGps:
@@ -48,24 +93,31 @@ class MavlinkGps:
         self.config = config
         self._clock = clock
         self.local = LocalNed(config.origin)
-        self.counts: Counter[str] = Counter()
+        self.counts: Counter[str] = Counter()  # the link's one book: conversion, frame checks and transport
         self.status = "closed"
-        self._conn: Any = None
+        self.inbound = Inbound(config.signing_key, config.require_signing)
+        self.inbound.counts = self.counts
+        self._transport: Any = None
+        self._cpu_left, self._refilled_at = READ_BUDGET_S, time.monotonic()  # the reader's CPU budget [s]
+        self._held: deque[tuple[bytes, Any]] = deque()  # frames read but not yet handled (budget ran out)
+        self._reported: set[str] = set()  # link counters already logged once
         self._last_time_usec: int | None = None
 
     def open(self) -> None:
-        """Open the MAVLink endpoint (a UDP/TCP socket or serial port); raises OSError on failure."""
+        """Open the link (a UDP/TCP socket or serial port); OSError when a UDP port cannot be bound,
+        ValueError for a malformed URL. A serial port or TCP peer that is not there yet is retried with back-off."""
         ensure_mavlink2()
-        self._conn = mavutil.mavlink_connection(self.config.url, autoreconnect=True)
+        self._transport = open_transport(self.config.url, MAX_PEERS, PEER_TIMEOUT_S)
+        self._transport.counts = self.counts
+        if self._transport.stream:
+            self._transport.service()
         self.status = "listening"
 
     def close(self) -> None:
-        if self._conn is not None:
-            try:
-                self._conn.close()
-            except OSError as exc:  # the link is gone already; closing is all that was asked
-                log.debug("MAVLink GPS link close: %s", exc)
-        self._conn = None
+        if self._transport is not None:
+            self._transport.close()
+        self._transport = None
+        self._held.clear()
         self.status = "closed"
 
     def __enter__(self) -> "MavlinkGps":
@@ -74,28 +126,94 @@ class MavlinkGps:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @property
+    def peers(self) -> list[Any]:
+        """The senders of valid fixes remembered (a ``udpin`` link: at most ``MAX_PEERS``)."""
+        return [] if self._transport is None else self._transport.peers
+
     def read(self, timeout_s: float = 0.1) -> list[GpsReading]:
-        """``GPS_RAW_INT`` fixes received within ``timeout_s``; never raises for I/O."""
+        """Fixes of the first slice that gave any, waiting up to ``timeout_s``; never raises for I/O."""
         out: list[GpsReading] = []
-        if self._conn is None:
+        transport = self._transport
+        if transport is None:
             time.sleep(timeout_s)
             return out
         deadline = time.monotonic() + timeout_s
         while True:
-            left = deadline - time.monotonic()
             try:
-                msg = self._conn.recv_match(type="GPS_RAW_INT", blocking=left > 0, timeout=max(left, 0.0))
-            except OSError as exc:
+                transport.service()  # (re)open a serial port or TCP link when its back-off allows
+                if transport.stream and not transport.connected:
+                    self.status = f"waiting for {self.config.url} ({transport.counts['open_failures']} failed opens)"
+                now = time.monotonic()
+                self._cpu_left = min(READ_BUDGET_S, self._cpu_left + (now - self._refilled_at) * MAX_CPU_SHARE)
+                self._refilled_at = now
+                if self._cpu_left <= 0.0:  # its share is spent: leave the time to others until the budget is whole
+                    time.sleep(max(0.0, min((READ_BUDGET_S - self._cpu_left) / MAX_CPU_SHARE, deadline - now)))
+                elif self._held or self._readable(transport, deadline - now):
+                    self._cpu_left -= self._slice(transport, out, self._cpu_left)
+            except (OSError, ValueError) as exc:  # a socket or port error; ValueError: a port closed under us
                 self.counts["link_errors"] += 1
                 self.status = f"link error: {exc}"
+                time.sleep(max(0.0, min(CONNECT_POLL_S, deadline - time.monotonic())))
+            if out or time.monotonic() >= deadline:
+                self._log_new_refusals()
                 return out
-            if msg is None:
-                return out
-            reading = self.convert(msg, self._clock())
-            if reading is not None:
-                out.append(reading)
-            if left <= 0:
-                return out
+
+    @staticmethod
+    def _readable(transport: Any, wait_s: float) -> bool:
+        fd = transport.fileno()
+        if fd is None:  # a stream link that is not open (yet)
+            time.sleep(max(0.0, min(wait_s, CONNECT_POLL_S)))
+            return False
+        poller = select.poll()  # not select(): a daemon's descriptors may number past FD_SETSIZE
+        poller.register(fd, select.POLLIN)
+        return bool(poller.poll(max(0, math.ceil(wait_s * 1000))))
+
+    def _slice(self, transport: Any, out: list[GpsReading], budget_s: float) -> float:
+        """Handle waiting frames until ``budget_s`` of this thread's own CPU time is spent (time spent
+        preempted, or waiting for the interpreter lock, is not work); the CPU time it took. Frames already
+        read when the budget runs out are held for the next slice, at most ``MAX_HELD_FRAMES``."""
+        start = time.thread_time()
+        deadline = start + budget_s
+        waiting = True  # the transport may have more
+        while True:
+            while self._held:
+                frame, peer = self._held.popleft()
+                reading = self._take(frame, peer)
+                if reading is not None:
+                    out.append(reading)
+                if time.thread_time() >= deadline:
+                    self.counts["read_budget_exhausted"] += 1
+                    return time.thread_time() - start
+            if not waiting:
+                return time.thread_time() - start
+            frames, waiting = transport.receive(READ_BATCH)
+            room = MAX_HELD_FRAMES - len(self._held)
+            if len(frames) > room:
+                self.counts["frames_dropped_over_budget"] += len(frames) - room
+                del frames[room:]
+            self._held.extend(frames)
+
+    def _take(self, frame: bytes, peer: Any) -> GpsReading | None:
+        msg_id, _, _, signed = frame_header(frame)
+        if msg_id != GPS_RAW_INT_ID and msg_id in mav.mavlink_map and (signed or not self.inbound.require_signing):
+            self.counts["other_messages"] += 1  # not decoded: nothing in it is used here
+            return None
+        msg = self.inbound.accept(frame)  # GPS_RAW_INT, or a frame to refuse (unsigned, unknown id)
+        if msg is None:
+            return None
+        reading = self.convert(msg, self._clock())
+        if self.config.system_id is None or msg.get_srcSystem() == self.config.system_id:
+            self._transport.confirm_peer(peer)
+        return reading
+
+    def _log_new_refusals(self) -> None:
+        """The first time each kind of refusal or loss happens, say so; the counters keep the totals."""
+        for name, count in list(self.counts.items()):
+            if name not in self._reported and name.startswith(WORTH_A_WARNING):
+                self._reported.add(name)
+                log.warning("MAVLink GPS link %s: %s (%d so far; counted from now on)", self.config.url,
+                            name.replace("_", " "), count)
 
     def convert(self, msg: Any, t_ns: int) -> GpsReading | None:
         if self.config.system_id is not None and msg.get_srcSystem() != self.config.system_id:

@@ -6,8 +6,9 @@ never block the caller: a stream transport keeps at most ``MAX_PENDING`` unsent 
 whole frames beyond that (counted). A listening UDP transport sends to the peers that have sent
 valid MAVLink (the caller says which, :meth:`UdpTransport.confirm_peer`), at most ``max_peers`` of
 them; a peer silent for ``peer_timeout_s`` gives its place to a newcomer. A sending UDP transport only
-takes datagrams from the address it sends to. Stream transports open (and reopen a lost device or
-connection) in the background with back-off.
+takes datagrams from the address it sends to. Datagrams the kernel had to drop because the socket's
+buffer was full (a flood) are counted where the system says (Linux: ``kernel_dropped_datagrams``).
+Stream transports open (and reopen a lost device or connection) in the background with back-off.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import logging
 import os
 import select
 import socket
+import sys
 import time
 from collections import Counter
 from typing import Any, Callable
@@ -33,6 +35,7 @@ MAX_PENDING = 8192  # unsent bytes a stream transport holds before it drops whol
 READ_CHUNK = 4096
 UDP_MAX = 65535
 _AGAIN = (errno.EAGAIN, errno.EWOULDBLOCK)
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)  # Linux: each datagram carries the socket's drop count
 
 Frames = list[tuple[bytes, Any]]  # (frame, peer)
 
@@ -62,6 +65,30 @@ class UdpTransport:
         except OSError:
             self.sock.close()
             raise
+        self._ancillary = self._ask_for_drop_counts()
+        self._kernel_drops = 0  # the socket's drop count as last reported
+
+    def _ask_for_drop_counts(self) -> int:
+        """Room for the drop count the kernel attaches to each datagram, or 0 where it cannot."""
+        if not sys.platform.startswith("linux"):
+            return 0
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+        except OSError:
+            return 0
+        return socket.CMSG_SPACE(4)
+
+    def _recv(self) -> tuple[bytes, Any]:
+        if not self._ancillary:
+            return self.sock.recvfrom(UDP_MAX)
+        data, ancillary, _, address = self.sock.recvmsg(UDP_MAX, self._ancillary)
+        for level, kind, value in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
+                total = int.from_bytes(value[:4], sys.byteorder)  # dropped since the socket opened
+                if total > self._kernel_drops:
+                    self.counts["kernel_dropped_datagrams"] += total - self._kernel_drops
+                    self._kernel_drops = total
+        return data, address
 
     def fileno(self) -> int:
         return self.sock.fileno()
@@ -71,7 +98,7 @@ class UdpTransport:
         frames: Frames = []
         for _ in range(max_datagrams):
             try:
-                data, address = self.sock.recvfrom(UDP_MAX)
+                data, address = self._recv()
             except BlockingIOError:
                 return frames, False
             except OSError as exc:  # ICMP port unreachable from an earlier send, and the like

@@ -2,7 +2,8 @@
 
 ``simulate_flight(scenario, duration_s, seed, options)`` returns arrays and a calibration; the
 dataset writer (``vtolpose.drivers.files.dataset``) puts them on disk and a renderer can later draw camera
-frames from ``flight.trajectory`` over ``flight.scenario.ground_height``.
+frames from ``flight.trajectory`` over ``flight.scenario.ground_height``; ``lidar.simulate_lidar``
+casts a line scanner's beams against the same ground.
 """
 
 from vtolpose.drivers.simulator.flight import (

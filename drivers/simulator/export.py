@@ -6,6 +6,7 @@ import dataclasses
 from pathlib import Path
 
 from vtolpose.drivers.files.dataset import DatasetWriter, refuse_existing_dataset
+from vtolpose.drivers.files.lidar import LidarReturns
 from vtolpose.drivers.simulator.flight import SimulatedFlight
 from vtolpose.drivers.simulator.render import RenderOptions, render_frames
 from vtolpose.estimator.core.calibration import CameraCalibration
@@ -17,12 +18,14 @@ def write_flight(
     overwrite: bool = False,
     camera: CameraCalibration | None = None,
     render_options: RenderOptions | None = None,
+    lidar: LidarReturns | None = None,
 ) -> Path:
     """Dataset with IMU, GPS (WGS84 when the scenario has a geodetic origin) and full truth.
 
     With ``camera`` the frames are rendered (``vtolpose.drivers.simulator.render``, needs scikit-image)
     into ``mav0/cam0`` and the camera's calibration goes into ``dataset.yaml``; IMU, GPS and
-    truth are byte for byte the same either way.
+    truth are byte for byte the same either way. With ``lidar`` (``drivers.simulator.lidar.simulate_lidar``)
+    its returns go into ``mav0/lidar0``.
     """
     out = Path(out)
     refuse_existing_dataset(out, overwrite)
@@ -35,4 +38,6 @@ def write_flight(
     writer.write_truth(flight.truth)
     if camera is not None:
         writer.write_camera_frames(render_frames(flight, camera, render_options))
+    if lidar is not None:
+        writer.write_lidar(lidar)
     return out

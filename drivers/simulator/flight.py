@@ -3,7 +3,7 @@
 ``simulate_flight`` is what ``vtolpose simulate`` calls; writing the dataset is
 ``vtolpose.drivers.files.dataset``'s job. Determinism: each sensor draws from its own PCG64 stream, seeded by
 ``SeedSequence(seed, spawn_key=(stream,))`` with a fixed stream number per sensor, so the same
-seed gives identical arrays and a sensor added later (camera: stream 2) changes nothing else.
+seed gives identical arrays and a sensor added later (camera: stream 2, LIDAR: 4) changes nothing else.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ STREAM_IMU = 0
 STREAM_GPS = 1
 STREAM_CAMERA = 2  # reserved for the renderer
 STREAM_HEADING = 3
+STREAM_LIDAR = 4  # the LIDAR's range noise (drivers.simulator.lidar)
 
 
 @dataclass(frozen=True, slots=True)

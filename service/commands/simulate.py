@@ -10,6 +10,7 @@ from vtolpose.drivers.files.dataset import refuse_existing_dataset
 from vtolpose.drivers.simulator import SCENARIOS, SimulationOptions, simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
+from vtolpose.service.commands.lidar_options import add_lidar_options, lidar_from_args
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -35,6 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-camera", action="store_true", help="do not render camera frames")
     p.add_argument("--rest", type=float, metavar="S", help="seconds at rest on the ground before the motion (default: "
                    "the scenario's, 10 s); e.g. --rest 600 for a record that `calibrate imu` can use")
+    add_lidar_options(p)
     p.set_defaults(run=run)
 
 
@@ -49,9 +51,11 @@ def run(args: argparse.Namespace) -> int:
             camera = default_camera()
             print(f"rendering {int(args.duration * camera.rate_hz)} camera frames "
                   f"({camera.width} x {camera.height} at {camera.rate_hz:g} Hz) ...")
+    lidar = lidar_from_args(args, flight)
     started = time.perf_counter()
-    out = write_flight(flight, args.out, overwrite=args.force, camera=camera)
+    out = write_flight(flight, args.out, overwrite=args.force, camera=camera, lidar=lidar)
     print(f"wrote {out}: {flight.description}")
     frames = f", camera frames in {time.perf_counter() - started:.1f} s" if camera is not None else ", no camera"
-    print(f"  imu {len(flight.imu.t_ns)} samples, gps {len(flight.gps.t_ns)} fixes, truth {len(flight.truth.t_ns)} poses{frames}")
+    scans = f", lidar {len(lidar)} returns ({lidar.spec.model})" if lidar is not None else ""
+    print(f"  imu {len(flight.imu.t_ns)} samples, gps {len(flight.gps.t_ns)} fixes, truth {len(flight.truth.t_ns)} poses{frames}{scans}")
     return 0

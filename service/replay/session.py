@@ -18,6 +18,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.lidar import lidar_summary
 from vtolpose.estimator.vision.camera_pipeline import FrameReport
 from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
 from vtolpose.estimator.filter import Estimator
@@ -152,6 +153,10 @@ def replay(
     ``prepare(runtime)`` runs once the runtime is built (``replay --smooth`` attaches its recorder there)."""
     sensors = checked_sensors(sensors or cfg["replay.sensors"])
     notes: list[str] = []
+    lidar = lidar_summary(dataset.root)
+    if lidar is not None:  # an extra stream the estimator does not fuse: said, not read
+        notes.append(f"{lidar['stream']}: {lidar['lines']} returns of the {lidar['model']} passed through, not fused "
+                     "(map them with `vtolpose map`)")
     for name in [s for s in sensors if s != "imu"]:
         reason = missing_sensor(dataset, name)
         if reason is not None:

@@ -4,7 +4,8 @@ Each blocking driver is read on its own thread (:class:`~vtolpose.service.runtim
 device that cannot be opened at start is retried by its driver (with back-off) while the
 others run; only a camera marked ``required`` stops the start. The autopilot's GPS can share
 the MAVLink output link (``sensors.gps.mavlink_url`` equal to ``outputs.mavlink.url``): its
-``GPS_RAW_INT`` messages are then taken from that link rather than a second connection.
+``GPS_RAW_INT`` messages are then taken from that link, under that link's signing settings, rather than
+a second connection (config/mavlink.py refuses GPS signing settings that differ from the link's).
 """
 
 from __future__ import annotations
