@@ -31,7 +31,7 @@ from vtolpose.estimator.inertial.motion_alignment import MotionAligner, MotionAl
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.inertial.startup import state_from_alignment, state_from_static
 from vtolpose.estimator.core.state import FilterState, StateLayout
-from vtolpose.estimator.smoothing.recorder import StepRecorder
+from vtolpose.estimator.smoothing.recorder import FilterRecorder
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
@@ -116,7 +116,7 @@ class Estimator:
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
         # Sees every propagation (and, through the state, every update) for the smoother; None: off.
-        self.recorder: StepRecorder | None = None
+        self.recorder: FilterRecorder | None = None
 
     @property
     def initialized(self) -> bool:

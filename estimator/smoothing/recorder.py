@@ -17,12 +17,21 @@ A reset therefore splits the smoothing into segments; each is smoothed on its ow
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Protocol
 
 import numpy as np
 
 from vtolpose.estimator.core.state import FilterState
 from vtolpose.estimator.smoothing.steps import Step, pack_nominal
+
+
+class FilterRecorder(Protocol):
+    """What the estimator calls (``Estimator.recorder``); :class:`StepRecorder` is the one in use."""
+
+    def before_propagation(self, state: FilterState) -> None: ...
+    def after_propagation(self, state: FilterState, F: np.ndarray) -> None: ...
+    def updated(self, state: FilterState) -> None: ...
+    def finish(self, state: FilterState | None) -> None: ...
 
 
 class StepRecorder:

@@ -49,29 +49,43 @@ class StepFiles:
     """Steps written a chunk per ``.npy`` set in a temporary folder, read back newest chunk first."""
 
     def __init__(self, chunk_steps: int, folder: str | None = None) -> None:
-        self._dir = tempfile.TemporaryDirectory(prefix="vtolpose-smooth-", dir=folder)
+        try:
+            self._dir = tempfile.TemporaryDirectory(prefix="vtolpose-smooth-", dir=folder)
+        except OSError as exc:
+            raise OSError(f"key 'smoothing.temp_dir': cannot make a folder for the forward record in "
+                          f"{folder or tempfile.gettempdir()}: {exc}") from None
         self.root = Path(self._dir.name)
         self._builder = ChunkBuilder(self._write, chunk_steps)
         self.chunks = 0
         self.bytes = 0
+        self.error: OSError | None = None  # the first write that failed (a full disk): recording stopped there
 
     @property
     def steps(self) -> int:
         return self._builder.steps
 
     def add(self, step: Step) -> None:
-        self._builder.add(step)
+        if self.error is None:
+            self._builder.add(step)
 
     def _write(self, chunk: StepChunk) -> None:
         folder = self.root / f"{self.chunks:06d}"
-        folder.mkdir()
-        for name, array in chunk.arrays().items():
-            np.save(folder / f"{name}.npy", array)
-            self.bytes += array.nbytes
+        try:
+            folder.mkdir()
+            for name, array in chunk.arrays().items():
+                np.save(folder / f"{name}.npy", array)
+                self.bytes += array.nbytes
+        except OSError as exc:  # the filter goes on; the smoothing cannot, and says why at the end
+            self.error = exc
+            return
         self.chunks += 1
 
     def newest_first(self) -> Iterator[StepChunk]:
-        self._builder.flush()
+        if self.error is None:
+            self._builder.flush()
+        if self.error is not None:
+            raise OSError(f"the forward record for smoothing could not be written to {self.root} "
+                          f"({self.error}); set smoothing.temp_dir to a folder with room (~5.7 kB per filter step)")
         for k in range(self.chunks - 1, -1, -1):
             folder = self.root / f"{k:06d}"
             yield StepChunk(*(np.load(folder / f"{name}.npy") for name in StepChunk.FIELDS))

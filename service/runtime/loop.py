@@ -206,9 +206,13 @@ class Runtime:
                 self.history.add_predicted(pose.t_ns, row)
         fusion.advance()  # the delayed filter's work, after the pose has left
         if self.smoother is not None:  # then a bounded slice of the fixed-lag smoother's
-            smoothed = self.smoother.work()
-            if smoothed:
-                self._on_smoothed(smoothed)
+            try:
+                smoothed = self.smoother.work()
+                if smoothed:
+                    self._on_smoothed(smoothed)
+            except Exception as exc:  # the history keeps its filtered poses; the pose path is untouched
+                self.failures.record("fixed-lag smoother (stopped)", exc)
+                self.smoother = None
 
     # -------------------------------------------------------------------------- smoothing
     def enable_smoothing(self, lag_s: float, steps_per_sample: int = 4, max_window_s: float = 10.0,
@@ -226,10 +230,14 @@ class Runtime:
             return
 
         def fan_out(step: Step) -> None:
-            for sink in sinks:
-                sink(step)
+            for sink in list(sinks):
+                try:
+                    sink(step)
+                except Exception as exc:  # a smoother's failure must never cost the filter its step
+                    self.failures.record("smoothing step sink (stopped)", exc)
+                    sinks.remove(sink)
 
-        self._step_recorder = self.est.recorder = StepRecorder(sinks[0] if len(sinks) == 1 else fan_out)
+        self._step_recorder = self.est.recorder = StepRecorder(fan_out)
 
     def finish_smoothing(self) -> None:
         """End of the data, after the fusion flush: the last segment closes, the rest is smoothed (once)."""
