@@ -26,7 +26,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="run the estimator over a dataset, write the trajectory and a report",
         description="Replay a dataset through the onboard runtime (the same one `vtolpose run` uses), as\n"
         "fast as the machine allows or paced with --speed, optionally with the MAVLink and Zenoh\n"
-        "outputs switched on. Writes the filtered trajectory (TUM: t x y z qx qy qz qw, NED/FRD) and a JSON report with\n"
+        "outputs switched on. Writes the filtered trajectory (TUM: t x y z qx qy qz qw, NED/FRD; with --smooth the\n"
+        "smoothed one, docs/smoothing.md) and a JSON report with\n"
         "accuracy against the dataset's truth (if any), consistency (NEES), speed and every\n"
         "fused/rejected measurement count.\n\n"
         "Sensor sets: imu,gps (thesis Test 1); imu,camera (Test 2); imu,camera,gps (Test 3).\n\n"
