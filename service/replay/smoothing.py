@@ -5,8 +5,11 @@ During the replay the runtime records one step per filter propagation
 temporary folder, so memory stays at one chunk whatever the flight's length (an hour at
 100 Hz is ~360 000 steps, ~2 GB on disk). The runtime's fixed-lag smoother runs as it would in
 the daemon and its poses are kept for the report. After the replay, :meth:`ReplaySmoothing.backward`
-reads the chunks newest first, runs the RTS pass over them, and writes the smoothed trajectory
-(TUM) and, if asked, its pose covariance per line, in time order.
+reads the chunks newest first and runs the RTS pass over them, each smoothed chunk going back to
+disk as it comes; then reads those oldest first to write the smoothed trajectory (TUM) and, if
+asked, its pose covariance per line, in time order. What stays in memory is one chunk, the
+smoothed times, positions, velocities and attitudes (88 bytes a pose, for scoring) and the
+covariances sampled for the NEES check.
 """
 
 from __future__ import annotations
@@ -20,11 +23,11 @@ from typing import Any, Iterator
 import numpy as np
 
 from vtolpose.drivers.files.csvio import seconds_text
+from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.tum import tum_line
 from vtolpose.estimator.smoothing.fixed_lag import SmoothedPose
 from vtolpose.estimator.smoothing.rts import BackwardPass, SmoothedChunk
 from vtolpose.estimator.smoothing.steps import ChunkBuilder, Step, StepChunk
-from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory, replay
 
 COV_HEADER = "# t [s], upper triangle of the 6x6 covariance of [dp (m), dtheta (rad, world frame)], row by row\n"
@@ -43,6 +46,20 @@ class SmoothingOptions:
     def from_config(cls, cfg: dict[str, Any]) -> "SmoothingOptions":
         return cls(*(cfg[f"smoothing.{k}"] for k in ("fixed_lag_s", "steps_per_sample", "max_window_s", "chunk_steps",
                                                      "temp_dir")))
+
+
+def _save(folder: Path, arrays: dict[str, np.ndarray]) -> int:
+    folder.mkdir()
+    for name, array in arrays.items():
+        np.save(folder / f"{name}.npy", array)
+    return sum(a.nbytes for a in arrays.values())
+
+
+def _load(folder: Path, names: tuple[str, ...]) -> list[np.ndarray]:
+    return [np.load(folder / f"{name}.npy") for name in names]
+
+
+_SMOOTHED_FIELDS = ("t_ns", "x", "pose_cov", "vel_var", "segment")
 
 
 class StepFiles:
@@ -69,12 +86,8 @@ class StepFiles:
             self._builder.add(step)
 
     def _write(self, chunk: StepChunk) -> None:
-        folder = self.root / f"{self.chunks:06d}"
         try:
-            folder.mkdir()
-            for name, array in chunk.arrays().items():
-                np.save(folder / f"{name}.npy", array)
-                self.bytes += array.nbytes
+            self.bytes += _save(self.root / f"{self.chunks:06d}", chunk.arrays())
         except OSError as exc:  # the filter goes on; the smoothing cannot, and says why at the end
             self.error = exc
             return
@@ -87,8 +100,7 @@ class StepFiles:
             raise OSError(f"the forward record for smoothing could not be written to {self.root} "
                           f"({self.error}); set smoothing.temp_dir to a folder with room (~5.7 kB per filter step)")
         for k in range(self.chunks - 1, -1, -1):
-            folder = self.root / f"{k:06d}"
-            yield StepChunk(*(np.load(folder / f"{name}.npy") for name in StepChunk.FIELDS))
+            yield StepChunk(*_load(self.root / f"{k:06d}", StepChunk.FIELDS))
 
     def close(self) -> None:
         self._dir.cleanup()
@@ -141,7 +153,7 @@ class ReplaySmoothing:
         self.options = options
         self.files = StepFiles(options.chunk_steps, options.temp_dir)
         self.cov_period_ns = cov_period_ns
-        self._fixed: list[tuple[int, np.ndarray]] = []
+        self._fixed: list[tuple[np.ndarray, np.ndarray]] = []  # (times, p v q) per batch handed out
         self._fixed_cov: list[tuple[int, np.ndarray]] = []
         self._next_fixed_cov: int | None = None
         self._runtime: Any = None
@@ -154,8 +166,9 @@ class ReplaySmoothing:
         self._runtime = runtime
 
     def _on_fixed_lag(self, poses: list[SmoothedPose]) -> None:
+        self._fixed.append((np.array([pose.t_ns for pose in poses], dtype=np.int64),
+                            np.array([pose.x[0:10] for pose in poses])))
         for pose in poses:
-            self._fixed.append((pose.t_ns, pose.x))
             if self._next_fixed_cov is None or pose.t_ns >= self._next_fixed_cov:
                 self._fixed_cov.append((pose.t_ns, pose.pose_cov))
                 self._next_fixed_cov = pose.t_ns + self.cov_period_ns
@@ -167,23 +180,30 @@ class ReplaySmoothing:
         """
         t0 = time.perf_counter()
         backward = BackwardPass()
-        parts: list[SmoothedChunk] = []
-        for chunk in self.files.newest_first():
-            parts.append(backward.chunk(chunk))
-        parts.reverse()
-        if out is not None or cov_out is not None:
-            _write_files(parts, out, cov_out)
+        smoothed_dir = self.files.root / "smoothed"
+        smoothed_dir.mkdir()
+        parts, segments = 0, set()
+        for chunk in self.files.newest_first():  # newest first: each smoothed chunk to disk as it comes
+            part = backward.chunk(chunk)
+            _save(smoothed_dir / f"{parts:06d}", {name: getattr(part, name) for name in _SMOOTHED_FIELDS})
+            segments.update(np.unique(part.segment).tolist())
+            parts += 1
         sampler = _CovarianceSampler(self.cov_period_ns)
-        for part in parts:
-            sampler.add(part.t_ns, part.p, part.q, part.pose_cov, nees_from_ns)
-        t = np.concatenate([p.t_ns for p in parts]) if parts else np.zeros(0, np.int64)
-        x = np.concatenate([p.x for p in parts]) if parts else np.zeros((0, 16))
-        segments = len(np.unique(np.concatenate([p.segment for p in parts]))) if parts else 0
+        times, nominal = [], []
+        with _TrajectoryFiles(out, cov_out) as files:
+            for k in range(parts - 1, -1, -1):  # then read back oldest first: the files in time order
+                part = SmoothedChunk(*_load(smoothed_dir / f"{k:06d}", _SMOOTHED_FIELDS))
+                files.write(part)
+                sampler.add(part.t_ns, part.p, part.q, part.pose_cov, nees_from_ns)
+                times.append(part.t_ns)
+                nominal.append(part.x[:, 0:10])  # what scoring reads: p, v, q
+        t = np.concatenate(times) if times else np.zeros(0, np.int64)
+        x = np.concatenate(nominal) if nominal else np.zeros((0, 10))
         backward_s = time.perf_counter() - t0
         smoother = self._runtime.smoother if self._runtime is not None else None
         result = SmoothingResult(
             Trajectory(t, x[:, 0:3], x[:, 3:6], x[:, 6:10]), sampler.samples(), *self._fixed_lag(nees_from_ns),
-            lag_s=self.options.fixed_lag_s, steps=self.files.steps, segments=segments, backward_s=backward_s,
+            lag_s=self.options.fixed_lag_s, steps=self.files.steps, segments=len(segments), backward_s=backward_s,
             disk_bytes=self.files.bytes, fixed_lag_dropped=smoother.dropped if smoother is not None else 0,
         )
         self.files.close()
@@ -193,8 +213,8 @@ class ReplaySmoothing:
         if not self._fixed:
             empty = Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)))
             return empty, _CovarianceSampler(self.cov_period_ns).samples()
-        t = np.array([r[0] for r in self._fixed], dtype=np.int64)
-        x = np.array([r[1] for r in self._fixed])
+        t = np.concatenate([r[0] for r in self._fixed])
+        x = np.concatenate([r[1] for r in self._fixed])
         traj = Trajectory(t, x[:, 0:3], x[:, 3:6], x[:, 6:10])
         rows = [(tc, c) for tc, c in self._fixed_cov if tc >= nees_from_ns]
         if not rows:
@@ -207,25 +227,31 @@ class ReplaySmoothing:
         self.files.close()
 
 
-def _write_files(parts: list[SmoothedChunk], out: str | Path | None, cov_out: str | Path | None) -> None:
-    """The smoothed trajectory (TUM, NED/FRD) and one covariance line per pose, in time order."""
-    traj = open(out, "w", encoding="utf-8") if out is not None else None
-    cov = open(cov_out, "w", encoding="utf-8") if cov_out is not None else None
-    try:
-        if cov is not None:
-            cov.write(COV_HEADER)
-        for part in parts:
-            for k in range(len(part)):
-                t = int(part.t_ns[k])
-                if traj is not None:
-                    w, x, y, z = part.q[k].tolist()
-                    traj.write(tum_line(t, [*part.p[k].tolist(), x, y, z, w]) + "\n")
-                if cov is not None:
-                    cov.write(seconds_text(t) + "," + ",".join(f"{v:.6e}" for v in part.pose_cov[k][_UPPER]) + "\n")
-    finally:
-        for f in (traj, cov):
+class _TrajectoryFiles:
+    """The smoothed trajectory (TUM, NED/FRD) and one covariance line per pose, written chunk by chunk."""
+
+    def __init__(self, out: str | Path | None, cov_out: str | Path | None) -> None:
+        self.traj = open(out, "w", encoding="utf-8") if out is not None else None
+        self.cov = open(cov_out, "w", encoding="utf-8") if cov_out is not None else None
+        if self.cov is not None:
+            self.cov.write(COV_HEADER)
+
+    def __enter__(self) -> "_TrajectoryFiles":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for f in (self.traj, self.cov):
             if f is not None:
                 f.close()
+
+    def write(self, part: SmoothedChunk) -> None:
+        for k in range(len(part)):
+            t = int(part.t_ns[k])
+            if self.traj is not None:
+                w, x, y, z = part.q[k].tolist()
+                self.traj.write(tum_line(t, [*part.p[k].tolist(), x, y, z, w]) + "\n")
+            if self.cov is not None:
+                self.cov.write(seconds_text(t) + "," + ",".join(f"{v:.6e}" for v in part.pose_cov[k][_UPPER]) + "\n")
 
 
 def replay_smoothed(dataset: Dataset, cfg: dict[str, Any], out: str | Path | None = None,
