@@ -25,6 +25,7 @@ from vtolpose.estimator.smoothing.rts import POSE_IX, apply_error, backward_step
 from vtolpose.estimator.smoothing.steps import Step
 
 _POSE_BLOCK = np.ix_(POSE_IX, POSE_IX)
+GAIN_BATCH = 8  # gains computed together when a sweep meets steps without one (bounds a call's work)
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,7 +58,7 @@ class _Sweep:
     Ps: np.ndarray | None = None
     segment: int = -1
     last_t: int | None = None  # the oldest time reached (dedups a segment end against the next start)
-    reached: list = field(default_factory=list)  # (step, e, Ps) of the final estimates so far, newest first
+    reached: list = field(default_factory=list)  # the final estimates so far, newest first
 
 
 class FixedLagSmoother:
@@ -142,25 +143,7 @@ class FixedLagSmoother:
         if first_waiting >= len(self._times) or self._times[first_waiting] > threshold:
             return False
         self._sweep = _Sweep(self._base + len(self._steps) - 1, threshold)
-        self._cache_gains()
         return True
-
-    def _cache_gains(self) -> None:
-        """Gains and corrections of every step that has a successor and none yet, in one batch."""
-        todo = []
-        for i in range(len(self._steps) - 2, -1, -1):  # the newest has no successor yet
-            if self._gains[i] is not None:
-                break  # older ones were done by an earlier sweep
-            if not self._steps[i].ends_segment:
-                todo.append(i)
-        if not todo:
-            return
-        steps, successors = [self._steps[i] for i in todo], [self._steps[i + 1] for i in todo]
-        n = steps[0].P.shape[0]
-        C, D = gains(np.array([s.P for s in steps]), np.array([s.F for s in steps]), np.array([s.P_pred for s in steps]))
-        u = error_between(np.array([s.x for s in successors]), np.array([s.x_pred for s in steps]), n)
-        for k, i in enumerate(todo):
-            self._gains[i] = (C[k], D[k], u[k])
 
     def _run(self, sweep: _Sweep, budget: int) -> tuple[bool, int, list[SmoothedPose]]:
         """Advance ``sweep`` by up to ``budget`` steps. Done: the estimates it makes final, in time order."""
@@ -180,20 +163,18 @@ class FixedLagSmoother:
             used += 1
             if step.t_ns <= sweep.threshold_ns and (sweep.last_t is None or step.t_ns < sweep.last_t):
                 sweep.last_t = step.t_ns
-                sweep.reached.append((step, sweep.e, sweep.Ps))
+                Ps = sweep.Ps
+                sweep.reached.append(SmoothedPose(step.t_ns, apply_error(step.x, sweep.e, Ps.shape[0]), Ps[_POSE_BLOCK],
+                                                  np.diagonal(Ps)[3:6].copy()))
             sweep.index -= 1
             if sweep.index < self._base:
                 return self._finish(sweep, used)
         return False, used, []
 
     def _finish(self, sweep: _Sweep, used: int) -> tuple[bool, int, list[SmoothedPose]]:
-        reached = sweep.reached[::-1]
-        if not reached:
+        poses = sweep.reached[::-1]
+        if not poses:
             return True, used, []
-        n = reached[0][0].P.shape[0]
-        x = apply_error(np.array([r[0].x for r in reached]), np.array([r[1] for r in reached]), n)
-        poses = [SmoothedPose(step.t_ns, x[k], Ps[_POSE_BLOCK], np.diagonal(Ps)[3:6].copy())
-                 for k, (step, _, Ps) in enumerate(reached)]
         self.emitted_t_ns = poses[-1].t_ns
         self.emitted += len(poses)
         keep = bisect.bisect_left(self._times, self.emitted_t_ns)
@@ -202,10 +183,21 @@ class FixedLagSmoother:
         return True, used, poses
 
     def _gain(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``C, D`` and the correction ``u`` at the successor (``rts``), computed once per step."""
+        """``C, D`` and the correction ``u`` at the successor (``rts``), computed once per step: in a batch with
+        the next few older steps that have none yet (the sweep needs them next), so a call stays short."""
         cached = self._gains[i]
         if cached is None:
-            step, successor = self._steps[i], self._steps[i + 1]
-            C, D = gains(step.P, step.F, step.P_pred)
-            cached = self._gains[i] = (C, D, error_between(successor.x, step.x_pred, step.P.shape[0]))
+            todo = [i]
+            for j in range(i - 1, max(i - GAIN_BATCH, -1), -1):
+                if self._gains[j] is not None:
+                    break
+                if not self._steps[j].ends_segment:
+                    todo.append(j)
+            steps, successors = [self._steps[j] for j in todo], [self._steps[j + 1] for j in todo]
+            C, D = gains(np.array([s.P for s in steps]), np.array([s.F for s in steps]),
+                         np.array([s.P_pred for s in steps]))
+            u = error_between(np.array([s.x for s in successors]), np.array([s.x_pred for s in steps]), steps[0].P.shape[0])
+            for k, j in enumerate(todo):
+                self._gains[j] = (C[k], D[k], u[k])
+            cached = self._gains[i]
         return cached
