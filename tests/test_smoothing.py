@@ -370,3 +370,29 @@ def test_full_state_pass_equals_batch_least_squares_with_landmarks_and_the_robot
     block_gap = np.max(np.abs(block.p - batch_p))
     print(f"robot-block pass vs batch: max {block_gap:.2e} m")
     assert block_gap > 1e-4  # the robot-block pass misses the path back through the landmarks
+
+
+def test_a_state_changed_after_every_propagation_gives_one_segment_per_step():
+    """E.g. a filter that forgets its heading after each step while the heading is unknown: nothing is
+    smoothed across those changes, and every time still gets exactly one estimate."""
+    from vtolpose.estimator.core.state import FilterState, StateLayout
+
+    state = FilterState(StateLayout("biases"))
+    state.cov = np.eye(15) * 0.01
+    steps: list[Step] = []
+    recorder = StepRecorder(steps.append)
+    F = np.eye(15)
+    F[0:3, 3:6] = 0.01 * np.eye(3)
+    for k in range(1, 30):
+        recorder.before_propagation(state)
+        state.p = state.p + 0.01 * state.v
+        state.cov = F @ state.cov @ F.T + np.eye(15) * 1e-6
+        state.t_ns = k * 10_000_000
+        recorder.after_propagation(state, F)
+        state.cov[8, :] = state.cov[:, 8] = 0.0  # as a forgotten heading
+        state.cov[8, 8] = 3.3
+    recorder.finish(state)
+    assert recorder.segment == 29
+    sm = smooth_steps(steps)
+    assert sm.t_ns.tolist() == [k * 10_000_000 for k in range(30)]
+    assert np.allclose(sm.pose_cov[:, 5, 5][1:], 3.3)  # each time's own posterior: nothing came back across a break
