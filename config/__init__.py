@@ -148,8 +148,6 @@ def _merge(base: dict, override: dict) -> dict:
 
 
 def _cross_checks(cfg: dict[str, Any], origin: str) -> None:
-    if cfg["estimator.alignment.min_window_s"] > cfg["estimator.alignment.window_s"]:
-        raise ConfigError(f"{origin}: key 'estimator.alignment.min_window_s' must not exceed 'estimator.alignment.window_s'")
     if cfg["smoothing.fixed_lag_s"] > 0 and cfg["smoothing.max_window_s"] <= cfg["smoothing.fixed_lag_s"]:
         raise ConfigError(f"{origin}: key 'smoothing.max_window_s' must exceed 'smoothing.fixed_lag_s' "
                           "(the smoother needs the lag's worth of steps and some to work on)")

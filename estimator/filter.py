@@ -4,15 +4,18 @@ Feed it samples in timestamp order (late measurements are ordered by ``vtolpose.
 ask it for the pose. Bad samples are counted per sensor and reason, never raised: the
 caller always gets the best estimate the good data allow.
 
-Start-up has three paths. A still IMU gives roll, pitch and gyro bias (thesis 5.2); the
-heading then comes from the dataset or operator, or stays unknown — the filter then works in
-a frame of arbitrary yaw, levelled by gravity, until the in-motion alignment places it. A
-vehicle that is moving from the start is initialised by the in-motion alignment directly.
+Start-up never waits for the motion: a still IMU gives roll, pitch and gyro bias (thesis 5.2),
+and a vehicle that is not still within ``init.max_wait_s`` starts from the mean specific
+force with wider sigmas. The heading comes from the dataset or operator, or is unknown: the
+filter then works in a frame of arbitrary yaw, levelled by gravity, publishes that its heading
+is unknown (a variance for a heading anywhere on the circle), and a bank of heading
+hypotheses (``inertial/heading_bank.py``) places it from GPS once the motion shows it.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,21 +23,25 @@ import numpy as np
 from vtolpose.estimator.core.calibration import Calibration, ImuNoise
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
-from vtolpose.estimator.gnss.gps_update import GpsUpdater, gps_sigmas
+from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
 from vtolpose.estimator.health import GapWidener, HealthMonitor, HealthOptions
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts
-from vtolpose.estimator.inertial.motion_alignment import MotionAligner, MotionAlignment, MotionAlignOptions
+from vtolpose.estimator.inertial.heading_bank import (
+    UNKNOWN_HEADING_VAR, YAW, HeadingBank, HeadingBankOptions, with_bias_states,
+)
 from vtolpose.estimator.inertial.propagator import ImuPropagator
-from vtolpose.estimator.inertial.startup import state_from_alignment, state_from_static
+from vtolpose.estimator.inertial.startup import state_from_static, velocity_from_fixes
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.smoothing.recorder import FilterRecorder
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
+_POSE = np.r_[0:3, 6:9]  # [δp, δθ] within [δp, δv, δθ]
+VELOCITY_FIT_S = 1.0  # the fixes before the start that give its velocity (a constant acceleration holds that long)
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
 
 
@@ -43,7 +50,7 @@ class FilterOptions:
     variant: str = "biases"
     heading_source: str = "auto"  # auto: the dataset's known heading if any, else align from GPS
     heading_deg: float | None = None  # an operator-entered heading overrides both
-    gps_gate: float | None = 7.81  # χ², 3 dof, 95 % (spec); None disables the gate
+    gps_gate: float | None = 16.27  # χ², 3 dof, 99.9 %: an outlier test, not a tenth of the good fixes; None: no gate
     gps_sigma_floor_m: float = 0.005
     gps_reset_after_s: float = 3.0  # every fix rejected for this long: the filter is lost, reset
     max_imu_gap_s: float = 0.1
@@ -53,7 +60,7 @@ class FilterOptions:
     level_sigma: float = 2.0  # m/s²: the vehicle's own accelerations, averaged out over many updates
     noise: ImuNoise | None = None  # overrides the calibration's noise when given
     init: InitOptions = field(default_factory=InitOptions)
-    align: MotionAlignOptions = field(default_factory=MotionAlignOptions)
+    align: HeadingBankOptions = field(default_factory=HeadingBankOptions)
     still: StillnessOptions = field(default_factory=StillnessOptions)
     camera: CameraOptions = field(default_factory=CameraOptions)
     health: HealthOptions = field(default_factory=HealthOptions)
@@ -90,25 +97,26 @@ class Estimator:
         self.state: FilterState | None = None
         self.propagator: ImuPropagator | None = None
         self.heading_aligned = False
-        self.alignment: MotionAlignment | None = None  # the in-motion alignment used, if any
+        self.heading_placement: dict | None = None  # how the bank placed the heading (time, sigma, fixes)
         self.position_initialized = False
         self.reset_counter = 0
         self.events: list[tuple[int, str]] = []  # (t_ns, message): start-up, alignment, resets
         heading, self._heading_sigma = self._known_heading()
         self._heading_known = heading is not None
         self._initializer = StaticInitializer(opts.init, calibration.imu.gravity, heading or 0.0)
-        self._aligner = MotionAligner(opts.align, calibration.imu.gravity, calibration.gps.lever_arm_b)
+        self._bank: HeadingBank | None = None  # heading hypotheses while the heading is unknown
+        self._bank_gps = GpsUpdater(calibration.gps.lever_arm_b, None, opts.gps_sigma_floor_m)  # no gate: every fix weighs
         self._stillness = StillnessDetector(opts.still)
         self._leveller: GravityLeveller | None = None
         self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, 0
         self._fixed_bias_var = np.zeros(3)  # thesis variant: variance of its calibrated gyro bias
-        self._fixes_before_start = 0
-        self._pending_fix: GpsFix | None = None
+        self._fixes_before_start: deque[GpsFix] = deque(maxlen=64)  # the GPS heard while the IMU window fills
         self._last_fix: GpsFix | None = None  # the latest usable fix (a reset re-initialises from it)
         self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
         self._gap = GapWidener(opts.health, opts.max_imu_gap_s)
         self._downsampler = ImuDownsampler(opts.max_filter_rate_hz)
-        self._horizontal_accel = 0.0
+        self._horizontal_accel = np.zeros(2)  # horizontal acceleration, averaged (see _propagate)
+        self._accel_at_rest = np.zeros(2)  # what it read at the last still chunk
         self._last_imu_t: int | None = None
         self._lost_before_next_s = 0.0  # refused IMU data the next sample must account for (imu_discontinuity)
         self._gyro = np.zeros(3)
@@ -156,14 +164,12 @@ class Estimator:
         self._gyro = gyro
         delta = self._downsampler.add(t_ns, gyro, accel)
         if self.state is None:
-            if delta is not None:
-                self._aligner.add_delta(delta)
-            # Moving from the start: with GPS the in-motion alignment will do; without it,
-            # start from the accelerometer alone after max_wait_s rather than never.
-            init = self._initializer.add(t_ns, gyro, accel, allow_moving=self._fixes_before_start == 0)
+            # Not still within max_wait_s (rotors turning, carried, flying): start from the
+            # accelerometer alone rather than wait for a rest or a manoeuvre that may never come.
+            init = self._initializer.add(t_ns, gyro, accel)
             if init is not None:
                 self._downsampler.flush()  # the filter starts at this sample
-                self._start_still(init)
+                self._start(init)
             return True
         if delta is not None:
             self._propagate(delta)
@@ -181,18 +187,42 @@ class Estimator:
     def _propagate(self, delta: ImuDelta) -> None:
         extra = 0.0
         if not self.heading_aligned:
-            self._aligner.add_delta(delta)  # every step, so that its window has no gaps
+            if self._bank is not None:
+                self._bank.propagate(delta)
             # An unknown heading misplaces the horizontal acceleration by up to twice its size;
-            # at rest that is nothing, so the filter can still tell it is at rest.
-            extra = max(self.options.unaligned_accel_noise, 2.0 * self._horizontal_accel)
+            # at rest that is nothing, so the filter can still tell it is at rest. The vehicle's
+            # acceleration, that is: vibration (zero mean, tens of hertz) is in the IMU noise
+            # already, so it is averaged over init.average_s first, and what the tilt and bias
+            # errors make of gravity (the reading at the last still chunk) is taken off.
+            accel = self._horizontal_accel - self._accel_at_rest
+            extra = max(self.options.unaligned_accel_noise, 2.0 * math.hypot(accel[0], accel[1]))
         recorder = self.recorder
         if recorder is not None:
             recorder.before_propagation(self.state)
         a_w = self.propagator.propagate(self.state, delta, extra)
-        self._horizontal_accel = math.hypot(a_w[0], a_w[1])
+        keep = self.options.init.average_s / (self.options.init.average_s + delta.dt)
+        self._horizontal_accel = keep * self._horizontal_accel + (1.0 - keep) * a_w[:2]
         self.state.t_ns = delta.t1_ns
         if recorder is not None:
             recorder.after_propagation(self.state, self.propagator.transition)
+
+    def _forget_heading(self) -> None:
+        """The heading becomes unknown: the filter's frame gets an arbitrary yaw, a gauge rather than an
+        error (landmarks, if any, share it), so its variance starts from zero. What the heading may be —
+        anywhere on the circle — is what :meth:`published_cov9` says."""
+        cov = self.state.cov
+        cov[YAW, :] = 0.0
+        cov[:, YAW] = 0.0
+
+    def published_cov9(self) -> np.ndarray:
+        """Covariance of [δp, δv, δθ] as the outputs publish it: the filter's, except that an unknown
+        heading has the variance of a heading uniform on the circle, uncorrelated with the rest."""
+        cov9 = self.state.cov[:9, :9].copy()
+        if not self.heading_aligned:
+            cov9[YAW, :] = 0.0
+            cov9[:, YAW] = 0.0
+            cov9[YAW, YAW] = UNKNOWN_HEADING_VAR
+        return cov9
 
     def imu_discontinuity(self, lost_s: float) -> None:
         """``lost_s`` of IMU data before the next sample were refused (stamped in the past: a backward
@@ -263,6 +293,7 @@ class Estimator:
         if clear_map and self.camera is not None and self.state is not None:
             self.camera.clear(self.state)
         self.reset_counter += 1
+        self._bank = None  # its hypotheses followed the old estimate: they start again at the next fix
         self.health.record_reset(t_ns, kind, reason)
         self.events.append((t_ns, f"reset #{self.reset_counter}: {reason}"))
 
@@ -282,36 +313,56 @@ class Estimator:
         self._level_t0 = state.t_ns
         self.events.append((state.t_ns, message))
 
-    def _start_still(self, init: InitialAttitude) -> None:
+    def _start(self, init: InitialAttitude) -> None:
+        """Start from the IMU window; the GPS heard meanwhile gives the velocity. A window that looks
+        still to the IMU is also what steady straight flight (or a steady turn) looks like: if the
+        fixes say the vehicle moves, it is no still start."""
         opts = self.options
+        window = [f for f in self._fixes_before_start if init.t_ns - f.t_ns < VELOCITY_FIT_S * 1e9]
+        self._fixes_before_start.clear()
+        velocity = velocity_from_fixes(window, init.t_ns, opts.gps_sigma_floor_m)
+        moving = velocity is not None and chi2_gate(3, 0.999) < float(velocity[0] @ np.linalg.solve(velocity[1], velocity[0]))
+        if init.static and moving:
+            init = self._initializer.as_moving(init)
         state = state_from_static(self.layout, init, opts.init, self._heading_sigma)
+        if velocity is not None and not init.static:
+            state.v = velocity[0]
+            state.cov[3:6, 3:6] = velocity[1]
         self._fixed_bias_var = np.full(3, init.sigma_gyro_bias**2)
         self.heading_aligned = self._heading_known
-        how = "still" if init.static else "moving, accelerometer only (no still window, no GPS)"
+        how = ("still" if init.static else "moving (GPS)" if moving
+               else f"not still within {opts.init.max_wait_s:g} s: from the mean specific force")
         self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
-        self._aligner.set_bias_prior(init.gyro_bias, max(init.sigma_gyro_bias, 1e-3), np.zeros(3), opts.init.sigma_accel_bias)
-        if self._pending_fix is not None and (init.t_ns - self._pending_fix.t_ns) < 1e9:
-            self._init_position(self._pending_fix)
-        self._pending_fix = None
+        if not self.heading_aligned:
+            self._bank = self._new_bank(state, None)
+        # The last fix places a still vehicle; a moving one waits for the next fix.
+        if init.static and window and (init.t_ns - window[-1].t_ns) < 1e9:
+            self._init_position(window[-1])
 
-    def _apply_alignment(self, alignment: MotionAlignment) -> None:
-        """Start (or re-place an unaligned filter) from an in-motion alignment."""
-        sd = np.degrees(np.sqrt(np.diag(alignment.cov)[6:9]))
-        message = (
-            f"aligned in motion from {alignment.n_fixes} GPS fixes over {alignment.window_s:.1f} s: attitude sigma "
-            f"{sd[0]:.2f}/{sd[1]:.2f}/{sd[2]:.2f} deg, residuals {alignment.residual_ratio:.2f}x the GPS noise"
-        )
-        state = state_from_alignment(self.layout, alignment)
-        self._fixed_bias_var = np.diag(alignment.cov)[9:12].copy()
-        if self.state is None:
-            self._begin(state, self.calibration.imu.gravity, message)
-        else:
-            self.state = state
-            self.events.append((state.t_ns, message))
-        self.alignment = alignment
+    def _new_bank(self, state: FilterState, velocity_sigma: float | None) -> HeadingBank:
+        """Hypotheses around ``state``; they always carry bias states (the thesis model takes its fixed
+        biases from them, measured in flight, when the heading is placed)."""
+        start = with_bias_states(state, np.sqrt(self._fixed_bias_var), self.options.init.sigma_accel_bias)
+        return HeadingBank(self.options.align, start, self.propagator, self._bank_gps, velocity_sigma)
+
+    def _place_heading(self, placed: FilterState, fix_t_ns: int) -> None:
+        """The bank has found the heading: its best hypothesis becomes the robot state. Landmarks
+        placed in the frame of arbitrary yaw go with it."""
+        bank = self._bank
+        if self.camera is not None:
+            self.camera.clear(self.state)
+        state, n = self.state, self.layout.robot_dim
+        state.p, state.v, state.q, state.b_g, state.b_a = placed.p, placed.v, placed.q, placed.b_g, placed.b_a
+        state.cov = placed.cov[:n, :n].copy()
+        self._fixed_bias_var = np.diagonal(placed.cov)[9:12].copy()  # the thesis model keeps b_g at this
         self.heading_aligned = True
-        self.position_initialized = True
-        self._pending_fix = None
+        self._bank = None
+        heading, sigma = bank.heading()
+        self.heading_placement = {"t_ns": fix_t_ns, "sigma_deg": math.degrees(sigma), "fixes": bank.fixes,
+                                  "hypotheses": len(bank.members), "best_weight": float(bank.weights.max())}
+        sd = np.degrees(np.sqrt(np.diag(state.cov)[6:9]))
+        self.events.append((fix_t_ns, f"heading placed from {bank.fixes} GPS fixes by {len(bank.members)} hypotheses: "
+                            f"{math.degrees(heading):.1f} deg, attitude sigma {sd[0]:.2f}/{sd[1]:.2f}/{sd[2]:.2f} deg"))
 
     # -------------------------------------------------------------------------------- GPS
     def process_gps(self, fix: GpsFix) -> UpdateOutcome | None:
@@ -327,17 +378,8 @@ class Estimator:
         if state is not None and fix.t_ns < state.t_ns:
             counts.reject("older_than_filter")
             return None
-        if not self.heading_aligned:
-            sigma_h, sigma_v = gps_sigmas(fix, self.options.gps_sigma_floor_m)
-            alignment = self._aligner.add_fix(fix.t_ns, p, sigma_h, sigma_v)
-            if alignment is not None:
-                self._apply_alignment(alignment)
-                self._propagate_to(fix.t_ns)
-                counts.used += 1
-                return UpdateOutcome(True, 0.0, 3, "in-motion alignment")
         if state is None:
-            self._fixes_before_start += 1
-            self._pending_fix = fix
+            self._fixes_before_start.append(fix)
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)
@@ -347,15 +389,31 @@ class Estimator:
             counts.used += 1
             self.health.measured("gps", fix.t_ns, used=True)
             return UpdateOutcome(True, 0.0, 3, "position initialised")
-        held = None if self.heading_aligned else self._held_until_aligned()
-        outcome = self.gps.update(state, fix, held=held)
+        if self.heading_aligned:
+            outcome = self.gps.update(state, fix)
+        else:
+            outcome = self.gps.update_heading_unknown(state, fix, self._held_until_aligned())
         if outcome.accepted:
             counts.used += 1
         else:
             counts.reject(outcome.reason.replace(" ", "_"))
         if self.health.measured("gps", fix.t_ns, outcome.accepted, gated=True):
             self._reset_from_gps(fix)
+        if not self.heading_aligned:
+            self._search_heading(fix)
         return outcome
+
+    def _search_heading(self, fix: GpsFix) -> None:
+        """Feed the heading hypotheses. After a reset they start again from the filter's state, but
+        its velocity was carried by an accelerometer turned by an unknown heading: they take it
+        with a moving start's sigma and their position from the next fix."""
+        if self._bank is None:
+            self._bank = self._new_bank(self.state, self.options.init.sigma_velocity_moving)
+            return
+        self._bank.update(fix)
+        placed = self._bank.placed()
+        if placed is not None:
+            self._place_heading(placed, fix.t_ns)
 
     def _held_until_aligned(self) -> np.ndarray:
         held = np.zeros(self.state.dim, dtype=bool)
@@ -363,18 +421,17 @@ class Estimator:
         return held
 
     def _init_position(self, fix: GpsFix) -> None:
-        state = self.state
-        sigma_h, sigma_v = gps_sigmas(fix, self.options.gps_sigma_floor_m)
-        state.p = np.asarray(fix.p_ned, dtype=float) - state.R @ self.calibration.gps.lever_arm_b
-        state.cov[0:3, :] = 0.0
-        state.cov[:, 0:3] = 0.0
-        state.cov[0:3, 0:3] = np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
+        place_at_fix(self.state, fix, self.calibration.gps.lever_arm_b, self.options.gps_sigma_floor_m)
         self.position_initialized = True
         self.events.append((fix.t_ns, "position initialised from GPS"))
 
     def _reset_from_gps(self, fix: GpsFix) -> None:
-        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong."""
+        """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong — and a
+        heading the filter found itself may be what is wrong with it: that is searched for again."""
         state = self.state
+        if self.heading_placement is not None and self.heading_aligned:
+            self.heading_aligned = False  # and _reset restarts the hypotheses
+            self._forget_heading()
         self._init_position(fix)
         state.cov[3:6, :] = 0.0
         state.cov[:, 3:6] = 0.0
@@ -399,8 +456,14 @@ class Estimator:
             self.health.measured("camera", t_ns, used=False)  # alive (frames arrive), not usable
             return FrameReport(t_ns, False, reason, n_features=len(features))
         self._propagate_to(t_ns)
-        held = None if self.heading_aligned else self._held_until_aligned()
-        report = self.camera.process(self.state, features, t_ns, self.heading_aligned, self.position_initialized, held)
+        # Before the heading is known, landmarks live in the frame of arbitrary yaw with the rest of the
+        # camera geometry (consistent with itself, so only the heading is held) and go when it is placed:
+        # at rest on the pad the camera holds the pose from the first frames.
+        held = None
+        if not self.heading_aligned:
+            held = np.zeros(self.state.dim, dtype=bool)
+            held[YAW] = True
+        report = self.camera.process(self.state, features, t_ns, True, self.position_initialized, held)
         if report.accepted:
             counts.used += 1
         else:
@@ -462,21 +525,22 @@ class Estimator:
         counts = self.counts["still"]
         counts.received += 1
         state = self.state
-        held = None if self.heading_aligned else self._held_until_aligned()
+        # Zero velocity holds in any frame, that of arbitrary yaw included: it may correct tilt and
+        # biases before the heading is known (the heading itself is uncorrelated with them then).
         sigma = self.options.still.zupt_sigma
-        zupt = ekf_update(state, slice(3, 6), np.eye(3), -state.v, np.eye(3) * sigma**2, chi2_gate(3, 0.999), held)
+        zupt = ekf_update(state, slice(3, 6), np.eye(3), -state.v, np.eye(3) * sigma**2, chi2_gate(3, 0.999))
         if not zupt.accepted:
             counts.reject(f"zupt_{zupt.reason.replace(' ', '_')}")
             return
         counts.used += 1
+        self._accel_at_rest = self._horizontal_accel.copy()
         # The mean rate of a still IMU is its bias; its variance is what the samples' scatter says,
         # never less than the white-noise density allows over the chunk.
         r = np.maximum(chunk.gyro_var_of_mean, self.noise.gyro_noise_density**2 / chunk.duration_s)
+        if self._bank is not None:
+            self._bank.at_rest(chunk.gyro_mean, r, sigma)
         if self.layout.estimates_biases:
-            if held is not None:
-                held = held.copy()
-                held[self.layout.BG] = False
-            ekf_update(state, self.layout.BG, np.eye(3), chunk.gyro_mean - state.b_g, np.diag(r), None, held)
+            ekf_update(state, self.layout.BG, np.eye(3), chunk.gyro_mean - state.b_g, np.diag(r))
         else:
             # Thesis model: the bias is a calibration constant; refine it as a per-axis
             # weighted mean, the older value aged by the bias random walk.
@@ -496,7 +560,7 @@ class Estimator:
             v=state.v.copy(),
             q=state.q.copy(),
             omega_b=self._gyro - state.b_g,
-            pose_cov=state.pose_covariance(),
+            pose_cov=self.published_cov9()[np.ix_(_POSE, _POSE)],
             vel_cov=state.cov[3:6, 3:6].copy(),
             heading_aligned=self.heading_aligned,
             reset_counter=self.reset_counter,

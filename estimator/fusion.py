@@ -353,7 +353,7 @@ class FusionCore:
     def _predicted_covariance(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(cov9, pose_cov, omega_var) of the prediction: the delayed covariance grown to its time."""
         s, pred = self.est.state, self._pred
-        cov9 = s.cov[:9, :9]
+        cov9 = self.est.published_cov9()
         dt = (pred.t_ns - s.t_ns) * 1e-9
         if dt > 0.0:
             # Growth over the prediction: velocity error integrates into position, attitude error
@@ -365,8 +365,6 @@ class FusionCore:
             F[0:3, 6:9] = a * (-0.5 * dt * dt)
             F[3:6, 6:9] = a * -dt
             cov9 = F @ cov9 @ F.T + self._noise(np.array(pred.q), dt)
-        else:
-            cov9 = cov9.copy()
         return cov9, cov9[_POSE_IX], self._omega_var()
 
     def _omega_var(self) -> np.ndarray:
@@ -392,7 +390,7 @@ class FusionCore:
     def _fused_pose(self, gyro: np.ndarray) -> OutputPose:
         est = self.est
         s = est.state
-        cov9 = s.cov[:9, :9].copy()
+        cov9 = est.published_cov9()
         return OutputPose(
             t_ns=s.t_ns, p=s.p.copy(), v=s.v.copy(), q=s.q.copy(), omega_b=gyro - s.b_g, cov9=cov9,
             pose_cov=cov9[_POSE_IX], omega_var=self._omega_var(), heading_aligned=est.heading_aligned,

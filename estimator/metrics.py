@@ -196,3 +196,42 @@ def pose_errors_for_nees(
         return err_p, cov[:, 0:3, 0:3], 3
     err_th = quat_log(quat_mul(q_true, quat_conj(q)))
     return np.hstack([err_p, err_th]), cov, 6
+
+
+def rigid_alignment(p_est: np.ndarray, p_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation (no scale) that put ``p_est`` best onto ``p_true`` (Horn/Umeyama):
+    ``p_true ≈ R p_est + t`` in the least-squares sense."""
+    p_est, p_true = np.asarray(p_est, dtype=float), np.asarray(p_true, dtype=float)
+    mean_e, mean_t = p_est.mean(axis=0), p_true.mean(axis=0)
+    u, _, vt = np.linalg.svd((p_true - mean_t).T @ (p_est - mean_e))
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    R = u @ d @ vt
+    return R, mean_t - R @ mean_e
+
+
+def motion_onset(truth: Trajectory, speed_mps: float = 0.1, window_s: float = 1.0) -> int | None:
+    """First truth time [ns] at which the mean horizontal speed over ``window_s`` exceeds ``speed_mps``
+    (the vehicle starts to move: only horizontal motion can show a heading). None if it never does."""
+    t = np.asarray(truth.t_ns, dtype=np.int64)
+    p = np.asarray(truth.p, dtype=float)
+    end = np.searchsorted(t, t + int(window_s * 1e9))
+    ok = end < len(t)
+    if not np.any(ok):
+        return None
+    start = np.flatnonzero(ok)
+    span = (t[end[ok]] - t[start]) * 1e-9
+    speed = np.linalg.norm(p[end[ok], :2] - p[start, :2], axis=1) / span
+    moving = np.flatnonzero(speed > speed_mps)
+    return int(t[start[moving[0]]]) if len(moving) else None
+
+
+def mean_world_rotation(q_est: np.ndarray, q_true: np.ndarray) -> np.ndarray:
+    """The constant world-frame rotation ``C`` with ``R_true ≈ C R_est`` (chordal least squares).
+
+    A truth given in a motion-capture frame whose "up" is not exactly the local vertical (a
+    fraction of a degree is common) differs from any gravity-levelled estimate by such a
+    rotation; scoring the error that varies with time removes it.
+    """
+    m = np.einsum("nij,nkj->ik", quat_to_rot(q_true), quat_to_rot(q_est))
+    u, _, vt = np.linalg.svd(m)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt

@@ -12,7 +12,7 @@ from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipel
 from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
 from vtolpose.estimator.filter import Estimator, FilterOptions
 from vtolpose.estimator.vision.map_manager import LandmarkBook, MapOptions, deletions, depth_priors, select_new_features
-from vtolpose.estimator.core.rotation import quat_from_euler
+from vtolpose.estimator.core.rotation import yaw_of, quat_from_euler
 from vtolpose.estimator.core.state import FilterState, StateLayout
 
 R_BC = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
@@ -111,14 +111,19 @@ def test_frames_before_the_filter_starts_are_counted():
     assert report.reason == "before_start" and est.counts["camera"].rejected == {"before_start": 1}
 
 
-def test_unknown_heading_adds_no_landmarks():
+def test_unknown_heading_maps_in_the_frame_of_arbitrary_yaw():
+    """Before the heading is known the camera maps in the filter's own frame (its yaw a gauge it does not
+    touch); the outputs still say the heading is unknown."""
     cal = Calibration(imu=ImuCalibration(125.0, ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4)), camera=CAM)
     est = Estimator(cal)  # no initial heading, no GPS: the heading stays unknown
     for k in range(320):
         est.process_imu(EPOCH + k * 8_000_000, np.zeros(3), np.array([0.0, 0.0, -9.80665]))
     assert est.initialized and not est.heading_aligned
-    assert est.process_features(extract_features(textured(5), EPOCH + 3_000_000_000, FeatureOptions())).accepted
-    assert est.state.n_landmarks == 0
+    yaw = yaw_of(est.state.q)
+    for k, t_ns in enumerate((3_000_000_000, 3_133_333_333)):
+        assert est.process_features(extract_features(textured(5 + k), EPOCH + t_ns, FeatureOptions())).accepted
+    assert est.state.n_landmarks > 0 and yaw_of(est.state.q) == pytest.approx(yaw, abs=1e-12)
+    assert est.pose().pose_cov[5, 5] == pytest.approx(np.pi**2 / 3)
 
 
 # --------------------------------------------------------------------------- map management

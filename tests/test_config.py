@@ -32,7 +32,7 @@ def write(tmp_path: Path, text: str) -> Path:
 def test_user_file_overrides_only_its_keys(tmp_path):
     cfg = load_config(write(tmp_path, "estimator:\n  variant: thesis\n"))
     assert cfg["estimator.variant"] == "thesis"
-    assert cfg["estimator.gps.gate_chi2"] == pytest.approx(7.81)
+    assert cfg["estimator.gps.gate_chi2"] == pytest.approx(16.27)
 
 
 @pytest.mark.parametrize(
@@ -57,8 +57,8 @@ def test_bad_files_are_refused_with_the_key_named(tmp_path, text, message):
 def test_missing_file_and_cross_checks(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "nope.yaml")
-    with pytest.raises(ConfigError, match="min_window_s' must not exceed"):
-        load_config(write(tmp_path, "estimator:\n  alignment:\n    min_window_s: 30\n"))
+    with pytest.raises(ConfigError, match=r"estimator\.alignment\.hypotheses"):
+        load_config(write(tmp_path, "estimator:\n  alignment:\n    hypotheses: 2\n"))
 
 
 def test_null_only_where_allowed(tmp_path):

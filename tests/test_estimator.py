@@ -84,20 +84,29 @@ def test_still_start_refines_the_thesis_gyro_bias(book, book_runs):
 
 def test_unknown_heading_is_found_in_motion(book):
     est, t, p, q, _ = run(book, FilterOptions(heading_source="gps"))
-    assert est.alignment is not None  # the heading came from the in-motion alignment
-    after = (t > est.alignment.t_ns) & (t <= book.truth.t_ns[-1])
+    assert est.heading_placement is not None  # the heading came from the bank of hypotheses
+    after = (t > est.heading_placement["t_ns"]) & (t <= book.truth.t_ns[-1])
     i = np.searchsorted(book.truth.t_ns, t[after])
     heading_err = np.degrees(np.abs(np.angle(np.exp(1j * (yaw_of(q[after]) - yaw_of(book.truth.q[i]))))))
     assert np.sqrt(np.mean(heading_err**2)) < 2.0
 
 
-def test_moving_start_is_aligned_in_motion(book):
-    est, t, p, q, _ = run(book, FilterOptions(), start_s=18.0)
-    assert est.alignment is not None and est.heading_aligned
-    i = np.searchsorted(book.truth.t_ns, t)
-    angle = np.degrees(rotation_angle(q, book.truth.q[np.minimum(i, len(book.truth.t_ns) - 1)]))
-    assert np.sqrt(np.mean(angle**2)) < 2.0
-    assert evaluate(t, p, q, book.truth)["position_rmse_m"] < 0.03
+def test_moving_start_mid_flight_finds_its_heading(book):
+    """Switched on at 18 s while the arm swings (the dataset's heading is the one at 0 s, so it is not used):
+    a pose at once, the heading placed within seconds with a sigma that covers its error, then held."""
+    est, t, p, q, cov = run(book, FilterOptions(heading_source="gps"), start_s=18.0)
+    assert "moving" in est.events[0][1] and (est.events[0][0] - book.imu.t_ns[0]) * 1e-9 < 18.0 + 3.5
+    assert est.heading_placement is not None and est.heading_aligned and est.reset_counter == 0
+    assert (est.heading_placement["t_ns"] - est.events[0][0]) * 1e-9 < 10.0
+    after = t > est.heading_placement["t_ns"]
+    i = np.minimum(np.searchsorted(book.truth.t_ns, t[after]), len(book.truth.t_ns) - 1)
+    heading_err = np.abs(np.angle(np.exp(1j * (yaw_of(q[after]) - yaw_of(book.truth.q[i])))))
+    assert np.all(heading_err < 3.0 * np.sqrt(cov[after, 5, 5]))
+    last = t[after] > t[-1] - 10e9
+    angle = np.degrees(rotation_angle(q[after][last], book.truth.q[i][last]))
+    assert np.sqrt(np.mean(angle**2)) < 1.0
+    assert evaluate(t[after], p[after], q[after], book.truth)["position_rmse_m"] < 0.035  # GPS alone: 0.039
+    assert evaluate(t, p, q, book.truth)["position_rmse_m"] < 0.05  # the search included
 
 
 def test_non_finite_and_out_of_order_imu_samples_are_counted_and_skipped(book, book_runs):
@@ -140,10 +149,18 @@ def test_gps_rejected_for_seconds_means_the_filter_is_lost_and_resets(book):
 
 
 def test_no_gps_still_runs_on_inertial_dead_reckoning(book):
+    """Without GPS the IMU alone carries the state through 35 s of motion: attitude within a degree,
+    velocity within what an integrated accelerometer drifts (not gravity integrated the wrong way)."""
     est, t, p, q, _ = run(book, gps=[])
     assert est.initialized and not est.position_initialized
     assert est.state.is_finite()
     assert est.counts["gps"].received == 0
+    assert est.counts["still"].used >= 3  # the still start was recognised as still
+    s, truth = est.state, book.truth
+    i = min(int(np.searchsorted(truth.t_ns, s.t_ns)), len(truth.t_ns) - 1)
+    assert abs(s.t_ns - truth.t_ns[i]) <= 10_000_000 and s.t_ns > truth.t_ns[0] + 40e9
+    assert np.degrees(rotation_angle(s.q, truth.q[i])) < 1.5
+    assert abs(s.v[2] - truth.v[i, 2]) < 0.3 and np.linalg.norm(s.v - truth.v[i]) < 1.5
 
 
 def test_a_non_finite_fix_is_counted(book):
@@ -153,8 +170,10 @@ def test_a_non_finite_fix_is_counted(book):
     assert est.counts["gps"].rejected == {"non_finite": 2}
 
 
-def test_gate_value_is_the_spec_value():
-    assert FilterOptions().gps_gate == pytest.approx(chi2_gate(3, 0.95), abs=0.01)
+def test_gate_is_an_outlier_test():
+    """99.9 %, not the spec's 95 %: on real flights the NIS is χ²(3) and a 95 % gate refuses one good fix in
+    twenty; a run of them (EuRoC MH03 at 66 s) locked the filter out until it reset (issue 12)."""
+    assert FilterOptions().gps_gate == pytest.approx(chi2_gate(3, 0.999), abs=0.01)
 
 
 def test_lever_arm_is_used(book):

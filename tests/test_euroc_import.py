@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
+from vtolpose.drivers.files.calibration_yaml import load_yaml_file
 from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.estimator.core.rotation import quat_to_rot
 from vtolpose.drivers.files.euroc_import import default_mounting_path, import_euroc, load_mounting, subsample
 
 PRISM_IMU = np.array([7.48903e-02, -1.84772e-02, -1.20209e-01])  # leica0/sensor.yaml T_BS translation
@@ -38,10 +40,10 @@ def seconds(ds_t: np.ndarray, t0: int) -> np.ndarray:
 
 def test_junk_lines_are_skipped_counted_and_warned_once(imported) -> None:
     _, summary, records = imported
-    assert summary["imu_lines_skipped"] == 7 and summary["leica_lines_skipped"] == 0
+    assert summary["imu_lines_skipped"] == 7 and summary["truth_lines_skipped"] == 0
     imu_warnings = [m for m in records if "imu0/data.csv" in m]
     assert len(imu_warnings) == 1 and "skipped 7" in imu_warnings[0]
-    assert summary["imu_samples"] == 36820 and summary["leica_fixes"] == 3099
+    assert summary["imu_samples"] == 36820 and summary["truth_samples"] == 3099 and summary["truth_source"] == "leica0"
 
 
 def test_imu_times_exact_and_evenly_spaced(imported) -> None:
@@ -162,7 +164,10 @@ def test_tiny_folder_frames_and_counts(tmp_path: Path) -> None:
     np.testing.assert_allclose(ds.imu().gyro[0], [0.03, 0.02, -0.01])
     np.testing.assert_allclose(ds.truth().p[1], [0.1, -2.0, -1.01])
     np.testing.assert_allclose(ds.calibration.truth_point_b, [0.3, 0.2, -0.1])
-    assert ds.gps().t_ns.size == 20 and summary["gps_fixes"] == 20
+    # 20 ticks of the shifted Leica track; the two before the first IMU sample are dropped.
+    gps, imu_t = ds.gps(), ds.imu().t_ns
+    assert gps.t_ns.size == 18 and summary["gps_fixes"] == 18
+    assert imu_t[0] <= gps.t_ns[0] and gps.t_ns[-1] <= imu_t[-1]
     with pytest.raises(FileExistsError, match="already holds a dataset"):
         import_euroc(tmp_path / "src", tmp_path / "out")
     import_euroc(tmp_path / "src", tmp_path / "out", overwrite=True)
@@ -195,7 +200,7 @@ def test_leica_stamps_are_moved_onto_the_imu_clock(imported, euroc_mh01: Path) -
     truth = Dataset.open(out).truth()
     raw_first = int((euroc_mh01 / "mav0/leica0/data.csv").read_text().splitlines()[1].split(",")[0])
     assert truth.t_ns[0] == raw_first - 142_000_000
-    assert summary["leica_time_offset_s"] == pytest.approx(-0.142)
+    assert summary["truth_time_offset_s"] == pytest.approx(-0.142)
 
 
 def test_missing_source_files_are_named(tmp_path: Path) -> None:
@@ -211,3 +216,92 @@ def test_missing_source_files_are_named(tmp_path: Path) -> None:
 def test_subsample_picks_the_fix_nearest_each_tick() -> None:
     t = np.array([0, 46, 96, 150, 196, 250, 600, 650], dtype=np.int64) * 1_000_000
     assert subsample(t, 10.0).tolist() == [0, 2, 4, 6]  # ticks 0, 100, 200, 600 ms; none in the gap
+
+
+# --- any EuRoC flight as it comes: truth sources, OpenCV YAML, cam0 -----------------------------
+
+def _write_gt(root: Path, t_ns: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray, folder: str, columns: int) -> None:
+    (root / "mav0" / folder).mkdir(parents=True, exist_ok=True)
+    rows = ["#timestamp [ns],p x,p y,p z,q w,q x,q y,q z" + ",v x,v y,v z,bw x,bw y,bw z,ba x,ba y,ba z" * (columns == 17)]
+    for t, pp, q in zip(t_ns, p, q_wxyz):
+        extra = [0.0] * 9 if columns == 17 else []
+        rows.append(",".join([str(int(t))] + [repr(float(x)) for x in [*pp, *q, *extra]]))
+    (root / "mav0" / folder / "data.csv").write_text("\n".join(rows) + "\n")
+
+
+def _tiny_with_pose_truth(root: Path, folder: str, columns: int, t_bs: str) -> tuple[Path, np.ndarray]:
+    src = tiny_euroc(root)
+    (src / "mav0/leica0/data.csv").unlink()
+    t = 1403636579758560000 + 50_000_000 * np.arange(40)
+    yaw = 0.3
+    q = np.tile([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)], (40, 1))  # IMU→tracker, about tracker z
+    p = np.column_stack([0.1 * np.arange(40), np.full(40, 2.0), np.ones(40)])
+    _write_gt(src, t, p, q, folder, columns)
+    (src / "mav0" / folder / "sensor.yaml").write_text("%YAML:1.0\n" + t_bs)
+    return src, p
+
+
+def test_state_groundtruth_gives_pose_truth_in_our_frames(tmp_path: Path) -> None:
+    src, p = _tiny_with_pose_truth(tmp_path / "src", "state_groundtruth_estimate0", 17,
+                                   "T_BS: {cols: 4, rows: 4, data: [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}\n")
+    summary = import_euroc(src, tmp_path / "out", gps_rate_hz=10.0)
+    assert summary["truth_source"] == "state_groundtruth_estimate0" and summary["truth_has_attitude"]
+    truth = Dataset.open(tmp_path / "out").truth()
+    np.testing.assert_allclose(truth.p, p * [1.0, -1.0, -1.0], atol=1e-9)
+    # Body FRD → NED: R_WL · R(q) · R_BIᵀ, with the IMU's x axis up.
+    expected = np.diag([1.0, -1.0, -1.0]) @ quat_to_rot(np.array([np.cos(0.15), 0, 0, np.sin(0.15)])) @ R_BI.T
+    np.testing.assert_allclose(quat_to_rot(truth.q[0]), expected, atol=1e-9)
+    np.testing.assert_allclose(Dataset.open(tmp_path / "out").calibration.truth_point_b, np.zeros(3))
+
+
+def test_vicon_marker_pose_is_moved_to_the_imu(tmp_path: Path) -> None:
+    # The marker body sits 0.1 m along EuRoC's x from the IMU, turned 90° about z.
+    src, _ = _tiny_with_pose_truth(tmp_path / "src", "vicon0", 8,
+                                   "T_BS:\n  cols: 4\n  rows: 4\n  data: [0, -1, 0, 0.1, 1, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n")
+    summary = import_euroc(src, tmp_path / "out")
+    ds = Dataset.open(tmp_path / "out")
+    assert summary["truth_source"] == "vicon0"
+    np.testing.assert_allclose(ds.calibration.truth_point_b, R_BI @ [0.1, 0.0, 0.0])
+    R_BS = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    expected = np.diag([1.0, -1.0, -1.0]) @ quat_to_rot(np.array([np.cos(0.15), 0, 0, np.sin(0.15)])) @ R_BS.T @ R_BI.T
+    np.testing.assert_allclose(quat_to_rot(ds.truth().q[0]), expected, atol=1e-9)
+
+
+def test_a_tum_truth_file_and_a_missing_truth(tmp_path: Path) -> None:
+    src = tiny_euroc(tmp_path / "src")
+    (src / "mav0/leica0/data.csv").unlink()
+    with pytest.raises(FileNotFoundError, match="no truth found.*--truth"):
+        import_euroc(src, tmp_path / "out")
+    tum = tmp_path / "truth.tum"
+    tum.write_text("# t x y z qx qy qz qw\n" + "".join(
+        f"{(1403636579758560000 + 50_000_000 * i) / 1e9:.9f} {0.1 * i} 2.0 1.0 0 0 0 1\n" for i in range(40)))
+    summary = import_euroc(src, tmp_path / "out", gps_rate_hz=10.0, truth_file=tum)
+    assert summary["truth_source"] == "file" and summary["truth_samples"] == 40 and summary["gps_fixes"] > 0
+    np.testing.assert_allclose(Dataset.open(tmp_path / "out").truth().p[1], [0.1, -2.0, -1.0])
+
+
+def test_opencv_yaml_header_and_matrices_are_read(tmp_path: Path) -> None:
+    path = tmp_path / "k.yaml"
+    path.write_text("%YAML:1.0\n---\nK: !!opencv-matrix\n   rows: 1\n   cols: 2\n   dt: d\n   data: [ 1., 2. ]\nrate_hz: 20\n")
+    assert load_yaml_file(path) == {"K": {"rows": 1, "cols": 2, "dt": "d", "data": [1.0, 2.0]}, "rate_hz": 20}
+
+
+def test_v101_truth_and_camera(euroc_dev: Path, tmp_path: Path) -> None:
+    src = euroc_dev / "V101"
+    summary = import_euroc(src, tmp_path / "v101", gps_rate_hz=10.0, seed=1, truth_file=src / "truth.tum")
+    ds = Dataset.open(tmp_path / "v101")
+    assert summary["truth_has_attitude"] and summary["camera_frames"] == 95 and summary["gps_fixes"] == 1447
+    # At rest the truth's attitude predicts what the accelerometer reads: gravity, to within a degree.
+    truth, imu = ds.truth(), ds.imu()
+    rest = imu.t_ns < truth.t_ns[0] + 4_000_000_000
+    f_mean = imu.accel[rest].mean(axis=0)
+    predicted = quat_to_rot(truth.q[0]).T @ np.array([0.0, 0.0, -1.0])
+    assert np.degrees(np.arccos(f_mean @ predicted / np.linalg.norm(f_mean))) < 1.0
+    # cam0: a forward-looking camera (its z along the body's forward axis, x right, y down).
+    cam = ds.calibration.camera
+    assert (cam.width, cam.height, cam.rate_hz) == (752, 480, 20.0) and cam.fx == pytest.approx(458.654)
+    np.testing.assert_allclose(cam.distortion, [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0])
+    np.testing.assert_allclose(cam.R_BC, [[0, 0, 1], [1, 0, 0], [0, 1, 0]], atol=0.03)
+    frames = ds.camera_frames()
+    assert len(frames) == 95 and frames[0][0] == 1403715273262142976
+    assert frames[0][1].read_bytes() == (src / "mav0/cam0/data/1403715273262142976.png").read_bytes()

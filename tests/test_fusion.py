@@ -3,6 +3,8 @@ predictor reaches the newest sample; everything deterministic."""
 
 import numpy as np
 import pytest
+from scipy.linalg import expm
+from scipy.spatial.transform import Rotation
 
 from vtolpose.config import load_config
 from vtolpose.drivers.simulator import simulate_flight
@@ -107,19 +109,25 @@ def test_measurements_older_than_the_horizon_are_counted_not_fused(flight):
 
 
 def test_measurements_are_applied_in_time_order_at_their_time(flight):
+    """Each measurement meets the filter exactly at its time: every IMU sample up to it (IMU first at equal
+    times) consumed, none after it. A measurement fused one sample early or late changes the count."""
     core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY))
     samples = imu_samples(flight)
     applied = []
     for s in samples[:2000]:
         core.add_imu(s)
     t_a, t_b = samples[1995].t_ns - 40_000_000, samples[1995].t_ns - 80_000_000  # inside the horizon
-    core.add_measurement(t_a, lambda est: applied.append(("a", est.state.t_ns)), "test")
-    core.add_measurement(t_b, lambda est: applied.append(("b", est.state.t_ns)), "test")
+    t_c = samples[1980].t_ns + 3_000_000  # between two samples
+    sample_times = {s.t_ns for s in samples}
+    assert t_a in sample_times and t_b in sample_times and t_c not in sample_times
+    for name, t in (("a", t_a), ("b", t_b), ("c", t_c)):
+        core.add_measurement(t, lambda est, name=name: applied.append((name, est.counts["imu"].received)), "test")
     for s in samples[2000:2100]:
         core.add_imu(s)
-    assert [name for name, _ in applied] == ["b", "a"]
-    assert all(t_state <= t for (_, t_state), t in zip(applied, (t_b, t_a)))
-    assert core.counts["test"].used == 2
+    assert [name for name, _ in applied] == ["c", "b", "a"]
+    consumed_by = {name: sum(s.t_ns <= t for s in samples) for name, t in (("a", t_a), ("b", t_b), ("c", t_c))}
+    assert dict(applied) == consumed_by
+    assert core.counts["test"].used == 3
 
 
 def test_prediction_reaches_the_newest_sample_by_nominal_propagation(flight):
@@ -144,6 +152,93 @@ def test_prediction_reaches_the_newest_sample_by_nominal_propagation(flight):
     cov = pose.pose_cov
     assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
     assert np.all(np.diag(cov)[3:] > np.diag(state.pose_covariance())[3:])
+
+
+def continuous_growth(P0: np.ndarray, horizon_s: float, f_w: np.ndarray, accel_var_w: np.ndarray,
+                      gyro_var_w: np.ndarray) -> np.ndarray:
+    """[δp, δv, δθ] covariance after ``horizon_s`` of the continuous error model at a constant world
+    specific force ``f_w``: δp' = δv, δv' = -[f_w]x δθ + w_a, δθ' = w_g (white noise of the given
+    world-frame spectral densities), discretised exactly by Van Loan's matrix exponential."""
+    A = np.zeros((9, 9))
+    A[0:3, 3:6] = np.eye(3)
+    fx, fy, fz = f_w
+    A[3:6, 6:9] = -np.array([[0.0, -fz, fy], [fz, 0.0, -fx], [-fy, fx, 0.0]])
+    Qc = np.zeros((9, 9))
+    Qc[3:6, 3:6], Qc[6:9, 6:9] = accel_var_w, gyro_var_w
+    M = np.zeros((18, 18))
+    M[:9, :9], M[:9, 9:], M[9:, 9:] = -A, Qc, A.T
+    E = expm(M * horizon_s)
+    Phi = E[9:, 9:].T
+    return Phi @ P0 @ Phi.T + Phi @ E[:9, 9:]
+
+
+def test_prediction_covariance_grows_with_the_horizon_as_the_error_model_says(flight):
+    """At rest (the flight's first 10 s) the predicted pose's [δp, δv, δθ] covariance is the delayed one
+    grown over the prediction horizon by the continuous error model, for short and long horizons alike."""
+    samples = imu_samples(flight)
+    t_end = samples[0].t_ns + 8_000_000_000  # the filter started at ~3 s; still at rest
+    gravity = flight.calibration.imu.gravity
+    r_true = Rotation.from_quat(flight.truth.q[0][[1, 2, 3, 0]]).as_matrix()  # attitude on the pad
+    growth_of_position = []
+    for delay_s in (0.05, 0.2, 0.6):
+        core = FusionCore(new_estimator(flight), FusionOptions(delay_s=delay_s))
+        for s in samples:
+            if s.t_ns > t_end:
+                break
+            core.add_imu(s)
+        pose, state, noise = core.output(), core.est.state, core.est.noise
+        horizon_s = (pose.t_ns - state.t_ns) * 1e-9
+        assert pose.fused_t_ns == state.t_ns and abs(horizon_s - delay_s) < 0.02
+        P0 = state.cov[:9, :9]
+        expected = continuous_growth(P0, horizon_s, np.array([0.0, 0.0, -gravity]),  # at rest: f = -g
+                                     r_true @ np.diag(noise.accel_noise_density**2) @ r_true.T,
+                                     r_true @ np.diag(noise.gyro_noise_density**2) @ r_true.T)
+        for rows in (slice(0, 3), slice(3, 6), slice(6, 9)):
+            for cols in (slice(0, 3), slice(3, 6), slice(6, 9)):
+                want, got = expected[rows, cols] - P0[rows, cols], pose.cov9[rows, cols] - P0[rows, cols]
+                scale = np.abs(want).max()
+                assert scale > 0.0 and np.abs(got - want).max() < 0.02 * scale, (delay_s, rows, cols)
+        growth_of_position.append(np.trace(pose.cov9[0:3, 0:3] - P0[0:3, 0:3]))
+    assert growth_of_position[0] > 0.0 and np.all(np.diff(growth_of_position) > 0.0)
+
+
+def test_the_published_pose_is_capped_while_the_gps_is_stale(flight):
+    """The pose that leaves (the prediction, not the fused state) follows the documented health rule:
+    quality ceiling 100 while GPS fixes are being used, ``stale_quality_cap`` once none was used for
+    ``gps_stale_s`` (config/default.yaml, estimator/health.py), judged at the filter's time."""
+    cfg = load_config()
+    stale_ns, stale_cap = cfg["estimator.health.gps_stale_s"] * 1e9, cfg["estimator.health.stale_quality_cap"]
+    assert stale_cap < 100
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY))
+    t0 = flight.imu.t_ns[0]
+    fixes = [f for f in gps_fixes(flight) if f.t_ns < t0 + 25e9]  # the receiver goes quiet at 25 s
+    used_at: list[int] = []
+
+    def fuse(est, fix):
+        outcome = est.process_gps(fix)
+        if outcome is not None and outcome.accepted:
+            used_at.append(fix.t_ns)
+
+    caps, k = [], 0
+    for s in imu_samples(flight):
+        while k < len(fixes) and fixes[k].t_ns <= s.t_ns:
+            core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: fuse(est, f), "gps")
+            k += 1
+        core.add_imu(s)
+        pose = core.output()
+        if pose is not None and pose.position_initialized:
+            caps.append((pose.fused_t_ns, pose.quality_cap))
+    assert core.est.reset_counter == 0 and len(used_at) > 150
+    used = np.array(used_at)
+    in_use, stale = [], []
+    for t, cap in caps:
+        since_used = t - used[np.searchsorted(used, t, side="right") - 1]
+        if since_used < stale_ns - 50_000_000:
+            in_use.append(cap)
+        elif since_used > stale_ns + 50_000_000:
+            stale.append(cap)
+    assert len(in_use) > 1000 and set(in_use) == {100}
+    assert len(stale) > 1000 and set(stale) == {stale_cap}
 
 
 def test_publishing_first_fuses_nothing_until_advance(flight):

@@ -7,8 +7,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from vtolpose.estimator.metrics import chi2_band, evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary
-from vtolpose.estimator.core.rotation import quat_exp, quat_from_euler, quat_mul, rotation_angle
+from vtolpose.estimator.metrics import (
+    chi2_band, evaluate, gps_error_rmse, interpolate_poses, mean_world_rotation, motion_onset, nees, nees_summary,
+    rigid_alignment,
+)
+from vtolpose.estimator.core.rotation import quat_exp, quat_from_euler, quat_mul, quat_to_rot, rotation_angle
 
 S = 1_000_000_000
 
@@ -145,3 +148,29 @@ def test_gps_error_rmse_without_attitude_notes_point_mismatch() -> None:
     assert same["rmse_m"] == pytest.approx(0.2) and "note" not in same
     other = gps_error_rmse(gps, truth(t, np.zeros((10, 3))), [0.5, 0, 0], [0.1, 0, 0])
     assert "0.400 m" in other["note"]
+
+
+def test_rigid_alignment_recovers_a_turn_and_a_shift() -> None:
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(50, 3)) * 5.0
+    R = quat_to_rot(quat_from_euler(0.01, -0.02, 0.7))
+    R_found, t_found = rigid_alignment(p, p @ R.T + [1.0, -2.0, 0.5])
+    np.testing.assert_allclose(R_found, R, atol=1e-12)
+    np.testing.assert_allclose(t_found, [1.0, -2.0, 0.5], atol=1e-12)
+
+
+def test_mean_world_rotation_is_the_constant_part_of_the_attitude_error() -> None:
+    rng = np.random.default_rng(4)
+    q_est = quat_exp(rng.normal(size=(200, 3)))
+    tilt = quat_from_euler(0.006, -0.008, 0.0)  # a motion-capture "up" half a degree off
+    q_true = quat_mul(np.broadcast_to(tilt, (200, 4)), q_est)
+    np.testing.assert_allclose(mean_world_rotation(q_est, q_true), quat_to_rot(tilt), atol=1e-12)
+
+
+def test_motion_onset_is_the_first_second_of_horizontal_motion() -> None:
+    t = np.arange(0, 20_000, 50, dtype=np.int64) * 1_000_000  # 20 Hz for 20 s
+    s = t * 1e-9
+    north = np.where(s > 5.0, 0.3 * (s - 5.0), 0.0)  # still, then 0.3 m/s
+    up_only = truth(t, np.column_stack([np.zeros_like(s), np.zeros_like(s), -s]))  # climbing: no onset
+    onset = motion_onset(truth(t, np.column_stack([north, np.zeros_like(s), np.zeros_like(s)])))
+    assert 4.0 < onset * 1e-9 < 5.0 and motion_onset(up_only) is None  # the window that first shows it starts

@@ -55,15 +55,55 @@ def test_error_transition_matches_central_differences(variant, dt):
     assert np.allclose(F, numeric_transition(x0, dtheta, dvel, dt, layout), atol=1e-7)
 
 
-def test_jacobian_check_catches_a_sign_error():
-    layout = StateLayout("biases")
-    x0 = (np.zeros(3), np.zeros(3), quat_from_euler(0.1, 0.2, 0.3), np.zeros(3), np.zeros(3))
-    dtheta, dvel = np.array([0.1, 0.2, 0.3]) * 0.01, np.array([0.5, 0.1, -9.8]) * 0.01
-    F = error_transition(x0[2], x0[3], x0[4], dtheta, dvel, 0.01, layout)
-    wrong = F.copy()
-    wrong[3:6, 6:9] *= -1
-    numeric = numeric_transition(x0, dtheta, dvel, 0.01, layout)
-    assert np.allclose(F, numeric, atol=1e-7) and not np.allclose(wrong, numeric, atol=1e-7)
+def propagated(state: FilterState, delta: ImuDelta, prop: ImuPropagator) -> FilterState:
+    out = state.copy()
+    prop.propagate(out, delta)
+    return out
+
+
+@pytest.mark.parametrize("variant", ["thesis", "biases"])
+def test_the_propagator_moves_the_covariance_as_its_own_step_moves_errors(variant):
+    """The transition the fast propagator applies to the covariance equals central differences of its
+    own nominal step, independently of the reference functions.
+
+    With a map of landmarks whose cross-covariance with the robot is ``[I 0]``, the propagated
+    cross-covariance ``F P_rm`` is F itself; a sign or a block wrong in the propagator shows there.
+    """
+    layout = StateLayout(variant)
+    n = layout.robot_dim
+    prop = ImuPropagator(ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4), 9.81)
+    state = FilterState(layout)
+    state.p, state.v = np.array([1.0, -2.0, -30.0]), np.array([6.0, 1.5, -0.4])
+    state.q = quat_from_euler(0.3, -0.2, 1.1)
+    if layout.estimates_biases:
+        state.b_g, state.b_a = np.array([0.01, -0.02, 0.015]), np.array([0.1, -0.05, 0.2])
+    n_landmarks = -(-n // 6)
+    state.landmarks = np.zeros((n_landmarks, 6))
+    state.cov = np.eye(n + 6 * n_landmarks)
+    state.cov[:n, n:2 * n] = state.cov[n:2 * n, :n] = 0.5 * np.eye(n)  # positive definite, cross block ∝ I
+    dt = 0.02
+    delta = ImuDelta(0, int(dt * 1e9), dt, np.array([0.8, -1.5, 2.0]) * dt, np.array([1.0, -2.0, -9.0]) * dt)
+    F = propagated(state, delta, prop).cov[:n, n:2 * n] / 0.5
+    nominal = propagated(state, delta, prop)
+    h, numeric = 1e-6, np.zeros((n, n))
+    for i in range(n):
+        columns = []
+        for sign in (1.0, -1.0):
+            d = np.zeros(n)
+            d[i] = sign * h
+            moved = state.copy()
+            moved.p, moved.v = moved.p + d[0:3], moved.v + d[3:6]
+            moved.q = quat_mul(quat_exp(d[6:9]), moved.q)
+            if layout.estimates_biases:
+                moved.b_g, moved.b_a = moved.b_g + d[9:12], moved.b_a + d[12:15]
+            after = propagated(moved, delta, prop)
+            err = [after.p - nominal.p, after.v - nominal.v, quat_log(quat_mul(after.q, quat_conj(nominal.q)))]
+            if layout.estimates_biases:
+                err += [after.b_g - nominal.b_g, after.b_a - nominal.b_a]
+            columns.append(np.concatenate(err))
+        numeric[:, i] = (columns[0] - columns[1]) / (2 * h)
+    assert np.abs(F - np.eye(n)).max() > 0.1  # the step really couples the errors
+    assert np.allclose(F, numeric, atol=1e-7)
 
 
 def one_sample_deltas(rate_hz, n, gyro, accel):

@@ -58,7 +58,7 @@ def test_camera_work_does_not_hold_up_poses_and_is_fused_at_the_frame_time(fligh
         before = runtime.poses_published
         time.sleep(0.06)  # feature extraction: 60 ms, within the 150 ms horizon
         during.append(runtime.poses_published - before)
-        return lambda est: applied.append((frame.t_ns, est.state.t_ns, threading.current_thread().name))
+        return lambda est: applied.append((frame.t_ns, est.counts["imu"].received, threading.current_thread().name))
 
     runtime = make_runtime(flight, extract)
     for s in warm:  # the filter starts and aligns at full speed
@@ -68,7 +68,10 @@ def test_camera_work_does_not_hold_up_poses_and_is_fused_at_the_frame_time(fligh
     dropped = runtime.status.events.get("camera_frames_dropped_busy", 0)  # only on a badly loaded machine
     assert len(applied) == n_frames - dropped == runtime.fusion.counts["camera"].used and dropped <= 2
     assert min(during) >= 3  # 60 ms at 125 Hz: poses kept leaving meanwhile
-    assert all(t_state <= t_frame for t_frame, t_state, _ in applied)  # fused at the frame's own time
+    # Fused at the frame's own time: the filter had consumed every IMU sample up to it, and none after it.
+    imu_times = np.array([s.t_ns for s in warm + live if isinstance(s, ImuSample)])
+    assert [consumed for _, consumed, _ in applied] == [int(np.sum(imu_times <= t)) for t, _, _ in applied]
+    assert all(t not in imu_times for t, _, _ in applied)  # between samples: one sample early or late shows
     assert {name for *_, name in applied} == {threading.main_thread().name}  # applied on the loop, in order
     assert runtime.fusion.counts["camera"].rejected == {} and summary.stopped_by == "end of data"
 

@@ -104,3 +104,46 @@ def test_held_states_keep_value_and_covariance():
     assert np.allclose(s.cov[6:, 6:], before.cov[6:, 6:])
     assert not np.allclose(s.p, before.p)
     assert np.all(np.linalg.eigvalsh(s.cov) > 0)
+
+
+@pytest.mark.parametrize("pattern", ["gps, heading unknown", "camera, one landmark's depth held"])
+def test_a_held_state_is_never_corrected_and_its_covariance_follows_the_schmidt_form(pattern):
+    """Against the Schmidt–Kalman update written out densely: the gain ``K`` with the held rows zeroed,
+    ``P+ = (I - K H) P (I - K H)ᵀ + K R Kᵀ`` (Joseph form, valid for any gain). Held values stay
+    exactly as they were; the other states move by ``K ε``; every cross-covariance follows."""
+    s = make_state("biases", n_landmarks=2, seed=5)
+    n = s.dim
+    rng = np.random.default_rng(11)
+    held = np.zeros(n, dtype=bool)
+    if pattern.startswith("gps"):
+        cols = np.arange(9)
+        H_cols = GpsModel(np.array([0.1, -0.2, -0.3])).jacobian(s)
+        held[6:] = True  # attitude, biases and map wait for a heading (the estimator's mask)
+    else:
+        lm = s.robot_dim + 6  # the second landmark's six columns
+        cols = np.concatenate([np.arange(0, 3), np.arange(6, 9), np.arange(lm, lm + 6)])
+        H_cols = rng.normal(size=(4, len(cols)))
+        held[lm + 5] = True  # its inverse depth: no baseline yet
+    m = H_cols.shape[0]
+    residual, R = rng.normal(size=m) * 0.1, np.diag(rng.uniform(0.01, 0.05, size=m))
+    H = np.zeros((m, n))
+    H[:, cols] = H_cols
+    P = s.cov.copy()
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    K[held] = 0.0
+    I_KH = np.eye(n) - K @ H
+    expected_cov = I_KH @ P @ I_KH.T + K @ R @ K.T
+    before = s.copy()
+    assert ekf_update(s, cols, H_cols, residual, R, held=held).accepted
+    dx = K @ residual
+    assert np.allclose(s.cov, expected_cov, rtol=1e-9, atol=1e-12)
+    assert np.array_equal(s.cov[np.ix_(held, held)], before.cov[np.ix_(held, held)])
+    assert np.allclose(s.p, before.p + dx[0:3], atol=1e-12) and np.allclose(s.v, before.v + dx[3:6], atol=1e-12)
+    assert not np.allclose(s.cov[np.ix_(~held, held)], before.cov[np.ix_(~held, held)])  # cross-terms do move
+    if pattern.startswith("gps"):
+        assert np.allclose(s.q, before.q, rtol=0, atol=1e-15)
+        assert np.array_equal(s.b_g, before.b_g) and np.array_equal(s.b_a, before.b_a)
+        assert np.array_equal(s.landmarks, before.landmarks)
+    else:
+        assert s.landmarks[1, 5] == before.landmarks[1, 5]
+        assert np.allclose(s.landmarks.reshape(-1), before.landmarks.reshape(-1) + dx[s.robot_dim:], atol=1e-12)

@@ -7,6 +7,7 @@ are errors too. Vectors may be written as scalars where that is natural (isotrop
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -41,10 +42,28 @@ class CalibrationError(ValueError):
     """A calibration file that cannot be used; the message names the file and the key."""
 
 
+_OPENCV_HEADER = re.compile(r"\A\ufeff?%YAML:\d+\.\d+[ \t]*(?:\r?\n|\Z)")
+
+
+class _OpenCvSafeLoader(yaml.SafeLoader):
+    """SafeLoader that also reads OpenCV ``FileStorage`` matrices (``!!opencv-matrix``) as plain mappings."""
+
+
+_OpenCvSafeLoader.add_constructor(
+    "tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True))
+
+
+def parse_yaml_text(text: str) -> Any:
+    """YAML as written by this program, or OpenCV-style: a ``%YAML:1.0`` first line (OpenCV
+    ``FileStorage``, ORB-SLAM, VINS, Kimera and the EuRoC ``sensor.yaml`` files write it, PyYAML
+    refuses it) is dropped, and ``!!opencv-matrix`` nodes become ``{rows, cols, dt, data}`` mappings."""
+    return yaml.load(_OPENCV_HEADER.sub("", text, count=1), Loader=_OpenCvSafeLoader)
+
+
 def load_yaml_file(path: Path) -> Any:
     """The document in a small YAML file; CalibrationError names the file when it cannot be read as one."""
     try:
-        return yaml.safe_load(path.read_text(encoding="utf-8"))
+        return parse_yaml_text(path.read_text(encoding="utf-8"))
     except UnicodeDecodeError as exc:
         raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
     except yaml.YAMLError as exc:

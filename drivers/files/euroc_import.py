@@ -1,13 +1,17 @@
-"""Import an ASL/EuRoC MAV folder (IMU + Leica) into a vtolpose dataset, optionally with a GPS.
+"""Import an ASL/EuRoC MAV folder (IMU, truth, camera) into a vtolpose dataset, optionally with a GPS.
 
-This is how the thesis' "Test 1: IMU + GPS" is replayed on real data: the real IMU, the Leica
-prism track as full-rate truth, and a GPS made the way the thesis made it (truth subsampled to
-GPS rate plus Gaussian noise, σ_z² = 2 σ_xy²). The sensor mounting and the tracker frame come
-from a small YAML file (``config/euroc_vi_sensor.yaml`` by default), not from code.
+This is how the thesis' "Test 1: IMU + GPS" is replayed on real data: the real IMU, the
+flight's truth (``euroc_truth``: EuRoC's ground-truth estimate, the Leica or Vicon track, or a
+TUM file) at full rate, and a GPS made the way the thesis made it (truth subsampled to GPS rate
+plus Gaussian noise, σ_z² = 2 σ_xy²). ``cam0`` comes along (``euroc_camera``) so the images
+replay through the visual pipeline. The sensor mounting and the tracker frame come from a
+small YAML file (``config/euroc_vi_sensor.yaml`` by default, the same for every EuRoC flight),
+not from code.
 """
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -18,8 +22,11 @@ import numpy as np
 from vtolpose.drivers.files.calibration_yaml import YamlReader, load_yaml_file
 from vtolpose.drivers.files.csvio import NS_PER_S, read_numeric_csv
 from vtolpose.drivers.files.dataset import (
-    GPS_CSV, GPS_SENSOR, GT_CSV, IMU_HEADER, LEICA_HEADER, DatasetWriter, GpsSeries, ImuSeries, TruthSeries,
+    CAM_CSV, CAM_DIR, GPS_CSV, GPS_SENSOR, GT_CSV, IMU_HEADER, LEICA_CSV, DatasetWriter, GpsSeries, ImuSeries,
+    TruthSeries,
 )
+from vtolpose.drivers.files.euroc_camera import camera_calibration, copy_frames
+from vtolpose.drivers.files.euroc_truth import Frames, read_mount, read_truth
 from vtolpose.drivers.simulator.gps_model import GpsErrorModel, gps_errors
 from vtolpose.estimator.core.calibration import Calibration, GpsCalibration, ImuCalibration, ImuNoise
 from vtolpose.estimator.metrics import gps_error_rmse
@@ -69,14 +76,6 @@ def load_mounting(path: str | Path) -> EurocSetup:
     return EurocSetup(y.rotation(doc["R_BI"], "R_BI"), y.rotation(doc["R_WL"], "R_WL"), offset, noise)
 
 
-def _t_bs(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation and translation of a EuRoC ``sensor.yaml`` ``T_BS`` (sensor → EuRoC body)."""
-    y = YamlReader(str(path))
-    t_bs = y.mapping(_load_yaml(path).get("T_BS"), "T_BS", {"cols", "rows", "data"}, required=("data",))
-    m = y.vector(t_bs["data"], "T_BS.data", 16).reshape(4, 4)
-    return m[:3, :3], m[:3, 3]
-
-
 def _imu_calibration(path: Path, R_BI: np.ndarray) -> ImuCalibration:
     doc = _load_yaml(path)
     y = YamlReader(str(path))
@@ -112,6 +111,13 @@ def simulated_gps(truth: TruthSeries, rate_hz: float, sigma_m: float, seed: int)
     return GpsSeries(truth.t_ns[idx], truth.p[idx] + noise, model.sigma_h, model.sigma_v)
 
 
+def within(gps: GpsSeries, imu_t_ns: np.ndarray) -> GpsSeries:
+    """The fixes inside the IMU recording: a receiver is not heard before the vehicle's IMU starts or after it
+    stops (the truth often runs on for a second or two, and a fix there would look like a dead IMU)."""
+    keep = (gps.t_ns >= imu_t_ns[0]) & (gps.t_ns <= imu_t_ns[-1])
+    return GpsSeries(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep], gps.origin_lla)
+
+
 def import_euroc(
     src: str | Path,
     out: str | Path,
@@ -120,52 +126,57 @@ def import_euroc(
     seed: int = 0,
     mounting: str | Path | None = None,
     overwrite: bool = False,
+    truth_file: str | Path | None = None,
+    camera: bool = True,
 ) -> dict[str, Any]:
-    """Convert EuRoC ``src`` (``mav0/imu0``, ``mav0/leica0``) into dataset ``out``; returns a summary.
+    """Convert EuRoC ``src`` (``mav0/imu0``, a truth, optionally ``mav0/cam0``) into dataset ``out``; returns a summary.
 
     Malformed CSV lines are skipped and counted (see the summary). The IMU stays in sensor axes
-    with ``R_BI`` from ``mounting``; the Leica track becomes NED position truth of the prism,
-    whose lever arm (``leica0/sensor.yaml``) becomes ``truth.point_b`` in body FRD. With
-    ``gps_rate_hz`` a GPS is made from the Leica track (seeded: same seed, same bytes) with the
-    prism as antenna. Refuses to replace an existing dataset unless ``overwrite``.
+    with ``R_BI`` from ``mounting``. The truth is ``truth_file`` (TUM or EuRoC CSV: the IMU's
+    pose, on the IMU clock) or the first of ``state_groundtruth_estimate0``, ``leica0``,
+    ``vicon0`` (``vtolpose.drivers.files.euroc_truth``), in NED and body FRD, tracking the point
+    ``truth.point_b``. With ``gps_rate_hz`` a GPS is made from it (seeded: same seed, same
+    bytes) with that point as antenna. ``cam0``, when present and ``camera``, comes along with
+    its calibration. Refuses to replace an existing dataset unless ``overwrite``.
     """
     src, out = Path(src), Path(out)
     mounting_path = Path(mounting) if mounting is not None else default_mounting_path()
     if (out / "dataset.yaml").exists() and not overwrite:
         raise FileExistsError(f"{out}: already holds a dataset (dataset.yaml); pass overwrite to replace it")
     setup = load_mounting(mounting_path)
-    R_BI, R_WL, leica_offset_s = setup.R_BI, setup.R_WL, setup.leica_time_offset_s
     mav = src / "mav0"
-    imu_cal = _imu_calibration(mav / "imu0" / "sensor.yaml", R_BI)
+    imu_cal = _imu_calibration(mav / "imu0" / "sensor.yaml", setup.R_BI)
     if setup.in_flight_noise is not None:
         imu_cal.noise = setup.in_flight_noise
     imu = read_numeric_csv(mav / "imu0" / "data.csv", 6, header=IMU_HEADER)
-    leica = read_numeric_csv(mav / "leica0" / "data.csv", 3, header=LEICA_HEADER)
-    for name, data in (("imu0", imu), ("leica0", leica)):
-        if data.t_ns.size < 2:
-            raise ValueError(f"{mav / name / 'data.csv'}: fewer than 2 valid samples")
-
-    # Prism in IMU axes (EuRoC gives both sensors relative to its body frame), then in body FRD.
-    R_imu, t_imu = _t_bs(mav / "imu0" / "sensor.yaml")
-    _, t_prism = _t_bs(mav / "leica0" / "sensor.yaml")
-    point_b = R_BI @ (R_imu.T @ (t_prism - t_imu))
-    truth = TruthSeries(leica.t_ns + int(round(leica_offset_s * NS_PER_S)), leica.values @ R_WL.T)
-    gps = None if gps_rate_hz is None else simulated_gps(truth, gps_rate_hz, gps_sigma_m, seed)
+    if imu.t_ns.size < 2:
+        raise ValueError(f"{mav / 'imu0' / 'data.csv'}: fewer than 2 valid samples")
+    frames = Frames(setup.R_BI, setup.R_WL, read_mount(mav / "imu0" / "sensor.yaml"))
+    found = read_truth(mav, frames, setup.leica_time_offset_s, Path(truth_file) if truth_file is not None else None)
+    truth, point_b = found.series, found.point_b
+    gps = None if gps_rate_hz is None else within(simulated_gps(truth, gps_rate_hz, gps_sigma_m, seed), imu.t_ns)
+    cam_dir = mav / "cam0"
+    use_camera = camera and (cam_dir / "data.csv").is_file() and (cam_dir / "sensor.yaml").is_file()
 
     calibration = Calibration(
         imu=imu_cal,
         gps=GpsCalibration(lever_arm_b=point_b if gps is not None else np.zeros(3)),
+        camera=camera_calibration(cam_dir / "sensor.yaml", frames) if use_camera else None,
         truth_point_b=point_b,
     )
-    gps_text = (f"GPS = Leica track subsampled to {gps_rate_hz:g} Hz + Gaussian noise sigma_xy={gps_sigma_m:g} m, "
-                f"sigma_z=sqrt(2) sigma_xy, seed {seed}" if gps is not None else "no GPS")
+    gps_text = (f"GPS = truth track subsampled to {gps_rate_hz:g} Hz + Gaussian noise sigma_xy={gps_sigma_m:g} m, "
+                f"sigma_z=sqrt(2) sigma_xy, seed {seed}, kept within the IMU recording" if gps is not None else "no GPS")
+    shift = f" shifted by {found.time_offset_s * 1e3:+.0f} ms onto the IMU clock" if found.time_offset_s else ""
     description = (f"EuRoC {src.name} imported by vtolpose (vtolpose.drivers.files.euroc_import): real IMU in sensor axes, "
-                   f"Leica prism track as NED position truth shifted by {leica_offset_s * 1e3:+.0f} ms onto the IMU clock, "
-                   f"mounting from {mounting_path.name}; IMU noise "
-                   f"{'in flight, from ' + mounting_path.name if setup.in_flight_noise is not None else 'from imu0/sensor.yaml'}; {gps_text}")
+                   f"truth from {found.path.name if found.source == 'file' else found.source}{shift} "
+                   f"({'pose' if truth.q is not None else 'position'}, NED), mounting from {mounting_path.name}; IMU noise "
+                   f"{'in flight, from ' + mounting_path.name if setup.in_flight_noise is not None else 'from imu0/sensor.yaml'}; "
+                   f"{gps_text}{'; cam0 images' if use_camera else ''}")
     writer = DatasetWriter(out)
-    for stale in (GPS_CSV, GPS_SENSOR, GT_CSV):
+    for stale in (GPS_CSV, GPS_SENSOR, GT_CSV, LEICA_CSV, CAM_CSV):
         (out / stale).unlink(missing_ok=True)
+    if (out / CAM_DIR).is_dir() and not use_camera:
+        shutil.rmtree(out / CAM_DIR)
     name = src.name if "euroc" in src.name.lower() else f"euroc-{src.name}"
     writer.write_calibration(calibration, name, description)
     writer.write_imu(ImuSeries(imu.t_ns, imu.values[:, :3], imu.values[:, 3:]))
@@ -178,13 +189,19 @@ def import_euroc(
         "imu_samples": int(imu.t_ns.size),
         "imu_lines_skipped": imu.skipped,
         "imu_rate_hz_measured": float(NS_PER_S / np.median(np.diff(imu.t_ns))),
-        "leica_fixes": int(leica.t_ns.size),
-        "leica_time_offset_s": leica_offset_s,
-        "leica_lines_skipped": leica.skipped,
+        "truth_source": found.source,
+        "truth_file": str(found.path),
+        "truth_samples": int(truth.t_ns.size),
+        "truth_lines_skipped": found.skipped,
+        "truth_has_attitude": truth.q is not None,
+        "truth_time_offset_s": found.time_offset_s,
         "duration_s": float((imu.t_ns[-1] - imu.t_ns[0]) * 1e-9),
         "truth_point_b": point_b.tolist(),
         "gps_fixes": 0,
+        "camera_frames": 0,
     }
+    if use_camera:
+        summary["camera_frames"], summary["camera_frames_skipped"] = copy_frames(cam_dir, out)
     if gps is not None:
         summary["gps_fixes"] = int(gps.t_ns.size)
         summary["gps_rate_hz_measured"] = float(NS_PER_S / np.median(np.diff(gps.t_ns)))

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update
+from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update, innovation_covariance, normalized_innovation
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import skew
 from vtolpose.estimator.core.state import FilterState
@@ -23,6 +23,16 @@ def gps_sigmas(fix: GpsFix, floor_m: float) -> tuple[float, float]:
     sigma_h = max(float(fix.sigma_h), floor_m)
     sigma_v = float(fix.sigma_v) if fix.sigma_v and math.isfinite(fix.sigma_v) and fix.sigma_v > 0 else math.sqrt(2.0) * sigma_h
     return sigma_h, max(sigma_v, floor_m)
+
+
+def place_at_fix(state: FilterState, fix: GpsFix, lever_arm_b: np.ndarray, sigma_floor_m: float) -> None:
+    """Position from a fix alone: the antenna at the fix, the IMU a lever arm away; position variance
+    the fix's, uncorrelated with the rest (a first fix, or a re-initialisation)."""
+    sigma_h, sigma_v = gps_sigmas(fix, sigma_floor_m)
+    state.p = np.asarray(fix.p_ned, dtype=float) - state.R @ np.asarray(lever_arm_b, dtype=float)
+    state.cov[0:3, :] = 0.0
+    state.cov[:, 0:3] = 0.0
+    state.cov[0:3, 0:3] = np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
 
 
 class GpsModel:
@@ -59,3 +69,18 @@ class GpsUpdater:
         return ekf_update(
             state, GPS_COLS, self.model.jacobian(state), self.residual(state, fix), self.noise(fix), self.gate, held
         )
+
+    def update_heading_unknown(self, state: FilterState, fix: GpsFix, held_horizontal: np.ndarray) -> UpdateOutcome:
+        """While the filter's frame has an arbitrary yaw: gated on all three axes, then the height fused
+        into everything (its relation to tilt and biases does not depend on the heading) and the
+        horizontal position into what ``held_horizontal`` leaves free (there it does)."""
+        H, residual, R = self.model.jacobian(state), self.residual(state, fix), self.noise(fix)
+        nis = normalized_innovation(innovation_covariance(state, GPS_COLS, H, R), residual)
+        if nis is None or not np.all(np.isfinite(residual)):
+            return UpdateOutcome(False, float("nan"), 3, "singular innovation covariance" if nis is None else "non-finite residual")
+        if self.gate is not None and nis > self.gate:
+            return UpdateOutcome(False, nis, 3, "chi2 gate")
+        ekf_update(state, GPS_COLS, H[2:], residual[2:], R[2:, 2:])
+        horizontal = self.residual(state, fix)[:2]
+        ekf_update(state, GPS_COLS, self.model.jacobian(state)[:2], horizontal, R[:2, :2], None, held_horizontal)
+        return UpdateOutcome(True, nis, 3)

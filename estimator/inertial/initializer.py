@@ -4,6 +4,11 @@ The thesis calibrates before each run from a static stretch (section 5.2). Here 
 waits for a window in which the IMU is still; if none comes within ``max_wait_s`` (the vehicle
 is already moving, as at the start of EuRoC MH01) it starts from the mean of the last window
 with wider uncertainties instead of waiting forever.
+
+"Still" means no motion, not no vibration: a helicopter on the pad with its rotor turning
+shakes its IMU by ±0.5 m/s² at tens of hertz while it does not move at all. Stillness is
+therefore judged on means over ``average_s`` (0.1 s: motion of a vehicle lies below 5 Hz,
+vibration above), and the bias' uncertainty comes from the scatter of those means.
 """
 
 from __future__ import annotations
@@ -23,13 +28,14 @@ class InitOptions:
     max_wait_s: float = 3.0
     gyro_std_max: float = 0.02  # rad/s, per axis, over the window
     accel_std_max: float = 0.15  # m/s^2, per axis, over the window
+    average_s: float = 0.1  # the std limits apply to means over this long (vibration averages out, motion not)
     estimate_gravity: bool = True  # the service resolves the config's 'auto' per variant
     sigma_attitude_static_deg: float = 0.5
     sigma_attitude_moving_deg: float = 5.0
     sigma_heading_known_deg: float = 2.0
     sigma_velocity_static: float = 0.02
     sigma_velocity_moving: float = 1.0
-    sigma_gyro_bias: float = 0.01  # rad/s, prior when no static window gives it
+    sigma_gyro_bias: float = 0.1  # rad/s, prior when no static window gives it (a MEMS gyro's turn-on bias)
     sigma_accel_bias: float = 0.1  # m/s^2
 
 
@@ -52,6 +58,17 @@ def roll_pitch_from_specific_force(f_b: np.ndarray) -> tuple[float, float]:
     return roll, pitch
 
 
+def block_means(t_ns: np.ndarray, values: np.ndarray, average_s: float) -> np.ndarray:
+    """Means of ``values`` over consecutive blocks of ``average_s`` (a trailing partial block is dropped);
+    the samples themselves when a block would hold fewer than two."""
+    span = (t_ns[-1] - t_ns[0]) * 1e-9
+    per_block = int(round(average_s * (len(t_ns) - 1) / span)) if span > 0.0 else 1
+    if per_block < 2 or len(t_ns) < 4 * per_block:
+        return values
+    n = len(values) // per_block * per_block
+    return values[:n].reshape(-1, per_block, values.shape[1]).mean(axis=1)
+
+
 class StaticInitializer:
     """Feed IMU samples; returns an :class:`InitialAttitude` once it can."""
 
@@ -64,9 +81,9 @@ class StaticInitializer:
         self._accel: deque[np.ndarray] = deque()
         self._first_t: int | None = None
 
-    def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, allow_moving: bool = True) -> InitialAttitude | None:
-        """Returns the initial attitude once a still window exists or, if ``allow_moving``, once
-        ``max_wait_s`` has passed without one (then from the last window, less certain)."""
+    def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> InitialAttitude | None:
+        """Returns the initial attitude once a still window exists, or once ``max_wait_s`` has passed
+        without one (then from the last window, less certain)."""
         opts = self.options
         if self._first_t is None:
             self._first_t = t_ns
@@ -83,13 +100,19 @@ class StaticInitializer:
             return None
         g = np.array(self._gyro)
         a = np.array(self._accel)
-        static = bool(np.all(g.std(axis=0) < opts.gyro_std_max) and np.all(a.std(axis=0) < opts.accel_std_max))
+        g_means, a_means = block_means(np.array(self._t), g, opts.average_s), block_means(np.array(self._t), a, opts.average_s)
+        static = bool(np.all(g_means.std(axis=0) < opts.gyro_std_max) and np.all(a_means.std(axis=0) < opts.accel_std_max))
         timed_out = t_ns - self._first_t >= int(opts.max_wait_s * 1e9)
-        if not (static or (timed_out and allow_moving)):
+        if not (static or timed_out):
             return None
-        return self._solve(t_ns, g, a, static)
+        return self._solve(t_ns, g, a, g_means, static)
 
-    def _solve(self, t_ns: int, g: np.ndarray, a: np.ndarray, static: bool) -> InitialAttitude:
+    def as_moving(self, init: InitialAttitude) -> InitialAttitude:
+        """``init`` judged again as a moving start (the GPS says the "still" window was steady motion)."""
+        g, a = np.array(self._gyro), np.array(self._accel)
+        return self._solve(init.t_ns, g, a, block_means(np.array(self._t), g, self.options.average_s), False)
+
+    def _solve(self, t_ns: int, g: np.ndarray, a: np.ndarray, g_means: np.ndarray, static: bool) -> InitialAttitude:
         opts = self.options
         f_mean = a.mean(axis=0)
         roll, pitch = roll_pitch_from_specific_force(f_mean)
@@ -98,8 +121,9 @@ class StaticInitializer:
             gyro_bias = g.mean(axis=0)
             gravity = float(np.linalg.norm(f_mean)) if opts.estimate_gravity else self.nominal_gravity
             sigma_rp = math.radians(opts.sigma_attitude_static_deg)
-            # The mean of N samples pins the bias far better than the prior does.
-            sigma_bg = max(float(g.std(axis=0).max()) / math.sqrt(len(g)), 1e-5)
+            # The mean of the window pins the bias far better than the prior does; its sigma from
+            # the scatter of the block means (vibration makes neighbouring samples correlated).
+            sigma_bg = max(float(g_means.std(axis=0).max()) / math.sqrt(len(g_means)), 1e-5)
         else:
             gyro_bias = np.zeros(3)
             gravity = self.nominal_gravity

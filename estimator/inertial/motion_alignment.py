@@ -1,8 +1,10 @@
 """In-motion alignment: attitude (heading included) and IMU biases from GPS and IMU windows.
 
-There is no magnetometer, and the vehicle may be moving when the estimator starts (EuRoC
-MH01 is carried by hand for its first 20 s). GPS positions pin the attitude down once the
-vehicle accelerates: over a window starting at ``t0``
+A batch fit over a window, which the GPS calibrations (time offset, lever arm:
+``vtolpose.estimator.calibration.gps``) solve for many windows; the filter itself finds its
+heading with the bank of hypotheses (``heading_bank``), whose sigma carries the IMU's noise,
+which this fit's does not. GPS positions pin the attitude down once the vehicle accelerates:
+over a window starting at ``t0``
 
     p(t) = p0 + v0 τ + ½ g_W τ² + R0 [ S(τ; b_g) − M(τ; b_g) b_a + ΔR(τ; b_g) l ]
 

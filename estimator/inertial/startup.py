@@ -1,11 +1,14 @@
-"""Building the first filter state: from a still start, or from an in-motion alignment."""
+"""Building the first filter state from the IMU window the start was judged on, and the GPS before it."""
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 
+from vtolpose.estimator.core.measurements import GpsFix
+from vtolpose.estimator.gnss.gps_update import gps_sigmas
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions
-from vtolpose.estimator.inertial.motion_alignment import MotionAlignment
 from vtolpose.estimator.core.rotation import quat_to_rot
 from vtolpose.estimator.core.state import FilterState, StateLayout
 
@@ -19,7 +22,7 @@ def initial_covariance(layout: StateLayout, init: InitialAttitude, opts: InitOpt
     accelerations "confirm" a wrong tilt. When g was taken from the same window, the bias
     component along gravity is already absorbed and gets a small variance. ``sigma_yaw`` is
     zero when the heading is unknown: the filter then works in a frame of arbitrary yaw
-    until the in-motion alignment places it.
+    until the heading bank places it.
     """
     n = layout.robot_dim
     cov = np.zeros((n, n))
@@ -53,14 +56,25 @@ def state_from_static(layout: StateLayout, init: InitialAttitude, opts: InitOpti
     return state
 
 
-def state_from_alignment(layout: StateLayout, alignment: MotionAlignment) -> FilterState:
-    """Pose, velocity and biases from the fit, with its covariance."""
-    state = FilterState(layout)
-    state.t_ns = alignment.t_ns
-    state.p, state.v, state.q = alignment.p.copy(), alignment.v.copy(), alignment.q.copy()
-    state.b_g = alignment.gyro_bias.copy()
-    if layout.estimates_biases:
-        state.b_a = alignment.accel_bias.copy()
-    n = layout.robot_dim
-    state.cov = alignment.cov[:n, :n].copy()
-    return state
+def velocity_from_fixes(fixes: Sequence[GpsFix], t_ns: int, sigma_floor_m: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Velocity at ``t_ns`` and its covariance from the fixes before it (at least 5 over at least 0.3 s):
+    a least-squares fit of position, velocity and a constant acceleration per axis, weighted by the
+    fixes' sigmas, its covariance scaled up by the fit's residuals when the motion was not that
+    smooth (a vehicle carried by hand). What the IMU cannot tell — rest from steady straight flight,
+    or from a steady turn — the GPS can. None when the fixes are too few."""
+    fixes = [f for f in fixes if f.t_ns <= t_ns]
+    if len(fixes) < 5 or (fixes[-1].t_ns - fixes[0].t_ns) * 1e-9 < 0.3:
+        return None
+    tau = np.array([(f.t_ns - t_ns) * 1e-9 for f in fixes])
+    design = np.column_stack([np.ones_like(tau), tau, 0.5 * tau**2])
+    v, var = np.zeros(3), np.zeros(3)
+    for axis in range(3):
+        sigma = np.array([gps_sigmas(f, sigma_floor_m)[0 if axis < 2 else 1] for f in fixes])
+        a = design / sigma[:, None]
+        y = np.array([f.p_ned[axis] for f in fixes]) / sigma
+        normal_inv = np.linalg.inv(a.T @ a)
+        x = normal_inv @ a.T @ y
+        reduced_chi2 = float(np.sum((y - a @ x) ** 2)) / (len(fixes) - 3)
+        v[axis] = x[1]
+        var[axis] = normal_inv[1, 1] * max(1.0, reduced_chi2)
+    return v, np.diag(var)

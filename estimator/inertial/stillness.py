@@ -4,7 +4,9 @@ On the pad, on a table, or landed, the IMU says more than "no motion": its mean 
 the gyro bias. The thesis calibrates before each run (section 5.2); doing it at every rest
 keeps a fixed-bias model (``thesis``) honest over long runs and gives the ``biases`` model a
 direct bias measurement. A still chunk needs low IMU variance, a specific force of magnitude g,
-and a filter speed near zero, so a smooth, straight flight is never mistaken for rest.
+and a filter speed near zero, so a smooth, straight flight is never mistaken for rest. The
+variance is that of means over ``average_s`` (see ``initializer``): a turning rotor shakes
+the IMU without moving the vehicle.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ class StillnessOptions:
     chunk_s: float = 1.0
     gyro_std_max: float = 0.02  # rad/s per axis
     accel_std_max: float = 0.15  # m/s² per axis
+    average_s: float = 0.1  # the std limits apply to means over this long (vibration averages out, motion not)
     gravity_tolerance: float = 0.3  # m/s² on |mean f| - g
     speed_max: float = 0.2  # m/s, filter estimate
     zupt_sigma: float = 0.01  # m/s
@@ -31,7 +34,7 @@ class StillChunk:
     """Statistics of one still chunk of IMU samples."""
 
     gyro_mean: np.ndarray
-    gyro_var_of_mean: np.ndarray  # per axis, from the samples' own scatter
+    gyro_var_of_mean: np.ndarray  # per axis, from the scatter of the chunk's block means
     n: int
     duration_s: float
 
@@ -50,21 +53,36 @@ class StillnessDetector:
 
     def _reset(self, t_ns: int | None) -> None:
         self._t0 = t_ns
-        self._n = 0
+        self._samples = 0
+        self._n = 0  # block means in this chunk
         self._g_sum = np.zeros(3)
         self._g_sq = np.zeros(3)
         self._a_sum = np.zeros(3)
         self._a_sq = np.zeros(3)
+        self._start_block(t_ns)
+
+    def _start_block(self, t_ns: int | None) -> None:
+        self._block_t0 = t_ns
+        self._block_n = 0
+        self._block_g = np.zeros(3)
+        self._block_a = np.zeros(3)
 
     def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, gravity: float, speed: float) -> StillChunk | None:
         """Add a body-frame sample; at the end of each chunk return it if it was still."""
         if self._t0 is None:
             self._reset(t_ns)
-        self._n += 1
-        self._g_sum += gyro
-        self._g_sq += gyro * gyro
-        self._a_sum += accel
-        self._a_sq += accel * accel
+        self._samples += 1
+        self._block_n += 1
+        self._block_g += gyro
+        self._block_a += accel
+        if (t_ns - self._block_t0) * 1e-9 >= self.options.average_s:
+            g, a = self._block_g / self._block_n, self._block_a / self._block_n
+            self._n += 1
+            self._g_sum += g
+            self._g_sq += g * g
+            self._a_sum += a
+            self._a_sq += a * a
+            self._start_block(t_ns)
         duration = (t_ns - self._t0) * 1e-9
         if duration < self.options.chunk_s:
             return None
@@ -75,7 +93,7 @@ class StillnessDetector:
     def _evaluate(self, duration: float, gravity: float, speed: float) -> StillChunk | None:
         opts = self.options
         n = self._n
-        if n < 10:
+        if n < 5 or self._samples < 10:
             return None
         g_mean = self._g_sum / n
         a_mean = self._a_sum / n
@@ -95,4 +113,4 @@ class StillnessDetector:
         pg, pg_var, pa, pa_var = previous
         if np.any((g_mean - pg) ** 2 > 16.0 * (g_var / n + pg_var)) or np.any((a_mean - pa) ** 2 > 16.0 * (a_var / n + pa_var)):
             return None
-        return StillChunk(g_mean, g_var / n, n, duration)
+        return StillChunk(g_mean, g_var / n, self._samples, duration)

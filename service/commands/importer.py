@@ -14,16 +14,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "import",
         help="convert external data (EuRoC, ROS 2 bags) into a dataset",
         description="Convert an external recording into the dataset layout that `replay` reads.\n\n"
-        "euroc: an ASL/EuRoC folder (mav0/imu0, mav0/leica0). The Leica track becomes position truth;\n"
+        "euroc: an ASL/EuRoC folder (mav0/imu0 and a truth). The truth is --truth FILE (TUM or EuRoC CSV:\n"
+        "the IMU's pose on the IMU clock) or the first of mav0/state_groundtruth_estimate0, leica0, vicon0;\n"
         "with --gps-rate a GPS is made from it the way the thesis made its GPS (subsampled, Gaussian\n"
-        "noise with sigma_z^2 = 2 sigma_xy^2). The IMU mounting comes from --mounting.\n\n"
+        "noise with sigma_z^2 = 2 sigma_xy^2). mav0/cam0 (images, intrinsics, distortion, mounting) comes\n"
+        "along unless --no-camera. The IMU mounting comes from --mounting, the same file for every flight.\n"
+        "--truth FILE takes the truth from a TUM file instead (the IMU's pose on the IMU clock).\n\n"
         "rosbag: a ROS 2 bag (rosbag2 folder with sqlite3 or MCAP storage, or a .mcap file): --imu\n"
         "(sensor_msgs/Imu) and --gps (NavSatFix), optionally --image (Image or CompressedImage, needs\n"
-        "--calibration with a camera) and --truth (PoseStamped or Odometry, ENU/FLU). Header stamps\n"
+        "--calibration with a camera) and --truth TOPIC (PoseStamped or Odometry, ENU/FLU). Header stamps\n"
         "are the times. The calibration comes from --calibration (a dataset.yaml-format file), else\n"
         "from the bag: IMU axes = base_link (FLU), noise from the messages' covariances.\n\n"
         "Examples:\n"
         "  vtolpose import euroc ../shared/data/euroc_mh01 --out data/mh01 --gps-rate 10 --gps-sigma 0.02\n"
+        "  vtolpose import euroc ../shared/data/euroc_dev/V101 --truth ../shared/data/euroc_dev/V101/truth.tum \\\n"
+        "      --out data/v101 --gps-rate 10 --seed 1\n"
         "  vtolpose import rosbag flight_bag --imu /imu/data --gps /fix --image /camera/image_raw \\\n"
         "      --calibration vehicle_calibration.yaml --out data/flight",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -35,12 +40,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gps-sigma", type=float, default=0.02, metavar="M", help="horizontal GPS sigma [m] (default 0.02)")
     p.add_argument("--seed", type=int, default=0, help="GPS noise seed (default 0)")
     p.add_argument("--mounting", metavar="YAML", help=f"IMU mounting and truth frame (default {default_mounting_path().name})")
+    p.add_argument("--truth", metavar="FILE|TOPIC", help="euroc: truth as a TUM (or EuRoC CSV) file, the IMU's pose on "
+                   "the IMU clock; rosbag: a geometry_msgs/PoseStamped or nav_msgs/Odometry topic")
+    p.add_argument("--no-camera", action="store_true", help="euroc: leave mav0/cam0 out")
     p.add_argument("--force", action="store_true", help="replace an existing dataset in --out")
     bag = p.add_argument_group("rosbag")
     bag.add_argument("--imu", metavar="TOPIC", help="sensor_msgs/Imu topic (required for rosbag)")
     bag.add_argument("--gps", metavar="TOPIC", help="sensor_msgs/NavSatFix topic (required for rosbag)")
     bag.add_argument("--image", metavar="TOPIC", help="sensor_msgs/Image or CompressedImage topic")
-    bag.add_argument("--truth", metavar="TOPIC", help="geometry_msgs/PoseStamped or nav_msgs/Odometry topic")
     bag.add_argument("--calibration", metavar="YAML", help="the vehicle's calibration (dataset.yaml format)")
     bag.add_argument("--fix-sigma", metavar="H[,V]", help="GPS 1-sigma [m] for fixes without a covariance (V: 2 H if not given)")
     p.set_defaults(run=run)
@@ -76,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"{src}: not an ASL/EuRoC folder (it has no mav0/)")
         summary = import_euroc(
             args.src, args.out, gps_rate_hz=args.gps_rate, gps_sigma_m=args.gps_sigma, seed=args.seed,
-            mounting=args.mounting, overwrite=args.force,
+            mounting=args.mounting, overwrite=args.force, truth_file=args.truth, camera=not args.no_camera,
         )
     print(f"imported {args.src} into {args.out}")
     for line in field_lines(summary):

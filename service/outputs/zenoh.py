@@ -22,7 +22,7 @@ import zenoh
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.pose_history import OutsideHistory, PoseHistory
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
-from vtolpose.service.runtime.status import pose_quality
+from vtolpose.service.runtime.status import heading_weak, pose_quality
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +35,8 @@ def pose_status(pose: OutputPose, quality: int) -> str:
         return "no_position"
     if not pose.heading_aligned:
         return "heading_unaligned"
+    if heading_weak(pose):
+        return "heading_weak"
     return "ok" if quality > 0 else "poor"
 
 

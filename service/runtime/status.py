@@ -42,6 +42,16 @@ def pose_problem(pose: OutputPose) -> str | None:
     return None
 
 
+# A placed heading is "weak" while its sigma exceeds this: 5° puts a point 20 m away 1.7 m off sideways.
+HEADING_WEAK_SIGMA_RAD = math.radians(5.0)
+
+
+def heading_weak(pose: OutputPose) -> bool:
+    """Whether the heading, placed but still poorly known, deserves a word in the pose's status."""
+    var = float(pose.cov9[8, 8])
+    return pose.heading_aligned and not (math.isfinite(var) and var <= HEADING_WEAK_SIGMA_RAD**2)
+
+
 def pose_quality(pose: OutputPose) -> int:
     """0 = invalid (:func:`pose_problem`); else 1–100 from the largest position and attitude sigmas, never
     above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
@@ -174,6 +184,7 @@ class StatusTracker:
             "sensors": sensors,
             "initialized": state is not None,
             "heading_aligned": est.heading_aligned,
+            "heading_sigma_deg": None if state is None else round(math.degrees(math.sqrt(est.published_cov9()[8, 8])), 3),
             "landmarks": int(state.n_landmarks) if state is not None else 0,
             "rejected": rejected,
             "fusion": {

@@ -18,7 +18,7 @@ from vtolpose.estimator.health import HealthOptions
 from vtolpose.estimator.filter import FilterOptions
 from vtolpose.estimator.inertial.initializer import InitOptions
 from vtolpose.estimator.vision.map_manager import MapOptions
-from vtolpose.estimator.inertial.motion_alignment import MotionAlignOptions
+from vtolpose.estimator.inertial.heading_bank import HeadingBankOptions
 from vtolpose.estimator.inertial.stillness import StillnessOptions
 
 NOISE_KEYS = ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", "accel_random_walk")
@@ -65,7 +65,7 @@ def filter_options(cfg: dict[str, Any], calibration_noise: ImuNoise) -> FilterOp
         max_filter_rate_hz=cfg["estimator.imu.max_filter_rate_hz"],
         noise=noise,
         init=init_options(cfg),
-        align=MotionAlignOptions(**get(cfg, "estimator.alignment")),
+        align=HeadingBankOptions(**get(cfg, "estimator.alignment")),
         unaligned_accel_noise=cfg["estimator.unaligned.accel_noise"],
         level_sigma=cfg["estimator.unaligned.level_sigma"],
         gps_reset_after_s=cfg["estimator.gps_reset_after_s"],

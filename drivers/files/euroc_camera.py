@@ -1,0 +1,91 @@
+"""EuRoC ``cam0``: the camera's calibration in our frames, and its images into a dataset.
+
+EuRoC's ``sensor.yaml`` gives a pinhole camera (``intrinsics: [fu, fv, cu, cv]``,
+``resolution: [width, height]``), radial-tangential distortion ``[k1, k2, p1, p2]`` and
+``T_BS``, the camera's pose on EuRoC's body B. Our ``R_BC`` maps camera axes (x right, y down,
+z forward: the same convention) into body FRD, and ``t_BC`` is the optical centre in FRD:
+
+    R_BC = R_BI · R_BI_eurocᵀ · R_BS_cam,    t_BC = R_BI · R_BI_eurocᵀ · (t_BS_cam − t_BI_euroc)
+
+The VI-sensor stamps images and IMU on one clock, so the time offset is zero.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from vtolpose.drivers.files.calibration_yaml import YamlReader, load_yaml_file
+from vtolpose.drivers.files.dataset import CAM_CSV, CAM_DIR
+from vtolpose.drivers.files.euroc_truth import Frames, read_mount
+from vtolpose.drivers.files.frames_csv import read_frame_index, write_frame_index
+from vtolpose.estimator.core.calibration import CameraCalibration
+
+log = logging.getLogger(__name__)
+
+RADTAN_NAMES = ("radial-tangential", "radtan")
+
+
+def camera_calibration(sensor_yaml: Path, frames: Frames) -> CameraCalibration:
+    """Our camera calibration from a EuRoC camera ``sensor.yaml``; errors name the file and the key."""
+    doc = load_yaml_file(sensor_yaml)
+    y = YamlReader(str(sensor_yaml))
+    if not isinstance(doc, dict):
+        raise y.fail("(top level)", "a mapping", doc)
+    for key in ("intrinsics", "resolution", "distortion_coefficients"):
+        if key not in doc:
+            raise ValueError(f"{sensor_yaml}: {key}: missing (required)")
+    model = doc.get("camera_model", "pinhole")
+    if model != "pinhole":
+        raise y.fail("camera_model", "pinhole", model)
+    distortion_model = doc.get("distortion_model", "radial-tangential")
+    if distortion_model not in RADTAN_NAMES:
+        raise y.fail("distortion_model", f"one of {list(RADTAN_NAMES)} (the model OpenCV and this program use)",
+                     distortion_model)
+    fu, fv, cu, cv = y.vector(doc["intrinsics"], "intrinsics", 4)
+    width, height = (y.integer(v, "resolution") for v in _pair(y, doc["resolution"]))
+    coeffs = doc["distortion_coefficients"]
+    n = len(coeffs) if isinstance(coeffs, list) and len(coeffs) in (4, 5) else 4
+    k = np.zeros(5)
+    k[:n] = y.vector(coeffs, "distortion_coefficients", n)
+    mount = read_mount(sensor_yaml)
+    to_body = frames.R_BI @ frames.imu.R_BS.T
+    return CameraCalibration(
+        width=width, height=height, fx=fu, fy=fv, cx=cu, cy=cv, distortion=k,
+        R_BC=to_body @ mount.R_BS, t_BC=to_body @ (mount.t_BS - frames.imu.t_BS),
+        rate_hz=y.number(doc.get("rate_hz", 20.0), "rate_hz", positive=True), time_offset_s=0.0,
+    )
+
+
+def _pair(y: YamlReader, value: object) -> list:
+    if not isinstance(value, list) or len(value) != 2:
+        raise y.fail("resolution", "[width, height]", value)
+    return value
+
+
+def copy_frames(cam_dir: Path, out: Path) -> tuple[int, int]:
+    """The images listed in ``cam_dir/data.csv`` into dataset ``out`` as ``<t_ns>.png`` (hard-linked
+    where the file system allows, else copied: the bytes stay EuRoC's). Returns (frames, skipped)."""
+    frames, skipped = read_frame_index(cam_dir / "data.csv", cam_dir / "data")
+    target = out / CAM_DIR
+    if target.exists():
+        shutil.rmtree(target)
+    target.mkdir(parents=True)
+    times = []
+    for t_ns, path in frames:
+        if path.suffix.lower() != ".png" or not path.is_file():
+            log.warning("%s: %s, frame skipped", path, "missing" if not path.exists() else "not a PNG")
+            skipped += 1
+            continue
+        dest = target / f"{t_ns}.png"
+        try:
+            os.link(path, dest)
+        except OSError:
+            shutil.copyfile(path, dest)
+        times.append(t_ns)
+    write_frame_index(out / CAM_CSV, times)
+    return len(times), skipped

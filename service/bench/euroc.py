@@ -1,0 +1,208 @@
+"""Every EuRoC flight on disk, end to end: imported, replayed with both models, scored — one table.
+
+This is issue 12's measurement, repeatable on flights this program was never tuned on: each
+flight is imported the same way (the IMU as recorded; a GPS made from the truth at 10 Hz with
+σ_xy 2 cm, σ_z² = 2 σ_xy², seed 1; the heading unknown; the one vehicle file
+``config/euroc_vi_sensor.yaml``), replayed through the runtime with IMU and GPS, and scored
+from 15 s after the truth starts:
+
+- position RMSE of the tracked point after a rigid alignment (rotation and translation) of the
+  estimate onto the truth, against the raw GPS's RMSE over the same span;
+- attitude: RMS of the error that varies with time — the constant world rotation between truth
+  and estimate (``metrics.mean_world_rotation``: the motion-capture frame's "up" is a fraction
+  of a degree off the vertical the estimate levels itself to) taken off — over the poses that
+  carry a heading (before the heading is placed the outputs say it is unknown: quality 0);
+- NEES over position and attitude (6 dof; 3 without orientation truth) of every pose from 15 s,
+  the heading's published sigma included, with the same world rotation taken off;
+- time to the first pose with a position (from switch-on), time from the truth's motion onset
+  to the heading's placement, resets, and the replay's real-time factor.
+
+Flights are found under ``$VTOLPOSE_EUROC_DATA``, else ``../shared/data`` next to the working
+directory or to the repository: any folder with ``mav0/imu0/data.csv``; a ``truth.tum`` beside
+``mav0`` is used as its truth (see ``vtolpose import euroc --truth``).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+import vtolpose
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.euroc_import import import_euroc
+from vtolpose.estimator.core.rotation import quat_to_rot, rot_to_quat, rotation_angle
+from vtolpose.estimator.metrics import (
+    chi2_band, gps_error_rmse, interpolate_poses, mean_world_rotation, motion_onset, nees, pose_errors_for_nees,
+    rigid_alignment,
+)
+from vtolpose.service.replay.session import ReplayResult, replay
+
+Row = tuple[str, float, str, str]
+DATA_ENV = "VTOLPOSE_EUROC_DATA"
+SCORE_FROM_S = 15.0
+GPS_RATE_HZ, GPS_SIGMA_M, GPS_SEED = 10.0, 0.02, 1
+VARIANTS = ("biases", "thesis")
+
+
+@dataclass(frozen=True)
+class Flight:
+    name: str
+    source: Path
+    truth_file: Path | None
+
+
+@dataclass(frozen=True)
+class FlightScore:
+    flight: str
+    variant: str
+    position_rmse_m: float
+    gps_rmse_m: float
+    attitude_rms_deg: float | None  # poses with a heading, from SCORE_FROM_S; None without orientation truth
+    nees_mean: float
+    nees_dof: int
+    nees_in_band: float  # fraction of samples inside the per-sample 95 % band
+    first_pose_s: float | None  # switch-on to the first pose with a position
+    heading_s: float | None  # motion onset to the heading's placement (None: never placed)
+    onset_s: float | None  # motion onset after the truth starts
+    resets: int
+    realtime_factor: float
+    alignment_deg: float  # rotation of the rigid alignment (a check: the GPS frame is the truth's)
+    world_rotation_deg: float  # constant world rotation taken off the attitude (0 without orientation truth)
+
+    @property
+    def ratio(self) -> float:
+        return self.position_rmse_m / self.gps_rmse_m
+
+
+def data_roots() -> list[Path]:
+    """Where EuRoC flights may be: ``$VTOLPOSE_EUROC_DATA``, else ``../shared/data`` from here or the repository."""
+    if os.environ.get(DATA_ENV):
+        return [Path(os.environ[DATA_ENV])]
+    repo = Path(vtolpose.__file__).resolve().parent
+    return list(dict.fromkeys(p.resolve() for p in (Path.cwd().parent / "shared" / "data", repo.parent / "shared" / "data")))
+
+
+def find_flights(roots: list[Path]) -> list[Flight]:
+    """Every folder under ``roots`` (three levels deep at most) that holds a EuRoC IMU, by name."""
+    found: dict[str, Flight] = {}
+    for root in roots:
+        if not root.is_dir():
+            continue
+        for imu in sorted(root.glob("**/mav0/imu0/data.csv")):
+            folder = imu.parents[2]
+            if len(folder.relative_to(root).parts) > 3:
+                continue
+            truth = folder / "truth.tum"
+            name = folder.name.removeprefix("euroc_").upper()
+            found.setdefault(name, Flight(name, folder, truth if truth.is_file() else None))
+    return sorted(found.values(), key=lambda f: f.name)
+
+
+def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str) -> FlightScore:
+    """The table's figures for one replay (see the module docstring)."""
+    est, traj, truth = result.estimator, result.trajectory, dataset.truth()
+    point_b = dataset.calibration.truth_point_b
+    t_from = int(truth.t_ns[0] + SCORE_FROM_S * 1e9)
+    inside = (truth.t_ns >= max(t_from, int(traj.t_ns[0]))) & (truth.t_ns <= traj.t_ns[-1])
+    t = truth.t_ns[inside]
+    p_est, q_est = interpolate_poses(t, traj.t_ns, traj.p, traj.q)
+    R_est = quat_to_rot(q_est)
+    R_al, t_al = rigid_alignment(p_est + R_est @ point_b, truth.p[inside])
+    error = (p_est + R_est @ point_b) @ R_al.T + t_al - truth.p[inside]
+    placed = est.heading_placement["t_ns"] if est.heading_placement is not None else None
+    attitude, world = None, np.eye(3)
+    if truth.q is not None:
+        with_heading = t >= placed if placed is not None else np.zeros(len(t), dtype=bool)
+        if est.heading_aligned and placed is None:  # a heading known from the start
+            with_heading[:] = True
+        if np.any(with_heading):
+            q_aligned = rot_to_quat(R_al @ R_est[with_heading])
+            world = mean_world_rotation(q_aligned, truth.q[inside][with_heading])
+            q_aligned = rot_to_quat(world @ quat_to_rot(q_aligned))
+            attitude = float(np.degrees(np.sqrt(np.mean(rotation_angle(truth.q[inside][with_heading], q_aligned) ** 2))))
+    gps = dataset.gps()
+    keep = gps.t_ns >= t_from
+    gps_rmse = gps_error_rmse(type(gps)(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep]), truth,
+                              dataset.calibration.gps.lever_arm_b, point_b)["rmse_m"]
+    cov = result.covariances
+    c = cov.t_ns >= t_from
+    turn = np.zeros((6, 6))
+    turn[0:3, 0:3], turn[3:6, 3:6] = R_al, world @ R_al
+    q_cov = rot_to_quat(world @ R_al @ quat_to_rot(cov.q[c]))
+    p_cov = cov.p[c] @ R_al.T + t_al
+    err, c_err, dof = pose_errors_for_nees(cov.t_ns[c], p_cov, q_cov, turn @ cov.cov[c] @ turn.T, truth, point_b)
+    values = nees(err, c_err)
+    lo, hi = chi2_band(dof)
+    imu_t0 = int(dataset.imu_raw().t_ns[0])
+    positioned = next((t for t, message in est.events if message.startswith("position initialised")), None)
+    onset = motion_onset(truth)
+    return FlightScore(
+        flight, variant, float(np.sqrt(np.mean(np.sum(error**2, axis=1)))), float(gps_rmse), attitude,
+        float(np.mean(values)), dof, float(np.mean((values >= lo) & (values <= hi))),
+        None if positioned is None else (positioned - imu_t0) * 1e-9,
+        None if placed is None or onset is None else (placed - onset) * 1e-9,
+        None if onset is None else (onset - int(truth.t_ns[0])) * 1e-9,
+        est.reset_counter, result.duration_s / result.wall_s if result.wall_s > 0 else float("nan"),
+        _angle_deg(R_al), _angle_deg(world),
+    )
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def run_flight(flight: Flight, work: Path, variants: tuple[str, ...] = VARIANTS) -> list[FlightScore]:
+    """Import ``flight`` into ``work`` as issue 12 prescribes, replay it with IMU and GPS per variant, score it."""
+    out = work / flight.name
+    import_euroc(flight.source, out, gps_rate_hz=GPS_RATE_HZ, gps_sigma_m=GPS_SIGMA_M, seed=GPS_SEED,
+                 overwrite=True, truth_file=flight.truth_file, camera=False)
+    dataset = Dataset.open(out)
+    scores = []
+    for variant in variants:
+        result = replay(dataset, load_config(None, {"estimator": {"variant": variant}}), ["imu", "gps"])
+        scores.append(score(result, dataset, flight.name, variant))
+    return scores
+
+
+def _fmt(value: float | None, spec: str, unit: str = "") -> str:
+    return "—" if value is None or not np.isfinite(value) else f"{value:{spec}}{unit}"
+
+
+def table_lines(scores: list[FlightScore]) -> list[str]:
+    """The results table (Markdown), one row per flight and model."""
+    lines = [
+        "| flight | model | position RMSE | GPS RMSE | ratio | attitude RMS | NEES (in band) | first pose | heading | resets | × real time |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for s in scores:
+        heading = "never" if s.heading_s is None else f"{s.heading_s:.1f} s after onset"
+        lines.append(
+            f"| {s.flight} | {s.variant} | {s.position_rmse_m:.4f} m | {s.gps_rmse_m:.4f} m | {s.ratio:.3f} | "
+            f"{_fmt(s.attitude_rms_deg, '.2f', '°')} | {s.nees_mean:.2f} ({s.nees_dof} dof, {100 * s.nees_in_band:.0f} %) | "
+            f"{_fmt(s.first_pose_s, '.1f', ' s')} | {heading} | {s.resets} | {s.realtime_factor:.0f} |"
+        )
+    return lines
+
+
+def bench_euroc(echo: Callable[[str], None] = print) -> list[Row]:
+    """Every EuRoC flight under ../shared/data: import, replay both models, score (issue 12's table)."""
+    roots = data_roots()
+    flights = find_flights(roots)
+    if not flights:
+        echo(f"  euroc: skipped, no EuRoC flight (mav0/imu0/data.csv) under {', '.join(map(str, roots))}; "
+             f"set {DATA_ENV} to the folder that holds them")
+        return []
+    scores: list[FlightScore] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for flight in flights:
+            scores.extend(run_flight(flight, Path(tmp)))
+    for line in table_lines(scores):
+        echo("  " + line)
+    return [(f"{s.flight} {s.variant}: position / GPS", s.ratio, "ratio",
+             f"attitude {_fmt(s.attitude_rms_deg, '.2f', ' deg')}, NEES {s.nees_mean:.2f}, {s.resets} resets") for s in scores]
