@@ -198,7 +198,7 @@ class Estimator:
             extra = max(self.options.unaligned_accel_noise, 2.0 * math.hypot(accel[0], accel[1]))
         recorder = self.recorder
         if recorder is not None:
-            recorder.before_propagation(self.state)
+            recorder.before_propagation(self.state, self.heading_aligned)
         a_w = self.propagator.propagate(self.state, delta, extra)
         keep = self.options.init.average_s / (self.options.init.average_s + delta.dt)
         self._horizontal_accel = keep * self._horizontal_accel + (1.0 - keep) * a_w[:2]

@@ -396,3 +396,29 @@ def test_a_state_changed_after_every_propagation_gives_one_segment_per_step():
     sm = smooth_steps(steps)
     assert sm.t_ns.tolist() == [k * 10_000_000 for k in range(30)]
     assert np.allclose(sm.pose_cov[:, 5, 5][1:], 3.3)  # each time's own posterior: nothing came back across a break
+
+
+def test_while_the_heading_is_unknown_smoothed_poses_say_so_in_their_covariance(book):
+    """The filter's yaw is a gauge (variance ~0) until the heading is placed; smoothed poses of that stretch
+    carry the variance of a heading anywhere on the circle, as the filtered ones do."""
+    from vtolpose.estimator.inertial.heading_bank import UNKNOWN_HEADING_VAR
+
+    est, steps, _ = run_recorded(book, "biases")
+    unknown_until = steps[len(steps) // 3].t_ns
+    steps = [replace_heading(s, s.t_ns >= unknown_until) for s in steps]
+    sm = smooth_steps(steps)
+    early, late = sm.t_ns < unknown_until, sm.t_ns >= unknown_until
+    assert np.all(sm.pose_cov[early][:, 5, 5] == UNKNOWN_HEADING_VAR)
+    assert np.all(sm.pose_cov[early][:, 5, :5] == 0.0) and not sm.heading_known[early].any()
+    assert np.all(sm.pose_cov[late][:, 5, 5] < np.radians(5.0) ** 2) and sm.heading_known[late].all()
+    smoother = FixedLagSmoother(1.0, 4, 100.0)
+    for step in steps:
+        smoother.add(step)
+    out = smoother.flush()
+    assert len(out) == len(sm.t_ns) and all((p.pose_cov[5, 5] == UNKNOWN_HEADING_VAR) == (p.t_ns < unknown_until) for p in out)
+
+
+def replace_heading(step: Step, known: bool) -> Step:
+    from dataclasses import replace
+
+    return replace(step, heading_known=bool(known))

@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vtolpose.estimator.smoothing.rts import POSE_IX, apply_error, backward_step, error_between, gains
+from vtolpose.estimator.smoothing.rts import (POSE_IX, apply_error, backward_step, error_between, gains,
+                                              published_pose_cov)
 from vtolpose.estimator.smoothing.steps import Step
 
 _POSE_BLOCK = np.ix_(POSE_IX, POSE_IX)
@@ -34,8 +35,9 @@ class SmoothedPose:
 
     t_ns: int
     x: np.ndarray
-    pose_cov: np.ndarray
+    pose_cov: np.ndarray  # as published: an unknown heading has the variance of one anywhere on the circle
     vel_var: np.ndarray
+    heading_known: bool = True
 
     @property
     def p(self) -> np.ndarray:
@@ -164,8 +166,9 @@ class FixedLagSmoother:
             if step.t_ns <= sweep.threshold_ns and (sweep.last_t is None or step.t_ns < sweep.last_t):
                 sweep.last_t = step.t_ns
                 Ps = sweep.Ps
-                sweep.reached.append(SmoothedPose(step.t_ns, apply_error(step.x, sweep.e, Ps.shape[0]), Ps[_POSE_BLOCK],
-                                                  np.diagonal(Ps)[3:6].copy()))
+                sweep.reached.append(SmoothedPose(step.t_ns, apply_error(step.x, sweep.e, Ps.shape[0]),
+                                                  published_pose_cov(Ps[_POSE_BLOCK], step.heading_known),
+                                                  np.diagonal(Ps)[3:6].copy(), step.heading_known))
             sweep.index -= 1
             if sweep.index < self._base:
                 return self._finish(sweep, used)

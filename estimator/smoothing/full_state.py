@@ -83,7 +83,7 @@ class FullStateRecorder:
         self._last = (now, cov)
         return now, cov
 
-    def before_propagation(self, state: FilterState) -> None:
+    def before_propagation(self, state: FilterState, heading_known: bool = True) -> None:
         now, cov = self._observe(state)
         self.events.append(now)
         self._P_post_r = cov[:, : state.robot_dim]
@@ -98,7 +98,7 @@ class FullStateRecorder:
     def updated(self, state: FilterState) -> None:
         self._observe(state)
 
-    def finish(self, state: FilterState) -> None:
+    def finish(self, state: FilterState, heading_known: bool = True) -> None:
         self.events.append(self._observe(state)[0])
 
     def smooth(self) -> tuple[np.ndarray, np.ndarray]:

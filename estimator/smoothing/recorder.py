@@ -28,10 +28,10 @@ from vtolpose.estimator.smoothing.steps import Step, pack_nominal
 class FilterRecorder(Protocol):
     """What the estimator calls (``Estimator.recorder``); :class:`StepRecorder` is the one in use."""
 
-    def before_propagation(self, state: FilterState) -> None: ...
+    def before_propagation(self, state: FilterState, heading_known: bool = True) -> None: ...
     def after_propagation(self, state: FilterState, F: np.ndarray) -> None: ...
     def updated(self, state: FilterState) -> None: ...
-    def finish(self, state: FilterState | None) -> None: ...
+    def finish(self, state: FilterState | None, heading_known: bool = True) -> None: ...
 
 
 class StepRecorder:
@@ -47,10 +47,13 @@ class StepRecorder:
         self._ref_nominal: tuple = ()  # the nominal arrays then (the filter replaces them, never mutates)
         self._ref_x: np.ndarray | None = None  # their packed values, when already packed
         self._post: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._heading_known = True  # at the last posterior
 
     # ------------------------------------------------------------------------------ hooks
-    def before_propagation(self, state: FilterState) -> None:
-        """``state`` is the posterior at its time: every measurement there has been fused."""
+    def before_propagation(self, state: FilterState, heading_known: bool = True) -> None:
+        """``state`` is the posterior at its time: every measurement there has been fused.
+        ``heading_known``: False while the filter's yaw is arbitrary (see ``steps``)."""
+        self._heading_known = heading_known
         if not self._consistent(state):
             self._close()
             self.segment += 1
@@ -68,7 +71,7 @@ class StepRecorder:
         t0, x0, P0 = self._post
         n = state.robot_dim
         x_pred, P_pred = pack_nominal(state), state.cov[:n, :n].copy()
-        self.sink(Step(self.segment, t0, x0, P0, state.t_ns, F.copy(), x_pred, P_pred))
+        self.sink(Step(self.segment, t0, x0, P0, state.t_ns, F.copy(), x_pred, P_pred, self._heading_known))
         self.steps += 1
         self._remember(state, x_pred, P_pred)
 
@@ -78,7 +81,7 @@ class StepRecorder:
             n = state.robot_dim
             self._remember(state, None, state.cov[:n, :n].copy())
 
-    def finish(self, state: FilterState | None) -> None:
+    def finish(self, state: FilterState | None, heading_known: bool = True) -> None:
         """End of the data: the last posterior closes the last segment."""
         if state is not None and not self._consistent(state):
             self._close()
@@ -86,6 +89,7 @@ class StepRecorder:
             self._state = state
             n = state.robot_dim
             self._remember(state, None, state.cov[:n, :n].copy())
+        self._heading_known = heading_known
         self._close()
 
     # --------------------------------------------------------------------------- segments
@@ -108,7 +112,7 @@ class StepRecorder:
         if self._state is None or self._ref_P is None:
             return
         x = self._ref_x if self._ref_x is not None else np.concatenate(self._ref_nominal)
-        self.sink(Step(self.segment, self._ref_t, x, self._ref_P))
+        self.sink(Step(self.segment, self._ref_t, x, self._ref_P, heading_known=self._heading_known))
         self.steps += 1
         if self._state.observer is self:
             self._state.observer = None
@@ -121,9 +125,9 @@ class Recorders:
     def __init__(self, *recorders: object) -> None:
         self.recorders = recorders
 
-    def before_propagation(self, state: FilterState) -> None:
+    def before_propagation(self, state: FilterState, heading_known: bool = True) -> None:
         for r in self.recorders:
-            r.before_propagation(state)
+            r.before_propagation(state, heading_known)
         state.observer = self  # updates reach all of them
 
     def after_propagation(self, state: FilterState, F: np.ndarray) -> None:
@@ -134,6 +138,6 @@ class Recorders:
         for r in self.recorders:
             r.updated(state)
 
-    def finish(self, state: FilterState | None) -> None:
+    def finish(self, state: FilterState | None, heading_known: bool = True) -> None:
         for r in self.recorders:
-            r.finish(state)
+            r.finish(state, heading_known)

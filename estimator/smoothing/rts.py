@@ -27,9 +27,28 @@ from dataclasses import dataclass
 import numpy as np
 
 from vtolpose.estimator.core.rotation import quat_conj, quat_exp, quat_log, quat_mul
+from vtolpose.estimator.inertial.heading_bank import UNKNOWN_HEADING_VAR
 from vtolpose.estimator.smoothing.steps import NOMINAL, ChunkBuilder, Step, StepChunk
 
 POSE_IX = np.r_[0:3, 6:9]  # [δp, δθ] in every robot layout
+POSE_YAW = 5  # the heading in the [δp, δθ] pose covariance
+
+
+def published_pose_cov(pose_cov: np.ndarray, heading_known: np.ndarray | bool) -> np.ndarray:
+    """Pose covariances ``(..., 6, 6)`` as the outputs give them: where the heading is not known, the
+    filter's yaw is an arbitrary gauge, so it gets the variance of a heading anywhere on the circle,
+    uncorrelated with the rest (as ``Estimator.published_cov9`` does for the filtered pose)."""
+    unknown = ~np.asarray(heading_known, dtype=bool)
+    if not np.any(unknown):
+        return pose_cov
+    out = np.array(pose_cov, dtype=float)
+    sel = out[unknown] if out.ndim == 3 else out
+    sel[..., POSE_YAW, :] = 0.0
+    sel[..., :, POSE_YAW] = 0.0
+    sel[..., POSE_YAW, POSE_YAW] = UNKNOWN_HEADING_VAR
+    if out.ndim == 3:
+        out[unknown] = sel
+    return out
 
 
 def error_between(x_a: np.ndarray, x_b: np.ndarray, n: int) -> np.ndarray:
@@ -103,6 +122,7 @@ class SmoothedChunk:
     pose_cov: np.ndarray  # (K, 6, 6) over [δp, δθ] (world-frame attitude error)
     vel_var: np.ndarray  # (K, 3)
     segment: np.ndarray  # (K,) int64
+    heading_known: np.ndarray  # (K,) bool; where False, pose_cov has the unknown heading's variance
 
     def __len__(self) -> int:
         return int(self.t_ns.size)
@@ -160,18 +180,19 @@ class BackwardPass:
         self._e, self._Ps, self._x, self._segment, self._last_t = e, Ps, chunk.x[0], int(seg_all[0]), last_t
         self.steps += k_total
         P_out = P_out[keep]
+        heading = chunk.heading_known[keep].copy()
         return SmoothedChunk(t_all[keep].copy(), apply_error(chunk.x[keep], e_out[keep], n),
-                             P_out[:, POSE_IX][:, :, POSE_IX], np.diagonal(P_out, axis1=1, axis2=2)[:, 3:6].copy(),
-                             seg_all[keep].copy())
+                             published_pose_cov(P_out[:, POSE_IX][:, :, POSE_IX], heading),
+                             np.diagonal(P_out, axis1=1, axis2=2)[:, 3:6].copy(), seg_all[keep].copy(), heading)
 
 
 def concatenate(parts: list[SmoothedChunk]) -> SmoothedChunk:
     """Chunks in time order joined into one."""
     if not parts:
         return SmoothedChunk(np.zeros(0, np.int64), np.zeros((0, NOMINAL)), np.zeros((0, 6, 6)), np.zeros((0, 3)),
-                             np.zeros(0, np.int64))
+                             np.zeros(0, np.int64), np.zeros(0, dtype=bool))
     return SmoothedChunk(*(np.concatenate([getattr(p, name) for p in parts]) for name in
-                           ("t_ns", "x", "pose_cov", "vel_var", "segment")))
+                           ("t_ns", "x", "pose_cov", "vel_var", "segment", "heading_known")))
 
 
 def smooth_steps(steps: list[Step], chunk_steps: int = 2048) -> SmoothedChunk:

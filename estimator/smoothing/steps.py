@@ -6,6 +6,10 @@ after every measurement at ``t_k``), the error-state transition ``F_k`` of the p
 ``t_{k+1}``. The last step of a segment has no transition (``t_next_ns < 0``): its posterior is
 where the backward pass starts. Nominal vectors are ``[p, v, q (w first), b_g, b_a]``.
 
+Each step also says whether the filter's heading was known: while it is not, the filter works
+in a frame of arbitrary yaw (its yaw variance is a gauge, zero), and every smoothed pose of that
+stretch is published, like the filtered one, with the variance of a heading anywhere on the circle.
+
 Landmarks are marginalised out: ``P`` is the robot block of the filter's covariance, ``F`` the
 robot-to-robot transition (a propagation leaves landmarks alone). See docs/smoothing.md for
 what that costs against the full-state smoother.
@@ -38,6 +42,7 @@ class Step:
     F: np.ndarray | None = None  # (n, n) error-state transition to t_next_ns
     x_pred: np.ndarray | None = None  # (16,) predicted nominal at t_next_ns
     P_pred: np.ndarray | None = None  # (n, n) predicted robot covariance at t_next_ns
+    heading_known: bool = True  # False: the filter's yaw is arbitrary (see the module docstring)
 
     @property
     def ends_segment(self) -> bool:
@@ -56,8 +61,9 @@ class StepChunk:
     F: np.ndarray  # (K, n, n)
     x_pred: np.ndarray  # (K, 16)
     P_pred: np.ndarray  # (K, n, n)
+    heading_known: np.ndarray  # (K,) bool
 
-    FIELDS = ("segment", "t_ns", "t_next_ns", "x", "P", "F", "x_pred", "P_pred")
+    FIELDS = ("segment", "t_ns", "t_next_ns", "x", "P", "F", "x_pred", "P_pred", "heading_known")
 
     def __len__(self) -> int:
         return int(self.t_ns.size)
@@ -70,7 +76,7 @@ class StepChunk:
     def empty(cls, capacity: int, n: int) -> "StepChunk":
         return cls(np.zeros(capacity, np.int64), np.zeros(capacity, np.int64), np.full(capacity, -1, np.int64),
                    np.zeros((capacity, NOMINAL)), np.zeros((capacity, n, n)), np.zeros((capacity, n, n)),
-                   np.zeros((capacity, NOMINAL)), np.zeros((capacity, n, n)))
+                   np.zeros((capacity, NOMINAL)), np.zeros((capacity, n, n)), np.ones(capacity, dtype=bool))
 
     def head(self, k: int) -> "StepChunk":
         return StepChunk(*(getattr(self, name)[:k] for name in self.FIELDS))
@@ -98,7 +104,7 @@ class ChunkBuilder:
             chunk = self._chunk = StepChunk.empty(self.chunk_steps, step.P.shape[0])
         k = self._k
         chunk.segment[k], chunk.t_ns[k], chunk.t_next_ns[k] = step.segment, step.t_ns, step.t_next_ns
-        chunk.x[k], chunk.P[k] = step.x, step.P
+        chunk.x[k], chunk.P[k], chunk.heading_known[k] = step.x, step.P, step.heading_known
         if not step.ends_segment:
             chunk.F[k], chunk.x_pred[k], chunk.P_pred[k] = step.F, step.x_pred, step.P_pred
         self._k += 1

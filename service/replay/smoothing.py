@@ -59,7 +59,7 @@ def _load(folder: Path, names: tuple[str, ...]) -> list[np.ndarray]:
     return [np.load(folder / f"{name}.npy") for name in names]
 
 
-_SMOOTHED_FIELDS = ("t_ns", "x", "pose_cov", "vel_var", "segment")
+_SMOOTHED_FIELDS = ("t_ns", "x", "pose_cov", "vel_var", "segment", "heading_known")
 
 
 class StepFiles:

@@ -244,7 +244,7 @@ class Runtime:
         if self._smoothing_finished or self._step_recorder is None:
             return
         self._smoothing_finished = True
-        self._step_recorder.finish(self.est.state)
+        self._step_recorder.finish(self.est.state, self.est.heading_aligned)
         if self.smoother is not None:
             smoothed = self.smoother.flush()
             if smoothed:
