@@ -31,8 +31,8 @@ from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.camera import bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.euroc import bench_euroc
-from vtolpose.service.bench.smoothing import (bench_smoothing_euroc, bench_smoothing_hour, bench_smoothing_landmarks,
-                                              bench_smoothing_latency, bench_smoothing_sim)
+from vtolpose.service.bench.smoothing import (bench_smoothing_hour, bench_smoothing_landmarks, bench_smoothing_latency,
+                                              bench_smoothing_sim)
 from vtolpose.service.replay.session import replay
 
 
@@ -98,7 +98,6 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "fault-targets": bench_fault_targets,
     "fault-table": bench_fault_table,
     "euroc": bench_euroc,
-    "smoothing-euroc": bench_smoothing_euroc,
     "smoothing-sim": bench_smoothing_sim,
     "smoothing-landmarks": bench_smoothing_landmarks,
     "smoothing-hour": bench_smoothing_hour,
@@ -107,8 +106,8 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "smoothing-euroc",
-                   "smoothing-sim", "smoothing-landmarks", "smoothing-hour", "smoothing-latency")
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "smoothing-sim",
+                   "smoothing-landmarks", "smoothing-hour", "smoothing-latency")
 
 
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:

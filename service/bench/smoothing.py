@@ -1,10 +1,9 @@
 """Smoothing benchmarks: accuracy of filtered, smoothed and fixed-lag poses, and what smoothing costs.
 
-``smoothing-euroc``: every EuRoC flight under ``../shared/data`` that the importer takes, imported
-with the real-flights settings (GPS 10 Hz from the truth, σ_xy 2 cm, σ_z² = 2σ_xy², seed 1),
-replayed with ``--smooth``, scored from 15 s: the three kinds side by side against the GPS, and
-the backward pass against the replay's wall time. ``smoothing-sim``: the same on simulated book
-and landfill flights, Test 1 (IMU+GPS) and Test 3 (IMU+camera+GPS). ``smoothing-landmarks``: the
+The real flights are in ``euroc`` (``vtolpose.service.bench.euroc``: its table has the smoothed and
+fixed-lag columns). ``smoothing-sim``: simulated book and landfill flights, Test 1 (IMU+GPS) and
+Test 3 (IMU+camera+GPS), replayed with ``--smooth`` and scored from 15 s: the three kinds side by
+side, and the backward pass against the replay's wall time. ``smoothing-landmarks``: the
 robot-block smoother against the exact full-state one on a book Test 3 flight (how much the
 marginalised landmarks cost). ``smoothing-hour``: resident memory of ``replay --smooth`` over a
 simulated hour. ``smoothing-latency``: the daemon's pose latency with the fixed-lag smoother on
@@ -25,7 +24,6 @@ import numpy as np
 
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.files.euroc_import import import_euroc
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
@@ -39,7 +37,6 @@ from vtolpose.service.replay.report import build_report
 from vtolpose.service.replay.session import replay
 from vtolpose.service.replay.smoothing import replay_smoothed
 
-SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 SCORE_FROM_S = 15.0
 
 
@@ -78,37 +75,6 @@ def _smoothed_report(dataset: Dataset, sensors: list[str], overrides: dict | Non
     cfg = load_config(None, overrides or {})
     result = replay_smoothed(dataset, cfg, sensors=sensors)
     return build_report(result, dataset, cfg, SCORE_FROM_S)
-
-
-EUROC_TARGETS = {"smoothed position": "<= 0.3", "smoothed attitude": "<= 1.0", "fixed_lag position": "<= 0.45"}
-
-
-def euroc_flights() -> list[tuple[str, Path]]:
-    """The EuRoC folders under ../shared/data: MH01 and the development flights."""
-    found = [("MH01", SHARED / "euroc_mh01")]
-    found += [(p.name, p) for p in sorted((SHARED / "euroc_dev").glob("*")) if (p / "mav0").is_dir()]
-    return [(name, path) for name, path in found if (path / "mav0" / "imu0" / "data.csv").is_file()]
-
-
-def bench_smoothing_euroc() -> list[Row]:
-    """EuRoC flights with --smooth from 15 s (targets: smoothed ≤ 0.3 × GPS and ≤ 1°, fixed lag ≤ 0.45 × GPS)."""
-    rows: list[Row] = []
-    flights = euroc_flights()
-    if not flights:
-        return [Row("EuRoC smoothing: no flights under ../shared/data (skipped)", float("nan"), "")]
-    with tempfile.TemporaryDirectory() as tmp:
-        for name, src in flights:
-            out = Path(tmp) / name
-            try:
-                import_euroc(src, out, gps_rate_hz=10.0, gps_sigma_m=0.02, seed=1)
-            except (ValueError, FileNotFoundError, OSError) as exc:
-                rows.append(Row(f"{name}: not imported ({str(exc).splitlines()[0][:80]})", float("nan"), ""))
-                continue
-            dataset = Dataset.open(out)
-            plain = replay(dataset, load_config(), ["imu", "gps"])
-            report = _smoothed_report(dataset, ["imu", "gps"])
-            rows += _kind_rows(name, report, EUROC_TARGETS, plain.wall_s)
-    return rows
 
 
 SIM_TARGETS = {"smoothed/filtered": "<= 0.7"}
