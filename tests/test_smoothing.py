@@ -422,3 +422,20 @@ def replace_heading(step: Step, known: bool) -> Step:
     from dataclasses import replace
 
     return replace(step, heading_known=bool(known))
+
+
+def test_a_segment_closes_with_its_own_heading_flag(book):
+    """When the heading is placed (a new state), the segment before it ends as one without a heading."""
+    est, _, _ = run_recorded(book, "biases")
+    state = est.state
+    steps: list[Step] = []
+    recorder = StepRecorder(steps.append)
+    recorder.before_propagation(state, heading_known=False)
+    recorder.after_propagation(state, np.eye(state.robot_dim))
+    state.cov = state.cov.copy()
+    state.cov[8, 8] += 1e-4  # the heading placed: the state changed
+    recorder.before_propagation(state, heading_known=True)
+    recorder.after_propagation(state, np.eye(state.robot_dim))
+    recorder.finish(state, heading_known=True)
+    assert [(s.segment, s.ends_segment, s.heading_known) for s in steps] == [
+        (0, False, False), (0, True, False), (1, False, True), (1, True, True)]

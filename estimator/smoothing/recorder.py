@@ -53,14 +53,14 @@ class StepRecorder:
     def before_propagation(self, state: FilterState, heading_known: bool = True) -> None:
         """``state`` is the posterior at its time: every measurement there has been fused.
         ``heading_known``: False while the filter's yaw is arbitrary (see ``steps``)."""
-        self._heading_known = heading_known
         if not self._consistent(state):
-            self._close()
+            self._close()  # with the flag of the segment it closes
             self.segment += 1
             self._state = state
             state.observer = self
             n = state.robot_dim
             self._remember(state, None, state.cov[:n, :n].copy())
+        self._heading_known = heading_known
         ref, x = self._ref_nominal, self._ref_x
         if x is None or state.b_g is not ref[3] or state.b_a is not ref[4]:
             x = pack_nominal(state)
