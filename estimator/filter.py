@@ -47,6 +47,7 @@ from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.inertial.startup import state_from_static, velocity_from_fixes
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
+from vtolpose.estimator.smoothing.recorder import FilterRecorder
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
@@ -147,6 +148,8 @@ class Estimator:
         if cam is not None and opts.visual_inertial.enabled:
             self.visual_inertial = VisualInertialInitializer(cam, self.noise, calibration.imu.gravity, opts.camera.pixel_sigma,
                                                              opts.visual_inertial, opts.camera.association)
+        # Sees every propagation (and, through the state, every update) for the smoother; None: off.
+        self.recorder: FilterRecorder | None = None
 
     @property
     def initialized(self) -> bool:
@@ -229,10 +232,15 @@ class Estimator:
             # errors make of gravity (the reading at the last still chunk) is taken off.
             accel = self._horizontal_accel - self._accel_at_rest
             extra = max(self.options.unaligned_accel_noise, 2.0 * math.hypot(accel[0], accel[1]))
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.before_propagation(self.state, self.heading_aligned)
         a_w = self.propagator.propagate(self.state, delta, extra)
         keep = self.options.init.average_s / (self.options.init.average_s + delta.dt)
         self._horizontal_accel = keep * self._horizontal_accel + (1.0 - keep) * a_w[:2]
         self.state.t_ns = delta.t1_ns
+        if recorder is not None:
+            recorder.after_propagation(self.state, self.propagator.transition)
 
     def _forget_heading(self) -> None:
         """The heading becomes unknown: the filter's frame gets an arbitrary yaw, a gauge rather than an

@@ -1,15 +1,18 @@
 """A bounded, time-indexed pose history with interpolation: what ``pose/at`` and ``trajectory`` answer from.
 
-The history holds the best estimate the service has for each time. Entries come in two kinds:
-*fused* poses (the delayed filter's states, final once the fusion horizon has passed them) and
-*predicted* poses (IMU-propagated ahead of the horizon, newer than every fused pose). A new
-fused pose replaces the predictions it covers, so the mapper never sees a prediction where a
-fused estimate exists. Entries older than ``span_s`` before the newest are dropped, so memory
-is bounded by ``span_s`` times the pose rate.
+The history holds the best estimate the service has for each time. Entries come in three
+kinds (:data:`KINDS`): *smoothed* poses (the fixed-lag smoother's, which also used the
+measurements up to a lag after their time), *filtered* poses (the delayed filter's states,
+final once the fusion horizon has passed them) and *predicted* poses (IMU-propagated ahead of
+the horizon, newer than every fused pose). A better kind replaces the worse entries over the
+span it covers, so the mapper never sees a prediction where a filtered estimate exists, nor a
+filtered one where a smoothed one does. Entries older than ``span_s`` before the newest are
+dropped, so memory is bounded by ``span_s`` times the pose rate.
 
 Interpolation is linear in position, velocity, angular rate and covariance (a convex blend of
-two covariances stays positive semi-definite) and spherical (slerp) in attitude. Times outside
-the history raise :class:`OutsideHistory`; nothing is extrapolated.
+two covariances stays positive semi-definite) and spherical (slerp) in attitude; a pose
+interpolated between two kinds is of the worse. Times outside the history raise
+:class:`OutsideHistory`; nothing is extrapolated.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from vtolpose.estimator.core.rotation import quat_slerp
 # One row per pose: p (3), q (4, w first), v (3), w (3, body rate), cov (36, [δp, δθ] row-major).
 P, Q, V, W, COV = slice(0, 3), slice(3, 7), slice(7, 10), slice(10, 13), slice(13, 49)
 ROW = 49
+KINDS = ("predicted", "filtered", "smoothed")  # worst to best; stored as their index
+PREDICTED, FILTERED, SMOOTHED = 0, 1, 2
 
 
 class OutsideHistory(LookupError):
@@ -40,6 +45,7 @@ class PoseSample:
     w: np.ndarray
     cov: np.ndarray
     fused: bool
+    kind: str = "filtered"  # predicted | filtered | smoothed (KINDS)
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,6 +58,8 @@ class PoseWindow:
     v: np.ndarray
     w: np.ndarray
     fused: np.ndarray
+    kind: np.ndarray | None = None  # per pose: predicted | filtered | smoothed (None from an older service)
+    cov: np.ndarray | None = None  # (N, 6, 6) over [δp, δθ] per pose (None from an older service)
 
     def __len__(self) -> int:
         return int(self.t_ns.size)
@@ -97,6 +105,7 @@ class PoseHistory:
         self.span_ns = int(span_s * 1e9)
         self._t = np.zeros(initial_capacity, dtype=np.int64)
         self._rows = np.zeros((initial_capacity, ROW))
+        self._kind = np.zeros(initial_capacity, dtype=np.int8)  # FILTERED or SMOOTHED
         self._start = 0
         self._end = 0
         self._tail_t: list[int] = []
@@ -115,11 +124,52 @@ class PoseHistory:
             self._tail_t.pop(0)
             self._tail_rows.pop(0)
         if self._end == self._t.size:
-            self._make_room()
+            self._make_room(1)
         self._t[self._end] = t_ns
         self._rows[self._end] = row
+        self._kind[self._end] = FILTERED
         self._end += 1
         self._evict(max(t_ns, self._tail_t[-1] if self._tail_t else t_ns))
+
+    def add_smoothed(self, t_ns: np.ndarray, rows: np.ndarray) -> int:
+        """Smoothed estimates (increasing times) replace the held entries over their span.
+
+        The filtered entries from the first to the last given time go; those before stay (a
+        smoother that started late, or skipped a stretch). Each row's body rate is taken from
+        the entries it replaces (the smoother does not estimate it). Returns how many were added.
+        """
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        rows = np.array(rows, dtype=float).reshape(-1, ROW)
+        main_t = self._t[self._start : self._end]
+        if main_t.size == 0 or t_ns.size == 0:
+            return 0
+        smoothed = self._kind[self._start : self._end] == SMOOTHED
+        newest_smoothed = int(main_t[smoothed][-1]) if np.any(smoothed) else None
+        keep = (t_ns >= main_t[0]) if newest_smoothed is None else (t_ns > newest_smoothed)
+        t_ns, rows = t_ns[keep], rows[keep]
+        if t_ns.size == 0:
+            return 0
+        base = main_t[0]
+        rel = (main_t - base).astype(np.float64)
+        for c in range(W.start, W.stop):
+            rows[:, c] = np.interp((t_ns - base).astype(np.float64), rel, self._rows[self._start : self._end, c])
+        i0 = self._start + int(np.searchsorted(main_t, t_ns[0], side="left"))
+        j = self._start + int(np.searchsorted(main_t, t_ns[-1], side="right"))
+        m, after = t_ns.size, self._end - j
+        need = (i0 - self._start) + m + after  # live entries once replaced
+        if self._start + need > self._t.size:
+            shift = self._start  # _make_room moves the live part to index 0
+            self._make_room(need - (self._end - self._start))
+            i0, j = i0 - shift, j - shift
+        for array in (self._t, self._rows, self._kind):
+            array[i0 + m : i0 + m + after] = array[j : j + after].copy()
+        self._t[i0 : i0 + m], self._rows[i0 : i0 + m], self._kind[i0 : i0 + m] = t_ns, rows, SMOOTHED
+        self._end = i0 + m + after
+        while self._tail_t and self._tail_t[0] <= int(t_ns[-1]):
+            self._tail_t.pop(0)
+            self._tail_rows.pop(0)
+        self._evict(self.bounds()[1])
+        return int(m)
 
     def add_predicted(self, t_ns: int, row: np.ndarray) -> None:
         """A prediction newer than every fused pose and every earlier prediction (else ignored)."""
@@ -131,15 +181,20 @@ class PoseHistory:
         self._tail_rows.append(row)
         self._evict(t_ns)
 
-    def _make_room(self) -> None:
+    def _make_room(self, extra: int) -> None:
+        """Room for ``extra`` more entries after the live ones, which start at index 0 afterwards."""
         n = self._end - self._start
-        if n <= self._t.size // 2:  # at most half full: slide down (amortised O(1)); else double
+        if n + extra <= self._t.size // 2 or (n + extra <= self._t.size and self._start):
+            # Slide down (amortised O(1) while at most half full); else grow.
             self._t[:n] = self._t[self._start : self._end]
             self._rows[:n] = self._rows[self._start : self._end]
+            self._kind[:n] = self._kind[self._start : self._end]
         else:
-            t, rows = np.zeros(2 * self._t.size, dtype=np.int64), np.zeros((2 * self._t.size, ROW))
+            size = max(2 * self._t.size, n + extra)
+            t, rows, kind = np.zeros(size, dtype=np.int64), np.zeros((size, ROW)), np.zeros(size, dtype=np.int8)
             t[:n], rows[:n] = self._t[self._start : self._end], self._rows[self._start : self._end]
-            self._t, self._rows = t, rows
+            kind[:n] = self._kind[self._start : self._end]
+            self._t, self._rows, self._kind = t, rows, kind
         self._start, self._end = 0, n
 
     def _evict(self, newest: int) -> None:
@@ -164,17 +219,17 @@ class PoseHistory:
         return first, last
 
     def _columns(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Times, rows and fused flags of the entries in [t0, t1] plus one neighbour each side."""
+        """Times, rows and kinds of the entries in [t0, t1] plus one neighbour each side."""
         t_main = self._t[self._start : self._end]
         lo = max(int(np.searchsorted(t_main, t0_ns, side="left")) - 1, 0)
         hi = min(int(np.searchsorted(t_main, t1_ns, side="right")) + 1, t_main.size)
         times, rows = t_main[lo:hi], self._rows[self._start + lo : self._start + hi]
-        fused = np.ones(times.size, dtype=bool)
+        kind = self._kind[self._start + lo : self._start + hi]
         if self._tail_t and t1_ns >= (int(t_main[-1]) if t_main.size else self._tail_t[0]):
             times = np.concatenate([times, np.asarray(self._tail_t, dtype=np.int64)])
             rows = np.concatenate([rows, np.asarray(self._tail_rows).reshape(-1, ROW)])
-            fused = np.concatenate([fused, np.zeros(len(self._tail_t), dtype=bool)])
-        return times, rows, fused
+            kind = np.concatenate([kind, np.full(len(self._tail_t), PREDICTED, dtype=np.int8)])
+        return times, rows, kind
 
     def at(self, t_ns: int) -> PoseSample:
         """The pose at ``t_ns``, interpolated between the two entries around it."""
@@ -183,11 +238,11 @@ class PoseHistory:
             raise OutsideHistory("the history is empty")
         if not bounds[0] <= t_ns <= bounds[1]:
             raise OutsideHistory(f"t_ns={t_ns} is outside the history [{bounds[0]}, {bounds[1]}]")
-        times, rows, fused = self._columns(t_ns, t_ns)
+        times, rows, kinds = self._columns(t_ns, t_ns)
         row = interpolate_rows(times, rows, np.array([t_ns], dtype=np.int64))[0]
         k = int(np.searchsorted(times, t_ns, side="left"))
-        is_fused = bool(fused[k]) if times[k] == t_ns else bool(fused[k - 1] and fused[k])
-        return PoseSample(int(t_ns), row[P], row[Q], row[V], row[W], row[COV].reshape(6, 6), is_fused)
+        kind = int(kinds[k]) if times[k] == t_ns else int(min(kinds[k - 1], kinds[k]))
+        return PoseSample(int(t_ns), row[P], row[Q], row[V], row[W], row[COV].reshape(6, 6), kind != PREDICTED, KINDS[kind])
 
     def window(self, t0_ns: int, t1_ns: int) -> PoseWindow:
         """Every entry in ``[t0, t1]``, plus the last one before ``t0`` and the first after ``t1`` when
@@ -199,8 +254,9 @@ class PoseHistory:
         if bounds is None or t1_ns < bounds[0] or t0_ns > bounds[1]:
             span = "empty" if bounds is None else f"[{bounds[0]}, {bounds[1]}]"
             raise OutsideHistory(f"window [{t0_ns}, {t1_ns}] does not overlap the history {span}")
-        times, rows, fused = self._columns(t0_ns, t1_ns)
+        times, rows, kinds = self._columns(t0_ns, t1_ns)
         lo = max(int(np.searchsorted(times, t0_ns, side="right")) - 1, 0)  # the last entry at or before t0
         hi = min(int(np.searchsorted(times, t1_ns, side="left")) + 1, times.size)  # the first at or after t1
-        times, rows, fused = times[lo:hi], rows[lo:hi], fused[lo:hi]
-        return PoseWindow(times.copy(), rows[:, P].copy(), rows[:, Q].copy(), rows[:, V].copy(), rows[:, W].copy(), fused)
+        times, rows, kinds = times[lo:hi], rows[lo:hi], kinds[lo:hi]
+        return PoseWindow(times.copy(), rows[:, P].copy(), rows[:, Q].copy(), rows[:, V].copy(), rows[:, W].copy(),
+                          kinds != PREDICTED, np.asarray(KINDS)[kinds], rows[:, COV].reshape(-1, 6, 6).copy())

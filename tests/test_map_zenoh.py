@@ -55,6 +55,7 @@ def test_live_map_over_zenoh_equals_the_map_from_the_trajectory_file(dataset, tm
         "--set", f"outputs.zenoh.connect=[tcp/127.0.0.1:{mapper_port}]",
         "--set", "outputs.zenoh.multicast_scouting=false",
         "--set", "outputs.zenoh.history_s=20",  # half the flight: a mapper that falls behind loses scans
+        "--set", "smoothing.fixed_lag_s=0",  # the file holds filtered poses: so must the history (no smoothed ones)
     ]
     proc = subprocess.Popen(cmd, cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})

@@ -104,3 +104,58 @@ def test_interpolate_rows_takes_the_short_arc():
     rows[0, 3:7], rows[1, 3:7] = q0, q1
     mid = interpolate_rows(np.array([0, 10]), rows, np.array([5]))[0, 3:7]
     assert np.degrees(rotation_angle(mid, quat_from_euler(0.0, 0.0, 0.1))) < 1e-9
+
+
+def smoothed_rows(h: PoseHistory, times_ms: list[int], offset: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows at ``times_ms`` moved by ``offset`` metres north, with a smaller covariance and no body rate."""
+    rows = np.array([pose_row(t * MS, h) for t in times_ms])
+    rows[:, 0] += offset
+    rows[:, 10:13] = 0.0
+    rows[:, 13:49] *= 0.25
+    return np.array(times_ms, dtype=np.int64) * MS, rows
+
+
+def test_smoothed_poses_replace_the_filtered_ones_over_their_span():
+    h = filled(n=100)  # filtered every 10 ms up to 1 s
+    t, rows = smoothed_rows(h, list(range(200, 501, 10)), 0.01)
+    assert h.add_smoothed(t, rows) == 31
+    assert len(h) == 100  # same times: replaced one for one
+    got = h.at(350 * MS)
+    assert got.kind == "smoothed" and got.fused and got.p[0] == pytest.approx(0.35 + 0.01)
+    assert np.allclose(got.cov, np.eye(6) * 0.35 * 0.25)
+    assert np.allclose(got.w, [0.0, 0.0, 0.3])  # the body rate comes from the filtered entries it replaced
+    assert h.at(190 * MS).kind == "filtered" and h.at(195 * MS).kind == "filtered"  # between a filtered and a smoothed
+    assert h.at(600 * MS).kind == "filtered"
+    w = h.window(480 * MS, 530 * MS)
+    assert w.kind.tolist() == ["smoothed"] * 3 + ["filtered"] * 3 and w.cov.shape == (6, 6, 6)
+    assert np.allclose(w.cov[0], np.eye(6) * 0.48 * 0.25)
+
+
+def test_smoothed_times_need_not_match_and_never_go_back():
+    h = filled(n=100)
+    t, rows = smoothed_rows(h, [205, 215, 225, 233, 237, 241], 0.02)  # between the filtered times, denser
+    h.add_smoothed(t, rows)
+    times = h.window(190 * MS, 260 * MS).t_ns.tolist()
+    assert times == [190 * MS, 200 * MS, *t.tolist(), 250 * MS, 260 * MS]  # 210..240 gone, 200 and 250 stay
+    assert h.at(200 * MS).kind == "filtered" and h.at(225 * MS).kind == "smoothed"
+    t2, rows2 = smoothed_rows(h, [230, 240, 250, 260], 0.03)  # overlaps what is smoothed already
+    assert h.add_smoothed(t2, rows2) == 2  # only 250 and 260 are new
+    assert h.at(233 * MS).p[0] == pytest.approx(0.233 + 0.02)
+    assert h.at(255 * MS).kind == "smoothed" and h.at(255 * MS).p[0] == pytest.approx(0.255 + 0.03)
+    times = h.window(0, 2000 * MS).t_ns
+    assert np.all(np.diff(times) > 0)
+
+
+def test_smoothed_history_stays_bounded_and_predictions_keep_their_kind():
+    h = PoseHistory(1.0, initial_capacity=16)
+    for k in range(1, 3001):  # 30 s at 100 Hz into a 1 s history, smoothed 0.3 s behind in batches
+        h.add_fused(k * 10 * MS, pose_row(k * 10 * MS, h))
+        if k % 25 == 0 and k > 30:
+            t, rows = smoothed_rows(h, [(k - 30 - j) * 10 for j in range(24, -1, -1)], 0.0)
+            h.add_smoothed(t, rows)
+    h.add_predicted(30_010 * MS, pose_row(30_010 * MS, h))
+    first, last = h.bounds()
+    assert last - first <= 1_000_000_000 and h.capacity <= 512
+    kinds = h.window(first, last).kind.tolist()
+    assert kinds[0] == "smoothed" and kinds[-1] == "predicted" and "filtered" in kinds
+    assert kinds == sorted(kinds, key=["smoothed", "filtered", "predicted"].index)

@@ -102,6 +102,7 @@ def test_daemon_replay_with_real_peers_then_sigterm(flight_dir, tmp_path):
         "--set", f"outputs.zenoh.connect=[tcp/127.0.0.1:{zenoh_client_port}]",
         "--set", "outputs.zenoh.multicast_scouting=false",
         "--set", "fusion.delay_s=0.0",  # ODOMETRY at a filter step is then the fused pose in the file
+        "--set", "smoothing.fixed_lag_s=0",  # pose/at answers the filtered poses of the file (smoothing: test_smoothing_zenoh)
     ]
     proc = subprocess.Popen(cmd, cwd=REPO_ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})

@@ -91,4 +91,6 @@ def ekf_update(
         cov -= K @ PHt.T
     cov[...] = 0.5 * (cov + cov.T)
     state.inject(K @ residual)
+    if state.observer is not None:
+        state.observer.updated(state)
     return UpdateOutcome(True, nis, m)

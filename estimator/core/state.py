@@ -11,6 +11,7 @@ robot block (see ``vtolpose.estimator.vision.landmarks``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -61,6 +62,9 @@ class FilterState:
         self.b_a = np.zeros(3)
         self.landmarks = np.zeros((0, LANDMARK_DIM))
         self.cov = np.zeros((layout.robot_dim, layout.robot_dim))
+        # Told of every measurement update (``core.kalman.ekf_update``): the smoother's recorder.
+        # Copies do not carry it: an update on a scratch copy is no update of the filter.
+        self.observer: Any = None
 
     @property
     def robot_dim(self) -> int:

@@ -172,6 +172,11 @@ class ImuPropagator:
         self._q_key: StateLayout | None = None
         self._q_terms: tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]] | None = None
 
+    @property
+    def transition(self) -> np.ndarray | None:
+        """The robot error-state transition F of the last :meth:`propagate` (overwritten by the next)."""
+        return self._F
+
     def _noise(self, q: np.ndarray, dt: float, layout: StateLayout, extra: float) -> np.ndarray:
         if not self._isotropic:
             return process_noise(q, dt, self.noise, layout, extra)

@@ -15,7 +15,11 @@ from 15 s after the truth starts:
 - NEES over position and attitude (6 dof; 3 without orientation truth) of every pose from 15 s,
   the heading's published sigma included, with the same world rotation taken off;
 - time to the first pose with a position (from switch-on), time from the truth's motion onset
-  to the heading's placement, resets, and the replay's real-time factor.
+  to the heading's placement, resets, and the replay's real-time factor;
+- the same position, attitude and NEES figures for the smoothed poses (``replay --smooth``: the
+  backward pass over the whole flight) and the fixed-lag ones (``smoothing.fixed_lag_s``, what
+  the daemon's history answers once the lag has passed), and what the backward pass cost
+  against the plain replay's wall time.
 
 Flights are found under ``$VTOLPOSE_EUROC_DATA``, else ``../shared/data`` next to the working
 directory or to the repository: any folder with ``mav0/imu0/data.csv``; a ``truth.tum`` beside
@@ -33,6 +37,7 @@ from typing import Callable
 import numpy as np
 
 import vtolpose
+from vtolpose.service.bench.rows import Row as BenchRow
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.euroc_import import import_euroc
@@ -41,9 +46,10 @@ from vtolpose.estimator.metrics import (
     chi2_band, gps_error_rmse, interpolate_poses, mean_world_rotation, motion_onset, nees, pose_errors_for_nees,
     rigid_alignment,
 )
-from vtolpose.service.replay.session import ReplayResult, replay
+from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory, replay
+from vtolpose.service.replay.smoothing import replay_smoothed
 
-Row = tuple[str, float, str, str]
+Row = tuple[str, float, str, str] | BenchRow
 DATA_ENV = "VTOLPOSE_EUROC_DATA"
 SCORE_FROM_S = 15.0
 GPS_RATE_HZ, GPS_SIGMA_M, GPS_SEED = 10.0, 0.02, 1
@@ -55,6 +61,19 @@ class Flight:
     name: str
     source: Path
     truth_file: Path | None
+
+
+@dataclass(frozen=True)
+class PoseScore:
+    """One kind of pose of one replay (filtered, smoothed or fixed-lag), scored as the module docstring says."""
+
+    position_rmse_m: float
+    attitude_rms_deg: float | None
+    nees_mean: float
+    nees_dof: int
+    nees_in_band: float
+    alignment_deg: float
+    world_rotation_deg: float
 
 
 @dataclass(frozen=True)
@@ -74,6 +93,9 @@ class FlightScore:
     realtime_factor: float
     alignment_deg: float  # rotation of the rigid alignment (a check: the GPS frame is the truth's)
     world_rotation_deg: float  # constant world rotation taken off the attitude (0 without orientation truth)
+    smoothed: PoseScore | None = None
+    fixed_lag: PoseScore | None = None
+    backward_over_replay: float | None = None  # the backward pass's wall time over the plain replay's
 
     @property
     def ratio(self) -> float:
@@ -104,10 +126,11 @@ def find_flights(roots: list[Path]) -> list[Flight]:
     return sorted(found.values(), key=lambda f: f.name)
 
 
-def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str) -> FlightScore:
-    """The table's figures for one replay (see the module docstring)."""
-    est, traj, truth = result.estimator, result.trajectory, dataset.truth()
-    point_b = dataset.calibration.truth_point_b
+def score_poses(traj: Trajectory, cov: CovarianceSamples, dataset: Dataset, placed: int | None,
+                known_from_start: bool) -> PoseScore:
+    """Position after a rigid alignment, attitude with the constant world rotation off (poses with a
+    heading: from ``placed``, or all if ``known_from_start``), NEES, from SCORE_FROM_S."""
+    truth, point_b = dataset.truth(), dataset.calibration.truth_point_b
     t_from = int(truth.t_ns[0] + SCORE_FROM_S * 1e9)
     inside = (truth.t_ns >= max(t_from, int(traj.t_ns[0]))) & (truth.t_ns <= traj.t_ns[-1])
     t = truth.t_ns[inside]
@@ -115,22 +138,16 @@ def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str) -> 
     R_est = quat_to_rot(q_est)
     R_al, t_al = rigid_alignment(p_est + R_est @ point_b, truth.p[inside])
     error = (p_est + R_est @ point_b) @ R_al.T + t_al - truth.p[inside]
-    placed = est.heading_placement["t_ns"] if est.heading_placement is not None else None
     attitude, world = None, np.eye(3)
     if truth.q is not None:
         with_heading = t >= placed if placed is not None else np.zeros(len(t), dtype=bool)
-        if est.heading_aligned and placed is None:  # a heading known from the start
+        if known_from_start:  # a heading known from the start
             with_heading[:] = True
         if np.any(with_heading):
             q_aligned = rot_to_quat(R_al @ R_est[with_heading])
             world = mean_world_rotation(q_aligned, truth.q[inside][with_heading])
             q_aligned = rot_to_quat(world @ quat_to_rot(q_aligned))
             attitude = float(np.degrees(np.sqrt(np.mean(rotation_angle(truth.q[inside][with_heading], q_aligned) ** 2))))
-    gps = dataset.gps()
-    keep = gps.t_ns >= t_from
-    gps_rmse = gps_error_rmse(type(gps)(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep]), truth,
-                              dataset.calibration.gps.lever_arm_b, point_b)["rmse_m"]
-    cov = result.covariances
     c = cov.t_ns >= t_from
     turn = np.zeros((6, 6))
     turn[0:3, 0:3], turn[3:6, 3:6] = R_al, world @ R_al
@@ -139,17 +156,43 @@ def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str) -> 
     err, c_err, dof = pose_errors_for_nees(cov.t_ns[c], p_cov, q_cov, turn @ cov.cov[c] @ turn.T, truth, point_b)
     values = nees(err, c_err)
     lo, hi = chi2_band(dof)
+    return PoseScore(float(np.sqrt(np.mean(np.sum(error**2, axis=1)))), attitude, float(np.mean(values)), dof,
+                     float(np.mean((values >= lo) & (values <= hi))), _angle_deg(R_al), _angle_deg(world))
+
+
+def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str,
+          plain_wall_s: float | None = None) -> FlightScore:
+    """The table's figures for one replay (see the module docstring); with ``result.smoothing`` (a
+    ``replay_smoothed`` run) the smoothed and fixed-lag ones too."""
+    est, traj, truth = result.estimator, result.trajectory, dataset.truth()
+    point_b = dataset.calibration.truth_point_b
+    t_from = int(truth.t_ns[0] + SCORE_FROM_S * 1e9)
+    placed = est.heading_placement["t_ns"] if est.heading_placement is not None else None
+    known = est.heading_aligned and placed is None
+    filtered = score_poses(traj, result.covariances, dataset, placed, known)
+    gps = dataset.gps()
+    keep = gps.t_ns >= t_from
+    gps_rmse = gps_error_rmse(type(gps)(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep]), truth,
+                              dataset.calibration.gps.lever_arm_b, point_b)["rmse_m"]
     imu_t0 = int(dataset.imu_raw().t_ns[0])
     positioned = next((t for t, message in est.events if message.startswith("position initialised")), None)
     onset = motion_onset(truth)
+    sm = result.smoothing
+    smoothed = fixed_lag = backward = None
+    if sm is not None:
+        smoothed = score_poses(sm.smoothed, sm.smoothed_cov, dataset, placed, known)
+        if len(sm.fixed_lag.t_ns) >= 2:
+            fixed_lag = score_poses(sm.fixed_lag, sm.fixed_lag_cov, dataset, placed, known)
+        backward = sm.backward_s / (plain_wall_s or result.wall_s)
     return FlightScore(
-        flight, variant, float(np.sqrt(np.mean(np.sum(error**2, axis=1)))), float(gps_rmse), attitude,
-        float(np.mean(values)), dof, float(np.mean((values >= lo) & (values <= hi))),
+        flight, variant, filtered.position_rmse_m, float(gps_rmse), filtered.attitude_rms_deg,
+        filtered.nees_mean, filtered.nees_dof, filtered.nees_in_band,
         None if positioned is None else (positioned - imu_t0) * 1e-9,
         None if placed is None or onset is None else (placed - onset) * 1e-9,
         None if onset is None else (onset - int(truth.t_ns[0])) * 1e-9,
-        est.reset_counter, result.duration_s / result.wall_s if result.wall_s > 0 else float("nan"),
-        _angle_deg(R_al), _angle_deg(world),
+        est.reset_counter, (plain_wall_s and result.duration_s / plain_wall_s) or
+        (result.duration_s / result.wall_s if result.wall_s > 0 else float("nan")),
+        filtered.alignment_deg, filtered.world_rotation_deg, smoothed, fixed_lag, backward,
     )
 
 
@@ -157,16 +200,19 @@ def _angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
-def run_flight(flight: Flight, work: Path, variants: tuple[str, ...] = VARIANTS) -> list[FlightScore]:
-    """Import ``flight`` into ``work`` as issue 12 prescribes, replay it with IMU and GPS per variant, score it."""
+def run_flight(flight: Flight, work: Path, variants: tuple[str, ...] = VARIANTS, smooth: bool = False) -> list[FlightScore]:
+    """Import ``flight`` into ``work`` as issue 12 prescribes, replay it with IMU and GPS per variant (and with
+    ``--smooth``), score it."""
     out = work / flight.name
     import_euroc(flight.source, out, gps_rate_hz=GPS_RATE_HZ, gps_sigma_m=GPS_SIGMA_M, seed=GPS_SEED,
                  overwrite=True, truth_file=flight.truth_file, camera=False)
     dataset = Dataset.open(out)
     scores = []
     for variant in variants:
-        result = replay(dataset, load_config(None, {"estimator": {"variant": variant}}), ["imu", "gps"])
-        scores.append(score(result, dataset, flight.name, variant))
+        cfg = load_config(None, {"estimator": {"variant": variant}})
+        plain = replay(dataset, cfg, ["imu", "gps"])  # the real-time factor and the backward pass's yardstick
+        result = replay_smoothed(dataset, cfg, sensors=["imu", "gps"]) if smooth else plain
+        scores.append(score(result, dataset, flight.name, variant, plain.wall_s))
     return scores
 
 
@@ -190,6 +236,32 @@ def table_lines(scores: list[FlightScore]) -> list[str]:
     return lines
 
 
+def smoothing_lines(scores: list[FlightScore]) -> list[str]:
+    """The smoothed and fixed-lag columns (Markdown): position RMSE (ratio to the GPS), attitude RMS, NEES."""
+    lines = [
+        "| flight | model | filtered | smoothed | fixed lag | attitude: filtered / smoothed / fixed lag | "
+        "NEES: smoothed / fixed lag (in band) | backward pass |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+
+    def pos(k: PoseScore | None, gps: float) -> str:
+        return "—" if k is None else f"{k.position_rmse_m:.4f} m ({k.position_rmse_m / gps:.3f})"
+
+    def nees_text(k: PoseScore | None) -> str:
+        return "—" if k is None else f"{k.nees_mean:.2f} ({100 * k.nees_in_band:.0f} %)"
+
+    for s in scores:
+        sm, fl = s.smoothed, s.fixed_lag
+        attitude = " / ".join(_fmt(a, ".2f", "°") for a in (s.attitude_rms_deg, sm and sm.attitude_rms_deg,
+                                                             fl and fl.attitude_rms_deg))
+        lines.append(
+            f"| {s.flight} | {s.variant} | {s.position_rmse_m:.4f} m ({s.ratio:.3f}) | {pos(sm, s.gps_rmse_m)} | "
+            f"{pos(fl, s.gps_rmse_m)} | {attitude} | {nees_text(sm)} / {nees_text(fl)} | "
+            f"{_fmt(s.backward_over_replay, '.2f', ' × replay')} |"
+        )
+    return lines
+
+
 def bench_euroc(echo: Callable[[str], None] = print) -> list[Row]:
     """Every EuRoC flight under ../shared/data: import, replay both models, score (issue 12's table)."""
     roots = data_roots()
@@ -201,8 +273,21 @@ def bench_euroc(echo: Callable[[str], None] = print) -> list[Row]:
     scores: list[FlightScore] = []
     with tempfile.TemporaryDirectory() as tmp:
         for flight in flights:
-            scores.extend(run_flight(flight, Path(tmp)))
-    for line in table_lines(scores):
+            scores.extend(run_flight(flight, Path(tmp), smooth=True))
+    for line in table_lines(scores) + [""] + smoothing_lines(scores):
         echo("  " + line)
-    return [(f"{s.flight} {s.variant}: position / GPS", s.ratio, "ratio",
-             f"attitude {_fmt(s.attitude_rms_deg, '.2f', ' deg')}, NEES {s.nees_mean:.2f}, {s.resets} resets") for s in scores]
+    rows: list[Row] = [(f"{s.flight} {s.variant}: position / GPS", s.ratio, "ratio",
+                        f"attitude {_fmt(s.attitude_rms_deg, '.2f', ' deg')}, NEES {s.nees_mean:.2f}, {s.resets} resets")
+                       for s in scores]
+    for s in scores:  # issue 13's targets, default variant
+        if s.variant != "biases" or s.smoothed is None:
+            continue
+        rows.append(BenchRow(f"{s.flight} smoothed: position / GPS", s.smoothed.position_rmse_m / s.gps_rmse_m, "ratio",
+                             f"attitude {_fmt(s.smoothed.attitude_rms_deg, '.2f', ' deg')}", "<= 0.3"))
+        if s.smoothed.attitude_rms_deg is not None:
+            rows.append(BenchRow(f"{s.flight} smoothed: attitude RMS", s.smoothed.attitude_rms_deg, "deg", "", "<= 1.0"))
+        if s.fixed_lag is not None:
+            rows.append(BenchRow(f"{s.flight} fixed lag: position / GPS", s.fixed_lag.position_rmse_m / s.gps_rmse_m,
+                                 "ratio", "", "<= 0.45"))
+        rows.append(BenchRow(f"{s.flight} backward pass / replay", s.backward_over_replay, "x", "", "<= 0.5"))
+    return rows

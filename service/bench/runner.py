@@ -33,6 +33,8 @@ from vtolpose.service.bench.camera import bench_camera_update, bench_features, b
 from vtolpose.service.bench.euroc import bench_euroc
 from vtolpose.service.bench.memory_paced import bench_memory_paced
 from vtolpose.service.bench.zenoh_queries import bench_zenoh_queries
+from vtolpose.service.bench.smoothing import (bench_smoothing_hour, bench_smoothing_landmarks, bench_smoothing_latency,
+                                              bench_smoothing_sim)
 from vtolpose.service.replay.session import replay
 
 
@@ -100,11 +102,16 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "euroc": bench_euroc,
     "zenoh-queries": bench_zenoh_queries,
     "memory-paced": bench_memory_paced,
+    "smoothing-sim": bench_smoothing_sim,
+    "smoothing-landmarks": bench_smoothing_landmarks,
+    "smoothing-hour": bench_smoothing_hour,
+    "smoothing-latency": bench_smoothing_latency,
 }
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "zenoh-queries", "memory-paced")
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "zenoh-queries", "memory-paced",
+                   "smoothing-sim", "smoothing-landmarks", "smoothing-hour", "smoothing-latency")
 
 
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:

@@ -14,6 +14,7 @@ from vtolpose.service.replay.faults import add_fault_options, parse_faults
 from vtolpose.service.replay.overlay import OverlayWriter
 from vtolpose.service.replay.progress import Progress
 from vtolpose.service.replay.session import missing_sensor, replay
+from vtolpose.service.replay.smoothing import replay_smoothed
 from vtolpose.service.replay.report import build_report, event_lines, summary_lines
 
 log = logging.getLogger(__name__)
@@ -25,7 +26,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="run the estimator over a dataset, write the trajectory and a report",
         description="Replay a dataset through the onboard runtime (the same one `vtolpose run` uses), as\n"
         "fast as the machine allows or paced with --speed, optionally with the MAVLink and Zenoh\n"
-        "outputs switched on. Writes the filtered trajectory (TUM: t x y z qx qy qz qw, NED/FRD) and a JSON report with\n"
+        "outputs switched on. Writes the filtered trajectory (TUM: t x y z qx qy qz qw, NED/FRD; with --smooth the\n"
+        "smoothed one, docs/smoothing.md) and a JSON report with\n"
         "accuracy against the dataset's truth (if any), consistency (NEES), speed and every\n"
         "fused/rejected measurement count.\n\n"
         "Sensor sets: imu,gps (thesis Test 1); imu,camera (Test 2); imu,camera,gps (Test 3).\n\n"
@@ -33,7 +35,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "  vtolpose replay data/book --sensors imu,gps --variant thesis --out traj.txt --report report.json\n"
         "  vtolpose replay data/landfill --speed 1 --mavlink udpout:127.0.0.1:14540 --zenoh   (a live-like feed)\n"
         "  vtolpose replay data/landfill --sensors imu,camera,gps --fault gps-off:60:30 --report r.json\n"
-        "  vtolpose replay data/book --sensors imu,camera,gps --speed 1 --foxglove --mcap book.mcap",
+        "  vtolpose replay data/book --sensors imu,camera,gps --speed 1 --foxglove --mcap book.mcap\n"
+        "  vtolpose replay data/mh01 --smooth --out smoothed.txt --cov smoothed_cov.csv --report r.json --score-from 15",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("dataset", metavar="DATASET", help="dataset folder (docs/configuration.md, Datasets)")
@@ -42,8 +45,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_fault_options(p)
     p.add_argument("--sensors", metavar="LIST", help="comma-separated streams to use (default: replay.sensors)")
     add_start_option(p)
-    p.add_argument("--out", metavar="TRAJ.txt", help="trajectory file (TUM format)")
+    p.add_argument("--out", metavar="TRAJ.txt", help="trajectory file (TUM format); with --smooth the smoothed one")
     p.add_argument("--report", metavar="REPORT.json", help="JSON report")
+    p.add_argument("--smooth", action="store_true", help="also run the Rauch-Tung-Striebel backward pass: --out gets the "
+                   "smoothed trajectory, the report scores filtered, smoothed and fixed-lag (smoothing.fixed_lag_s) poses "
+                   "side by side")
+    p.add_argument("--filtered-out", metavar="TRAJ.txt", help="with --smooth: the filtered trajectory (TUM) too")
+    p.add_argument("--cov", metavar="COV.csv", help="with --smooth: the smoothed pose covariance per pose, one line each "
+                   "(t, upper triangle of the 6x6 over position and attitude)")
+    p.add_argument("--score-from", metavar="S", type=float, default=0.0,
+                   help="score accuracy and NEES from S seconds after the truth starts (default 0: all of it)")
     p.add_argument("--overlay", metavar="DIR", help="write a PNG per camera frame into DIR: features, predicted "
                    "landmarks with their search gate, accepted matches with landmark ids")
     p.add_argument("--no-progress", action="store_true", help="no progress display even on a terminal")
@@ -83,20 +94,29 @@ def run(args: argparse.Namespace) -> int:
         progress.total = max(total_s, 1e-9)
         progress.update(done_s)
 
+    if (args.filtered_out or args.cov) and not args.smooth:
+        raise ValueError("--filtered-out and --cov come with --smooth (without it, --out is the filtered trajectory)")
     overlay = OverlayWriter(args.overlay) if args.overlay else None
-    result = replay(dataset, cfg, sensors, on_progress=on_progress if progress.enabled else None, on_frame=overlay,
-                    faults=faults, fault_seed=args.fault_seed, start_at_s=args.start_at)
+    run_args = dict(on_progress=on_progress if progress.enabled else None, on_frame=overlay, faults=faults,
+                    fault_seed=args.fault_seed, start_at_s=args.start_at)
+    if args.smooth:
+        result = replay_smoothed(dataset, cfg, args.out, args.cov, sensors=sensors, **run_args)
+    else:
+        result = replay(dataset, cfg, sensors, **run_args)
     progress.finish()
-    report = build_report(result, dataset, cfg)
-    if args.out:
-        write_tum(args.out, result.trajectory.t_ns, result.trajectory.p, result.trajectory.q)
+    report = build_report(result, dataset, cfg, args.score_from)
+    filtered_out = args.filtered_out if args.smooth else args.out
+    if filtered_out:
+        write_tum(filtered_out, result.trajectory.t_ns, result.trajectory.p, result.trajectory.q)
     if args.report:
         write_json(args.report, report)
     for line in event_lines(report) + summary_lines(report):
         print(line)
     if overlay is not None:
         print(f"  overlay: {overlay.written} pictures in {overlay.folder}")
-    written = ([f"trajectory {args.out}"] if args.out else []) + ([f"report {args.report}"] if args.report else [])
+    written = ([f"{'smoothed ' if args.smooth else ''}trajectory {args.out}"] if args.out else [])
+    written += [f"filtered trajectory {args.filtered_out}"] if args.smooth and args.filtered_out else []
+    written += ([f"covariances {args.cov}"] if args.cov else []) + ([f"report {args.report}"] if args.report else [])
     print(f"  wrote {' and '.join(written)}" if written else
           "  (nothing written: give --out TRAJ.txt for the trajectory, --report R.json for the full report)")
     return 0

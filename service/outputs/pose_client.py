@@ -4,7 +4,9 @@ A LIDAR scan takes about 100 ms and every return has its own time. Ask once for 
 over the scan (:meth:`PoseClient.trajectory`) and interpolate locally for each return
 (:meth:`~vtolpose.estimator.pose_history.PoseWindow.interpolate`): one round trip per scan instead of one
 per return. :meth:`PoseClient.pose_at` answers a single time. Times are the estimator's sample
-clock in integer nanoseconds (``t_ns`` of the published poses).
+clock in integer nanoseconds (``t_ns`` of the published poses). Each pose says its ``kind``:
+``predicted`` (ahead of the fusion horizon), ``filtered``, or ``smoothed`` (once the service's
+fixed lag has passed: it also used the measurements after its time).
 
     with PoseClient("vtolpose/vtol1", connect=["tcp/192.168.1.10:7447"]) as client:
         sub = client.subscribe(lambda pose: print(pose.t_ns, pose.p))
@@ -61,6 +63,7 @@ class Pose:
     fused: bool
     status: str | None = None  # publications only: ok | poor | heading_weak | heading_unaligned | no_position | initialising
     seq: int | None = None  # publications only
+    kind: str = "filtered"  # predicted | filtered | smoothed (see README, "Which pose to use")
 
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> "Pose":
@@ -73,6 +76,7 @@ class Pose:
             int(doc["t_ns"]), arr("p", (3,)), arr("q", (4,)), arr("v", (3,)), arr("w", (3,)), arr("cov", (6, 6)),
             None if origin is None else (origin["lat"], origin["lon"], origin["alt"]),
             bool(doc.get("fused", False)), doc.get("status"), doc.get("seq"),
+            doc.get("kind") or ("filtered" if doc.get("fused", False) else "predicted"),
         )
 
 
@@ -238,5 +242,7 @@ class PoseClient:
         def arr(key: str, cols: int) -> np.ndarray:
             return np.array([[np.nan if x is None else x for x in row] for row in doc[key]], dtype=float).reshape(n, cols)
 
+        kind = doc.get("kind")
         return PoseWindow(np.array(doc["t_ns"], dtype=np.int64), arr("p", 3), arr("q", 4), arr("v", 3), arr("w", 3),
-                          np.array(doc["fused"], dtype=bool))
+                          np.array(doc["fused"], dtype=bool), None if kind is None else np.array(kind, dtype=str),
+                          arr("cov", 36).reshape(n, 6, 6) if "cov" in doc else None)

@@ -2,7 +2,8 @@
 
 ``<prefix>/pose`` carries every estimate, ``<prefix>/status`` a status document once a second;
 the queryables ``<prefix>/pose/at?t_ns=…`` and ``<prefix>/trajectory?from=…;to=…`` answer from
-the bounded pose history. An unanswerable query (time outside the history, a malformed
+the bounded pose history, each pose saying its ``kind`` (predicted, filtered, or smoothed once
+the fixed lag has passed). An unanswerable query (time outside the history, a malformed
 parameter, a window longer than ``max_window_s``, too many waiting) gets an error reply, never
 silence. The session declares the liveliness token ``<prefix>/service/<zid>`` by which clients
 know this session's answers and poses from anyone else's.
@@ -87,13 +88,13 @@ def _origin_json(origin: Origin) -> dict | None:
 
 
 def pose_message(pose: OutputPose, seq: int, origin: Origin) -> dict[str, Any]:
-    """The ``<prefix>/pose`` document (INTERFACES.md), plus ``fused`` and ``quality``."""
+    """The ``<prefix>/pose`` document (INTERFACES.md), plus ``fused``, ``kind`` and ``quality``."""
     quality = pose_quality(pose)
     return {
         "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(origin),
         "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.omega_b),
         "cov": _floats(pose.pose_cov.reshape(36)), "status": pose_status(pose, quality),
-        "seq": seq, "fused": pose.fused, "quality": quality,
+        "seq": seq, "fused": pose.fused, "kind": "filtered" if pose.fused else "predicted", "quality": quality,
     }
 
 
@@ -122,8 +123,10 @@ def trajectory_json(window: PoseWindow, origin: Origin) -> str:
     """The ``<prefix>/trajectory`` answer, as :func:`json.dumps` of the same document would write it."""
     head = json.dumps({"frame": "NED", "origin": _origin_json(origin), "t_ns": window.t_ns.tolist()})[:-1]
     fields = ", ".join(f'"{name}": {_rows_json(values)}' for name, values in
-                       (("p", window.p), ("q", window.q), ("v", window.v), ("w", window.w)))
-    return f'{head}, {fields}, "fused": {json.dumps(window.fused.tolist())}}}'
+                       (("p", window.p), ("q", window.q), ("v", window.v), ("w", window.w),
+                        ("cov", window.cov.reshape(-1, 36))))
+    return (f'{head}, {fields}, "fused": {json.dumps(window.fused.tolist())}, '
+            f'"kind": {json.dumps(window.kind.tolist())}}}')
 
 
 class ZenohOutput:
@@ -273,7 +276,7 @@ class ZenohOutput:
             text = json.dumps({
                 "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(self.origin()),
                 "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.w),
-                "cov": _floats(pose.cov.reshape(36)), "fused": pose.fused,
+                "cov": _floats(pose.cov.reshape(36)), "fused": pose.fused, "kind": pose.kind,
             })
         else:
             with self.lock:

@@ -10,12 +10,14 @@ import numpy as np
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.estimator.metrics import evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary, pose_errors_for_nees
 from vtolpose.estimator.core.rotation import quat_mul, quat_to_rot, rot_to_quat, so3_exp, so3_log, yaw_of
-from vtolpose.service.replay.session import ReplayResult
+from vtolpose.drivers.files.series import TruthSeries
+from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory
 
 REPORT_VERSION = 1
 
 
-def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) -> dict:
+def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], score_from_s: float = 0.0) -> dict:
+    """The report of a replay; ``score_from_s``: accuracy from this long after the truth starts."""
     est = result.estimator
     traj = result.trajectory
     report: dict[str, Any] = {
@@ -77,39 +79,89 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any]) ->
             "heading_deg": float(np.degrees(so3_log(align.rotation)[2])),
         }
     align = align or StartAlignment(np.eye(3), np.zeros(3), np.zeros(3))
-    t_data = scoring_times(result, traj.t_ns[valid])
-    scores = evaluate(t_data, align.points(traj.p[valid]), align.attitudes(traj.q[valid]), truth, point_b)
+    if score_from_s > 0.0:
+        truth = truth_from(truth, int(truth.t_ns[0] + round(score_from_s * 1e9)))
+        report["score_from_s"] = score_from_s
     report["truth"] = "full" if truth.q is not None else "position only"
-    report["position_rmse_m"] = scores["position_rmse_m"]
+    gps = dataset.gps() if "gps" in result.sensors else None
+    gps_scores = gps_error_rmse(gps, truth, dataset.calibration.gps.lever_arm_b, point_b) if gps is not None else None
+    filtered = accuracy(result, truth, point_b, align, traj, result.covariances, gps_scores)
+    report["position_rmse_m"] = filtered["position_rmse_m"]
     if truth.q is not None:
-        report["attitude_rmse_deg"] = scores["attitude_rmse_deg"]
+        report["attitude_rmse_deg"] = filtered["attitude_rmse_deg"]
         if est.heading_placement is not None:  # before it the outputs said the heading was unknown
+            t_data = scoring_times(result, traj.t_ns[valid])
             placed = t_data >= est.heading_placement["t_ns"]
             if np.count_nonzero(placed) >= 2:
                 report["attitude_rmse_with_heading_deg"] = evaluate(
                     t_data[placed], align.points(traj.p[valid][placed]), align.attitudes(traj.q[valid][placed]), truth,
                     point_b)["attitude_rmse_deg"]
+    scores = filtered["scores"]
     report["final_drift_m"] = scores["final_drift_m"]
     report["distance_travelled_m"] = scores["distance_travelled_m"]
     report["drift_percent"] = scores["drift_percent"]
     report["scores"] = scores
-    gps = dataset.gps() if "gps" in result.sensors else None
-    if gps is not None:
-        gps_scores = gps_error_rmse(gps, truth, dataset.calibration.gps.lever_arm_b, point_b)
+    if gps_scores is not None:
         report["gps_rmse_m"] = gps_scores["rmse_m"]
         report["gps_scores"] = gps_scores
-        report["position_rmse_over_gps"] = report["position_rmse_m"] / gps_scores["rmse_m"]
-    cov = result.covariances
+        report["position_rmse_over_gps"] = filtered["position_rmse_over_gps"]
+    for key in ("nees_mean", "nees", "nees_position_mean"):
+        if key in filtered:
+            report[key] = filtered[key]
+    if result.smoothing is not None:
+        report["smoothing"] = smoothing_report(result, truth, point_b, align, gps_scores, filtered)
+    return report
+
+
+def truth_from(truth: TruthSeries, t0_ns: int) -> TruthSeries:
+    """The truth from ``t0_ns`` on: scores then cover only that stretch (e.g. after the start-up)."""
+    keep = truth.t_ns >= t0_ns
+    if not np.any(keep):
+        raise ValueError(f"the truth ends before the scoring start (t_ns={t0_ns})")
+    pick = lambda a: None if a is None else a[keep]  # noqa: E731
+    return TruthSeries(truth.t_ns[keep], truth.p[keep], pick(truth.q), pick(truth.v), pick(truth.bias_g), pick(truth.bias_a))
+
+
+def accuracy(result: ReplayResult, truth: TruthSeries, point_b: np.ndarray, align: StartAlignment, traj: Trajectory,
+             cov: CovarianceSamples, gps_scores: dict | None) -> dict:
+    """Position/attitude RMSE, ratio to the GPS and NEES of one trajectory (filtered, smoothed, fixed-lag);
+    poses marked not to be used are left out."""
+    valid = traj.valid
+    scores = evaluate(scoring_times(result, traj.t_ns[valid]), align.points(traj.p[valid]), align.attitudes(traj.q[valid]),
+                      truth, point_b)
+    out: dict[str, Any] = {"position_rmse_m": scores["position_rmse_m"], "attitude_rmse_deg": scores["attitude_rmse_deg"],
+                           "scores": scores}
+    if gps_scores is not None:
+        out["position_rmse_over_gps"] = scores["position_rmse_m"] / gps_scores["rmse_m"]
     if len(cov.t_ns):
         err, c, dof = pose_errors_for_nees(scoring_times(result, cov.t_ns), align.points(cov.p), align.attitudes(cov.q),
                                            align.covariances(cov.cov), truth, point_b)
         if len(err):
             values = nees(err, c)
             summary = nees_summary(values, dof)
-            report["nees_mean"] = summary["nees_mean"]
-            report["nees"] = summary
-            report["nees_position_mean"] = float(np.mean(nees(err[:, :3], c[:, :3, :3])))
-    return report
+            out["nees_mean"] = summary["nees_mean"]
+            out["nees"] = summary
+            out["nees_position_mean"] = float(np.mean(nees(err[:, :3], c[:, :3, :3])))
+    return out
+
+
+def smoothing_report(result: ReplayResult, truth: TruthSeries, point_b: np.ndarray, align: StartAlignment,
+                     gps_scores: dict | None, filtered: dict) -> dict:
+    """Filtered, smoothed and fixed-lag scores side by side, and what the backward pass cost."""
+    sm = result.smoothing
+    table = {"filtered": filtered, "smoothed": accuracy(result, truth, point_b, align, sm.smoothed, sm.smoothed_cov, gps_scores)}
+    if len(sm.fixed_lag.t_ns) >= 2:
+        table["fixed_lag"] = accuracy(result, truth, point_b, align, sm.fixed_lag, sm.fixed_lag_cov, gps_scores)
+    keys = ("position_rmse_m", "attitude_rmse_deg", "position_rmse_over_gps", "nees_mean", "nees_position_mean")
+    out: dict[str, Any] = {kind: {k: v[k] for k in keys if k in v} for kind, v in table.items()}
+    for kind, v in table.items():
+        if "nees" in v:
+            out[kind]["nees"] = v["nees"]
+    out["smoothed_over_filtered"] = table["smoothed"]["position_rmse_m"] / filtered["position_rmse_m"]
+    out.update(lag_s=sm.lag_s, steps=sm.steps, segments=sm.segments, backward_s=round(sm.backward_s, 3),
+               backward_over_replay=round(sm.backward_s / result.wall_s, 3) if result.wall_s > 0 else None,
+               disk_mb=round(sm.disk_bytes / 1e6, 1), fixed_lag_dropped=sm.fixed_lag_dropped)
+    return out
 
 
 def scoring_times(result: ReplayResult, t_ns: np.ndarray) -> np.ndarray:
@@ -216,6 +268,26 @@ def event_lines(report: dict, limit: int = 20) -> list[str]:
     return (["events (seconds from the first IMU sample):"] + lines) if lines else []
 
 
+def smoothing_lines(report: dict) -> list[str]:
+    """``replay --smooth``: the three kinds of pose side by side."""
+    sm = report.get("smoothing")
+    if sm is None:
+        return []
+    lines = ["  pose kind    position RMSE   / GPS   attitude RMSE   NEES mean"]
+    for kind in ("filtered", "smoothed", "fixed_lag"):
+        row = sm.get(kind)
+        if row is None:
+            continue
+        def f(key: str, fmt: str) -> str:
+            return "n/a" if row.get(key) is None else format(row[key], fmt)
+        name = f"fixed lag {sm['lag_s']:g} s" if kind == "fixed_lag" else kind
+        lines.append(f"  {name:<12} {f('position_rmse_m', '.4f'):>9} m   {f('position_rmse_over_gps', '.3f'):>6}   "
+                     f"{f('attitude_rmse_deg', '.3f'):>9} deg   {f('nees_mean', '.2f'):>8}")
+    lines.append(f"  smoothing: {sm['steps']} steps in {sm['segments']} segment(s), backward pass {sm['backward_s']:.2f} s "
+                 f"({100 * (sm['backward_over_replay'] or 0):.0f} % of the replay), {sm['disk_mb']} MB on disk while it ran")
+    return lines
+
+
 def summary_lines(report: dict) -> list[str]:
     """The few numbers a person looks at first."""
     def fmt(key: str, unit: str = "", scale: float = 1.0, digits: int = 4) -> str:
@@ -247,6 +319,7 @@ def summary_lines(report: dict) -> list[str]:
             f"per frame, map {cam['landmarks_in_map']['mean']} landmarks (max {cam['landmarks_in_map']['max']}), "
             f"{cam['landmarks_initialised']} initialised; extract {t['extract']['mean']} ms, filter {t['total']['mean']} ms per frame"
         )
+    lines += smoothing_lines(report)
     lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time")
     for name, c in report["sensors"].items():
         if not c["received"]:

@@ -108,6 +108,7 @@ class ReplayResult:
     health: dict = field(default_factory=dict)  # the estimator's health at the end (estimator.health)
     failures: dict = field(default_factory=dict)  # isolated failures of outputs and the trajectory file
     data_t0_ns: int = 0  # the first IMU sample: event times are counted from here
+    smoothing: Any = None  # replay --smooth: a service.replay.smoothing.SmoothingResult
 
 
 class FrameProcessor:
@@ -153,9 +154,12 @@ def replay(
     fault_seed: int = 0,
     on_fused: Callable[[OutputPose], None] | None = None,
     start_at_s: float | None = None,
+    prepare: Callable[[Any], None] | None = None,
 ) -> ReplayResult:
     """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0), ``faults`` played on its
-    stream; ``start_at_s``: joined that far into the recording, as a service restarted in flight."""
+    stream; ``start_at_s``: joined that far into the recording, as a service restarted in flight.
+
+    ``prepare(runtime)`` runs once the runtime is built (``replay --smooth`` attaches its recorder there)."""
     sensors = checked_sensors(sensors or cfg["replay.sensors"])
     notes: list[str] = []
     lidar = lidar_summary(dataset.root)
@@ -190,6 +194,7 @@ def replay(
     summary, runtime = run_replay(
         dataset, cfg, sensors=sensors, speed=speed, trajectory_path=trajectory_path,
         camera_processor=processor, handle_signals=False, faults=injector, on_progress=progress, start_at_s=start_at_s,
+        prepare=prepare,
         on_fused=recorder.record if on_fused is None else lambda pose: (recorder.record(pose), on_fused(pose)),
     )
     wall = time.perf_counter() - wall0

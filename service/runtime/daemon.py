@@ -91,6 +91,9 @@ def build_runtime(
 
         runtime.outputs.append(ZenohOutput(ZenohSettings.from_config(cfg), zenoh_prefix(cfg), runtime.history,
                                            runtime.history_lock, lambda: runtime.origin(), QueryLimits.from_config(cfg)))
+        # The history is read by mappers: keep it smoothed after the configured lag.
+        runtime.enable_smoothing(cfg["smoothing.fixed_lag_s"], cfg["smoothing.steps_per_sample"],
+                                 cfg["smoothing.max_window_s"])
     add_interop_outputs(runtime, cfg, camera_processor)
     return runtime
 

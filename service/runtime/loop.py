@@ -27,11 +27,15 @@ from dataclasses import dataclass, field, replace
 from typing import Any, AsyncIterator, Callable, Protocol, Sequence
 
 import cv2
+import numpy as np
 
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
 from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuRange, ImuSample
-from vtolpose.estimator.pose_history import PoseHistory
+from vtolpose.estimator.pose_history import COV, P, Q, ROW, V, PoseHistory
+from vtolpose.estimator.smoothing.fixed_lag import FixedLagSmoother, SmoothedPose
+from vtolpose.estimator.smoothing.recorder import StepRecorder
+from vtolpose.estimator.smoothing.steps import Step
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.status import (FailureBook, LatencyProbe, StatusTracker, pose_problem, pose_quality,
                                              stopped_within)
@@ -148,6 +152,11 @@ class Runtime:
         self.recorder: Any | None = None  # set by `vtolpose run --record`
         self.sample_taps: list[Callable[[Any], None]] = []  # see every raw sample as it arrives (MCAP, Foxglove)
         self.poses_published = 0
+        # Fixed-lag smoothing (enable_smoothing): smoothed poses replace filtered ones in the history.
+        self.smoother: FixedLagSmoother | None = None
+        self.smoothed_hook: Callable[[list[SmoothedPose]], None] | None = None  # sees them too (a replay's report)
+        self._step_recorder: StepRecorder | None = None
+        self._smoothing_finished = False
         self._executor: ThreadPoolExecutor | None = None
         self._camera_jobs: list[tuple[int, asyncio.Future]] = []
         self._first_t: int | None = None
@@ -204,6 +213,60 @@ class Runtime:
             with self.history_lock:
                 self.history.add_predicted(pose.t_ns, row)
         fusion.advance()  # the delayed filter's work, after the pose has left
+        if self.smoother is not None:  # then a bounded slice of the fixed-lag smoother's
+            try:
+                smoothed = self.smoother.work()
+                if smoothed:
+                    self._on_smoothed(smoothed)
+            except Exception as exc:  # the history keeps its filtered poses; the pose path is untouched
+                self.failures.record("fixed-lag smoother (stopped)", exc)
+                self.smoother = None
+
+    # -------------------------------------------------------------------------- smoothing
+    def enable_smoothing(self, lag_s: float, steps_per_sample: int = 4, max_window_s: float = 10.0,
+                         step_sink: Callable[[Step], None] | None = None) -> None:
+        """Record the filter's steps; with ``lag_s`` > 0 keep a fixed-lag smoothed history (``pose/at``
+        and ``trajectory`` then answer with smoothed poses once ``lag_s`` of later data is fused);
+        ``step_sink`` sees every step too (a replay's backward pass). Call before :meth:`run`."""
+        sinks = []
+        if lag_s > 0.0:
+            self.smoother = FixedLagSmoother(lag_s, steps_per_sample, max_window_s)
+            sinks.append(self.smoother.add)
+        if step_sink is not None:
+            sinks.append(step_sink)
+        if not sinks:
+            return
+
+        def fan_out(step: Step) -> None:
+            for sink in list(sinks):
+                try:
+                    sink(step)
+                except Exception as exc:  # a smoother's failure must never cost the filter its step
+                    self.failures.record("smoothing step sink (stopped)", exc)
+                    sinks.remove(sink)
+
+        self._step_recorder = self.est.recorder = StepRecorder(fan_out)
+
+    def finish_smoothing(self) -> None:
+        """End of the data, after the fusion flush: the last segment closes, the rest is smoothed (once)."""
+        if self._smoothing_finished or self._step_recorder is None:
+            return
+        self._smoothing_finished = True
+        self._step_recorder.finish(self.est.state, self.est.heading_aligned)
+        if self.smoother is not None:
+            smoothed = self.smoother.flush()
+            if smoothed:
+                self._on_smoothed(smoothed)
+
+    def _on_smoothed(self, poses: list[SmoothedPose]) -> None:
+        x = np.array([pose.x for pose in poses])
+        rows = np.zeros((len(poses), ROW))
+        rows[:, P], rows[:, Q], rows[:, V] = x[:, 0:3], x[:, 6:10], x[:, 3:6]
+        rows[:, COV] = np.array([pose.pose_cov for pose in poses]).reshape(len(poses), 36)
+        with self.history_lock:
+            self.history.add_smoothed(np.array([pose.t_ns for pose in poses], dtype=np.int64), rows)
+        if self.smoothed_hook is not None:
+            self.smoothed_hook(poses)
 
     def _on_fused(self, pose: OutputPose) -> None:
         row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
@@ -373,6 +436,7 @@ class Runtime:
                 await asyncio.wait([f for _, f in self._camera_jobs], timeout=10.0)
                 await asyncio.sleep(0)  # their done-callbacks queue the measurements
             self.fusion.flush()
+            self.finish_smoothing()
             for task, result in zip(background, await asyncio.gather(*background, return_exceptions=True)):
                 if isinstance(result, Exception):
                     log.error("%s stopped with an error: %r", task.get_name(), result)

@@ -54,6 +54,7 @@ async def replay_async(
     faults: FaultInjector | None = None,
     on_progress: Callable[[float], None] | None = None,
     start_at_s: float | None = None,
+    prepare: Callable[[Runtime], None] | None = None,
 ) -> tuple[RunSummary, Runtime]:
     """Replay ``dataset`` through a runtime built from ``cfg`` (outputs included); returns its summary.
 
@@ -63,6 +64,7 @@ async def replay_async(
     ``faults``: played on the stream between the dataset and the runtime (``vtolpose.service.replay.faults``).
     ``start_at_s``: join the recording this far in, as a service restarted in flight would: the
     runtime sees nothing before it (no rest, no stated heading it could know).
+    ``prepare``: called with the runtime once it is built, before it runs (e.g. to attach a smoother).
     """
     sensors = checked_sensors(sensors or cfg["replay.sensors"])
     speed = cfg["replay.speed"] if speed is None else speed
@@ -83,6 +85,8 @@ async def replay_async(
         cfg, calibration, origin=lambda: origin, trajectory_path=trajectory_path,
         camera_processor=camera_processor, lockstep=speed == 0.0, measure_latency=measure_latency, on_fused=on_fused,
     )
+    if prepare is not None:
+        prepare(runtime)
     stream = inject(source, faults) if faults is not None and faults.faults else source
     feed = _then_hold(stream, runtime, on_hold or log.info) if hold else stream
     summary = await serve(runtime, [feed], duration_s, handle_signals)
@@ -94,6 +98,7 @@ async def _then_hold(source: AsyncIterator, runtime: Runtime, announce: Callable
     async for sample in source:
         yield sample
     runtime.fusion.flush()
+    runtime.finish_smoothing()
     if runtime.trajectory is not None:
         runtime.trajectory.flush()
     bounds = runtime.history.bounds()
