@@ -57,6 +57,14 @@ class CovarianceSamples:
     q: np.ndarray
     cov: np.ndarray
 
+    @classmethod
+    def from_rows(cls, rows: list[tuple]) -> CovarianceSamples:
+        """From ``(t_ns, p, q, cov)`` rows as the recorders collect them."""
+        if not rows:
+            return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 6, 6)))
+        t, p, q, c = zip(*rows)
+        return cls(np.array(t, dtype=np.int64), np.array(p), np.array(q), np.array(c))
+
 
 class Recorder:
     """Every fused pose, and its covariance at a lower rate (called on the runtime's loop)."""
@@ -85,10 +93,7 @@ class Recorder:
         return Trajectory(np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q), np.array(unscored, bool))
 
     def covariance_samples(self) -> CovarianceSamples:
-        if not self._cov:
-            return CovarianceSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 6, 6)))
-        t, p, q, c = zip(*self._cov)
-        return CovarianceSamples(np.array(t, dtype=np.int64), np.array(p), np.array(q), np.array(c))
+        return CovarianceSamples.from_rows(self._cov)
 
 
 @dataclass

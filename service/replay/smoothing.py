@@ -123,10 +123,7 @@ class _CovarianceSampler:
             self._next = t + self.period_ns
 
     def samples(self) -> CovarianceSamples:
-        if not self.rows:
-            return CovarianceSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 6, 6)))
-        t, p, q, c = zip(*self.rows)
-        return CovarianceSamples(np.array(t, dtype=np.int64), np.array(p), np.array(q), np.array(c))
+        return CovarianceSamples.from_rows(self.rows)
 
 
 @dataclass
