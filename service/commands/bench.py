@@ -31,7 +31,7 @@ def cpu_model() -> str:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
                 return line.split(":", 1)[1].strip()
-    except OSError:
+    except OSError:  # not Linux, or /proc not mounted: the platform module's answer below
         pass
     return platform.processor() or platform.machine()
 
