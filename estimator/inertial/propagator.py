@@ -21,7 +21,7 @@ import numpy as np
 
 from vtolpose.estimator.core.calibration import ImuNoise
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
-from vtolpose.estimator.core.rotation import rotvec_quat
+from vtolpose.estimator.core.rotation import rot_of as _rot, rotvec_quat
 from vtolpose.estimator.core.state import FilterState, StateLayout
 
 
@@ -42,14 +42,6 @@ def _jr(x: float, y: float, z: float) -> tuple:
         (1.0 + b * (x * x - t2), a * z + b * x * y, -a * y + b * x * z),
         (-a * z + b * x * y, 1.0 + b * (y * y - t2), a * x + b * y * z),
         (a * y + b * x * z, -a * x + b * y * z, 1.0 + b * (z * z - t2)),
-    )
-
-
-def _rot(w: float, x: float, y: float, z: float) -> tuple:
-    return (
-        (1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
-        (2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
-        (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)),
     )
 
 

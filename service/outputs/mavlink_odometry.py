@@ -34,6 +34,7 @@ __all__ = ["PROFILES", "Profile", "euler_jacobian", "odometry_covariances", "odo
 
 mav = mavutil.mavlink
 _TRIU = np.triu_indices(6)  # row-major upper-right triangle: 21 indices
+_TRIU_FLAT = _TRIU[0] * 6 + _TRIU[1]  # the same in a flat 6 × 6
 NAN21 = [math.nan] * 21
 
 
@@ -103,10 +104,10 @@ def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple
 
 def upper_triangle(cov: np.ndarray) -> list[float]:
     """The 21 values of the upper-right triangle, row-major; all NaN when any is not finite (unknown)."""
-    values = cov[_TRIU]
-    if not np.all(np.isfinite(values)):
-        return list(NAN21)
-    return values.tolist()
+    values = cov.take(_TRIU_FLAT).tolist()
+    if not math.isfinite(sum(values)):  # a NaN or an infinity anywhere (or values so large they overflow)
+        return list(NAN21) if not all(map(math.isfinite, values)) else values
+    return values
 
 
 def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) -> dict[str, Any]:
@@ -127,12 +128,11 @@ def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) ->
         return fields
     r = quat_to_rot(pose.q)
     pose_cov, vel_cov = odometry_covariances(pose, r)
-    v_body = r.T @ pose.v
+    vx, vy, vz = (r.T @ pose.v).tolist()
+    x, y, z = pose.p.tolist()
+    rollspeed, pitchspeed, yawspeed = pose.omega_b.tolist()
     fields.update(
-        x=float(pose.p[0]), y=float(pose.p[1]), z=float(pose.p[2]),
-        q=[float(x) for x in pose.q],
-        vx=float(v_body[0]), vy=float(v_body[1]), vz=float(v_body[2]),
-        rollspeed=float(pose.omega_b[0]), pitchspeed=float(pose.omega_b[1]), yawspeed=float(pose.omega_b[2]),
+        x=x, y=y, z=z, q=pose.q.tolist(), vx=vx, vy=vy, vz=vz, rollspeed=rollspeed, pitchspeed=pitchspeed, yawspeed=yawspeed,
         pose_covariance=upper_triangle(pose_cov),
         velocity_covariance=upper_triangle(vel_cov),
     )
