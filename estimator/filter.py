@@ -38,7 +38,7 @@ from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonito
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
-from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts
+from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts, readings_finite
 from vtolpose.estimator.inertial.heading_bank import (
     UNKNOWN_HEADING_VAR, YAW, HeadingBank, HeadingBankOptions, with_bias_states,
 )
@@ -183,7 +183,7 @@ class Estimator:
         counts = self.counts["imu"]
         counts.received += 1
         # One dot product is finite exactly when every component is (cheaper than isfinite).
-        if not math.isfinite(float(gyro @ gyro + accel @ accel)):
+        if not readings_finite(gyro, accel):
             counts.reject("non_finite")
             return False
         if self._last_imu_t is not None and t_ns <= self._last_imu_t:
@@ -213,7 +213,8 @@ class Estimator:
             self._level(t_ns, accel)
         if self.options.still.enabled:
             state = self.state
-            chunk = self._stillness.add(t_ns, gyro, accel, self.propagator.gravity[2], math.sqrt(float(state.v @ state.v)))
+            vx, vy, vz = state.v.tolist()
+            chunk = self._stillness.add(t_ns, gyro, accel, self.propagator.gravity[2], math.sqrt(vx * vx + vy * vy + vz * vz))
             if chunk is not None:
                 self._apply_still(chunk)
         return True
@@ -236,8 +237,11 @@ class Estimator:
         if recorder is not None:
             recorder.before_propagation(self.state, self.heading_aligned)
         a_w = self.propagator.propagate(self.state, delta, extra)
-        keep = self.options.init.average_s / (self.options.init.average_s + delta.dt)
-        self._horizontal_accel = keep * self._horizontal_accel + (1.0 - keep) * a_w[:2]
+        average_s = self.options.init.average_s
+        keep = average_s / (average_s + delta.dt)
+        hx, hy = self._horizontal_accel.tolist()
+        ax, ay, _ = a_w.tolist()
+        self._horizontal_accel = np.array([keep * hx + (1.0 - keep) * ax, keep * hy + (1.0 - keep) * ay])
         self.state.t_ns = delta.t1_ns
         if recorder is not None:
             recorder.after_propagation(self.state, self.propagator.transition)

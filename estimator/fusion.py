@@ -30,15 +30,20 @@ from typing import Any, Callable
 import numpy as np
 
 from vtolpose.estimator.filter import Estimator
-from vtolpose.estimator.core.measurements import ImuSample, RejectionCounts
+from vtolpose.estimator.core.measurements import ImuSample, RejectionCounts, readings_finite
 from vtolpose.estimator.inertial.propagator import is_isotropic, noise_dt_polynomial, process_noise
 from vtolpose.estimator.core.rotation import rotvec_quat, skew
 from vtolpose.estimator.core.state import StateLayout
 
 _RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (numerical drift only)
 _ROBOT9 = StateLayout("thesis")  # p, v, θ: the blocks the predictor's covariance covers
-_POSE_IX = np.ix_(np.r_[0:3, 6:9], np.r_[0:3, 6:9])
-_BG_DIAG = np.arange(9, 12)  # indices of the gyro-bias variances on the diagonal
+_POSE_FLAT = (np.r_[0:3, 6:9][:, None] * 9 + np.r_[0:3, 6:9][None, :]).ravel()  # [δp, δθ] entries of a flat 9 × 9
+
+
+def _pose_cov(cov9: np.ndarray) -> np.ndarray:
+    """cov9's position and attitude blocks (6 × 6): one take on precomputed indices (cheaper than np.ix_)."""
+    return cov9.take(_POSE_FLAT).reshape(6, 6)
+
 
 Apply = Callable[[Estimator], Any]
 
@@ -176,6 +181,7 @@ class FusionCore:
         self._F = np.eye(9)
         self._eye3 = np.eye(3)
         self._q_terms: tuple | None = None
+        self._white_rate_var: tuple | None = None  # (noise, rate, the gyro's white-noise rate variance) of _omega_var
         self._out_cov: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # see output()
 
     # ---------------------------------------------------------------------------- inputs
@@ -200,7 +206,7 @@ class FusionCore:
             self._refused = None
         counts.used += 1
         gyro, accel = sample.gyro, sample.accel
-        finite = math.isfinite(float(gyro @ gyro + accel @ accel))
+        finite = readings_finite(gyro, accel)
         self._queue.append((t, gyro, accel, finite))
         self._newest_t = t
         if self._pred is not None and finite and self.predict:
@@ -368,16 +374,19 @@ class FusionCore:
             F[0:3, 6:9] = a * (-0.5 * dt * dt)
             F[3:6, 6:9] = a * -dt
             cov9 = F @ cov9 @ F.T + self._noise(np.array(pred.q), dt)
-        return cov9, cov9[_POSE_IX], self._omega_var()
+        return cov9, _pose_cov(cov9), self._omega_var()
 
     def _omega_var(self) -> np.ndarray:
         """Variance of the bias-corrected body rate: per-sample gyro noise plus the bias's."""
         est = self.est
         s = est.state
-        omega_var = est.noise.gyro_noise_density**2 * est.calibration.imu.rate_hz
+        noise, rate = est.noise, est.calibration.imu.rate_hz
+        white = self._white_rate_var
+        if white is None or white[0] is not noise or white[1] != rate:
+            white = self._white_rate_var = (noise, rate, noise.gyro_noise_density**2 * rate)
         if s.layout.estimates_biases:
-            return omega_var + s.cov[_BG_DIAG, _BG_DIAG]
-        return omega_var.copy()
+            return white[2] + s.cov.diagonal()[9:12]
+        return white[2].copy()
 
     def _noise(self, q: np.ndarray, dt: float) -> np.ndarray:
         """IMU white noise over ``dt`` on [p, v, θ]; for isotropic noise, cached polynomials in dt."""
@@ -396,7 +405,7 @@ class FusionCore:
         cov9 = est.published_cov9()
         return OutputPose(
             t_ns=s.t_ns, p=s.p.copy(), v=s.v.copy(), q=s.q.copy(), omega_b=gyro - s.b_g, cov9=cov9,
-            pose_cov=cov9[_POSE_IX], omega_var=self._omega_var(), heading_aligned=est.heading_aligned,
+            pose_cov=_pose_cov(cov9), omega_var=self._omega_var(), heading_aligned=est.heading_aligned,
             position_initialized=est.position_initialized, reset_counter=est.reset_counter, fused_t_ns=s.t_ns,
             quality_cap=est.health.quality_cap(s.t_ns), initialising=est.initialising, local_position=est.local_position,
         )

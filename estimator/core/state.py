@@ -10,12 +10,13 @@ robot block (see ``vtolpose.estimator.vision.landmarks``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from vtolpose.estimator.core.rotation import quat_exp, quat_mul, quat_to_rot
+from vtolpose.estimator.core.rotation import quat_to_rot, rotvec_quat
 
 VARIANTS = ("thesis", "biases")
 LANDMARK_DIM = 6
@@ -91,8 +92,13 @@ class FilterState:
         lay = self.layout
         self.p = self.p + dx[lay.P]
         self.v = self.v + dx[lay.V]
-        q = quat_mul(quat_exp(dx[lay.TH]), self.q)
-        self.q = q / np.linalg.norm(q)
+        # Exp(δθ) ⊗ q on plain floats (every update passes here), then normalised.
+        dw, ex, ey, ez = rotvec_quat(*dx[lay.TH].tolist())
+        w, x, y, z = self.q.tolist()
+        q = (dw * w - ex * x - ey * y - ez * z, dw * x + ex * w + ey * z - ez * y,
+             dw * y - ex * z + ey * w + ez * x, dw * z + ex * y - ey * x + ez * w)
+        norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+        self.q = np.array([q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm])
         if lay.estimates_biases:
             self.b_g = self.b_g + dx[lay.BG]
             self.b_a = self.b_a + dx[lay.BA]

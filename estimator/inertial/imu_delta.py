@@ -63,7 +63,8 @@ class ImuDownsampler:
 
     def __init__(self, max_rate_hz: float) -> None:
         self.min_dt = 0.9 / max_rate_hz
-        self._last: tuple[int, np.ndarray, np.ndarray] | None = None
+        # The newest sample: time, readings, and the readings as plain floats (the per-sample path's).
+        self._last: tuple[int, np.ndarray, np.ndarray, list[float], list[float]] | None = None
         self._reset()
 
     def _reset(self) -> None:
@@ -75,16 +76,18 @@ class ImuDownsampler:
     def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> ImuDelta | None:
         """Add a sample (strictly later than the previous); return a delta when one is complete."""
         last = self._last
-        self._last = (t_ns, gyro, accel)
+        # Scalar arithmetic on plain floats: this runs for every IMU sample.
+        g, a = gyro.tolist(), accel.tolist()
+        self._last = (t_ns, gyro, accel, g, a)
         if last is None:
             return None
-        t_prev, g_prev, a_prev = last
+        t_prev, _, _, (g0x, g0y, g0z), (a0x, a0y, a0z) = last
         if self._t0 is None:
             self._t0 = t_prev
-        # Scalar arithmetic: this runs for every IMU sample.
         dt = (t_ns - t_prev) * 1e-9
-        wx, wy, wz = (0.5 * dt * (g_prev + gyro)).tolist()  # rotation vector of this sample step
-        fx, fy, fz = (0.5 * dt * (a_prev + accel)).tolist()
+        h = 0.5 * dt
+        wx, wy, wz = h * (g0x + g[0]), h * (g0y + g[1]), h * (g0z + g[2])  # rotation vector of this sample step
+        fx, fy, fz = h * (a0x + a[0]), h * (a0y + a[1]), h * (a0z + a[2])
         half = _qmul(self._q, rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz))
         dx, dy, dz = _rotate(half, fx, fy, fz)
         vx, vy, vz = self._dv
@@ -108,8 +111,8 @@ class ImuDownsampler:
         falls between samples. Call :meth:`flush` first; the next delta then starts at ``t_ns``."""
         if self._last is None or t_ns <= self._last[0] or self._t0 is not None:
             return None
-        t_last, gyro, accel = self._last
+        t_last, gyro, accel, g, a = self._last
         dt = (t_ns - t_last) * 1e-9
-        self._last = (t_ns, gyro, accel)
+        self._last = (t_ns, gyro, accel, g, a)
         half = rotvec_quat(*(0.5 * dt * gyro).tolist())
         return ImuDelta(t_last, t_ns, dt, gyro * dt, np.array(_rotate(half, *(dt * accel).tolist())))

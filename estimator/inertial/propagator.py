@@ -21,7 +21,7 @@ import numpy as np
 
 from vtolpose.estimator.core.calibration import ImuNoise
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
-from vtolpose.estimator.core.rotation import rotvec_quat
+from vtolpose.estimator.core.rotation import rot_of as _rot, rotvec_quat
 from vtolpose.estimator.core.state import FilterState, StateLayout
 
 
@@ -42,14 +42,6 @@ def _jr(x: float, y: float, z: float) -> tuple:
         (1.0 + b * (x * x - t2), a * z + b * x * y, -a * y + b * x * z),
         (-a * z + b * x * y, 1.0 + b * (y * y - t2), a * x + b * y * z),
         (a * y + b * x * z, -a * x + b * y * z, 1.0 + b * (z * z - t2)),
-    )
-
-
-def _rot(w: float, x: float, y: float, z: float) -> tuple:
-    return (
-        (1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)),
-        (2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)),
-        (2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)),
     )
 
 
@@ -160,17 +152,23 @@ class ImuPropagator:
     """Advances a :class:`FilterState` by one IMU delta.
 
     The per-step hot path: rotation quantities are computed once with scalar arithmetic and
-    written into a preallocated transition matrix.
+    written into a preallocated transition matrix with one indexed assignment; the blocks that
+    depend only on ``dt`` (and the process noise) are rewritten only when ``dt`` changes.
     """
 
     def __init__(self, noise: ImuNoise, gravity: float) -> None:
         self.noise = noise
         self.gravity = np.array([0.0, 0.0, float(gravity)])
+        self._g = float(gravity)
         self._isotropic = is_isotropic(noise)
         self._F: np.ndarray | None = None
         self._eye3 = np.eye(3)
-        self._q_key: StateLayout | None = None
-        self._q_terms: tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]] | None = None
+        # Per layout (the heading bank's members carry biases while the filter may not, and they
+        # alternate): [F, flat view of F, the dt its constant blocks hold]; and Q's polynomial terms
+        # with the last (dt, extra², Q).
+        self._transitions: dict[str, list] = {}
+        self._q_terms: dict[str, tuple] = {}
+        self._q_last: dict[str, tuple[float, float, np.ndarray]] = {}
 
     @property
     def transition(self) -> np.ndarray | None:
@@ -184,14 +182,33 @@ class ImuPropagator:
         # dt times a constant: keep the constant matrices, combine them per step. Q is linear in
         # extra² (it adds to the horizontal accelerometer variance): Q = Q(0) + extra² (Q(1) − Q(0)),
         # so a heading still unknown (extra changing every step) costs no refit.
-        if self._q_key != layout:
+        key = layout.variant
+        terms = self._q_terms.get(key)
+        if terms is None:
             base, unit = (noise_dt_polynomial(self.noise, layout, x) for x in (0.0, 1.0))
-            self._q_terms = (base, tuple(u - b for u, b in zip(unit, base)))
-            self._q_key = layout
-        base, per_extra2 = self._q_terms
+            terms = self._q_terms[key] = (base, tuple(u - b for u, b in zip(unit, base)))
         e2 = extra * extra
+        last = self._q_last.get(key)
+        if last is not None and last[0] == dt and last[1] == e2:  # a steady IMU rate: the same Q again
+            return last[2]
+        base, per_extra2 = terms
         c1, c2, c3 = (b + e2 * d for b, d in zip(base, per_extra2)) if e2 else base
-        return (c1 + (c2 + c3 * dt) * dt) * dt
+        Q = (c1 + (c2 + c3 * dt) * dt) * dt
+        self._q_last[key] = (dt, e2, Q)
+        return Q
+
+    def _transition(self, layout: StateLayout, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """The preallocated F of ``layout`` with its dt-only blocks written for ``dt``, and its flat view."""
+        held = self._transitions.get(layout.variant)
+        if held is None:
+            F = np.eye(layout.robot_dim)
+            held = self._transitions[layout.variant] = [F, F.reshape(-1), math.nan]
+        F = held[0]
+        if dt != held[2]:
+            F[0:3, 3:6] = self._eye3 * dt
+            held[2] = dt
+        self._F = F
+        return F, held[1]
 
     def propagate(self, state: FilterState, delta: ImuDelta, extra_horizontal_accel: float = 0.0) -> np.ndarray:
         """Propagate nominal state and covariance over ``delta``; returns ``a_W``."""
@@ -201,7 +218,8 @@ class ImuPropagator:
         Q = self._noise(state.q, dt, lay, extra_horizontal_accel)
         w, x, y, z = state.q.tolist()
         bgx, bgy, bgz = state.b_g.tolist()
-        px, py, pz = (delta.dtheta - state.b_g * dt).tolist()
+        tx, ty, tz = delta.dtheta.tolist()
+        px, py, pz = tx - bgx * dt, ty - bgy * dt, tz - bgz * dt
         vx, vy, vz = delta.dvel.tolist()
         # Δv corrected for the slower rotation, then the mean specific force minus b_a.
         h = 0.5 * dt
@@ -209,12 +227,16 @@ class ImuPropagator:
         bax, bay, baz = state.b_a.tolist()
         fx, fy, fz = (vx - h * cx) / dt - bax, (vy - h * cy) / dt - bay, (vz - h * cz) / dt - baz
         r = _rot(w, x, y, z)
-        ax = r[0][0] * fx + r[0][1] * fy + r[0][2] * fz
-        ay = r[1][0] * fx + r[1][1] * fy + r[1][2] * fz
-        az = r[2][0] * fx + r[2][1] * fy + r[2][2] * fz
-        a_w = np.array([ax, ay, az + self.gravity[2]])
-        state.p = state.p + state.v * dt + (0.5 * dt * dt) * a_w
-        state.v = state.v + a_w * dt
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = r
+        ax = r00 * fx + r01 * fy + r02 * fz
+        ay = r10 * fx + r11 * fy + r12 * fz
+        sz = r20 * fx + r21 * fy + r22 * fz  # the specific force's z, before gravity
+        az = sz + self._g
+        h2 = 0.5 * dt * dt
+        p0x, p0y, p0z = state.p.tolist()
+        v0x, v0y, v0z = state.v.tolist()
+        state.p = np.array([p0x + v0x * dt + h2 * ax, p0y + v0y * dt + h2 * ay, p0z + v0z * dt + h2 * az])
+        state.v = np.array([v0x + ax * dt, v0y + ay * dt, v0z + az * dt])
         dw, dx, dy, dz = rotvec_quat(px, py, pz)
         nw = w * dw - x * dx - y * dy - z * dz
         nx = w * dx + x * dw + y * dz - z * dy
@@ -224,22 +246,24 @@ class ImuPropagator:
         nw, nx, ny, nz = nw * norm, nx * norm, ny * norm, nz * norm
         state.q = np.array([nw, nx, ny, nz])
 
-        F = self._F
-        if F is None or F.shape[0] != n:
-            F = self._F = np.eye(n)
-        F[0:3, 3:6] = self._eye3 * dt
-        h2 = 0.5 * dt * dt
-        a_skew = np.array([[0.0, -az, ay], [az, 0.0, -ax], [-ay, ax, 0.0]])
-        F[0:3, 6:9] = a_skew * -h2
-        F[3:6, 6:9] = a_skew * -dt
+        F, F_flat = self._transition(lay, dt)
+        # −[R f]× scaled by ½dt² (position) and dt (velocity), in the attitude columns.
+        values = [sz * h2, -ay * h2, -sz * h2, ax * h2, ay * h2, -ax * h2,
+                  sz * dt, -ay * dt, -sz * dt, ax * dt, ay * dt, -ax * dt]
         if lay.estimates_biases:
-            rm = np.array(r)
-            d_a_d_bg = rm @ np.array([[0.0, -0.5 * vz, 0.5 * vy], [0.5 * vz, 0.0, -0.5 * vx], [-0.5 * vy, 0.5 * vx, 0.0]])
-            F[0:3, 9:12] = d_a_d_bg * h2
-            F[3:6, 9:12] = d_a_d_bg * dt
-            F[6:9, 9:12] = (np.array(_rot(nw, nx, ny, nz)) @ np.array(_jr(px, py, pz))) * -dt
-            F[0:3, 12:15] = rm * -h2
-            F[3:6, 12:15] = rm * -dt
+            # ∂a/∂b_g = ½ R [Δv]×, the attitude's −dt R(q') Jr(φ), the accelerometer bias's −R.
+            hx, hy, hz = 0.5 * vx, 0.5 * vy, 0.5 * vz
+            d = ((r01 * hz - r02 * hy, r02 * hx - r00 * hz, r00 * hy - r01 * hx),
+                 (r11 * hz - r12 * hy, r12 * hx - r10 * hz, r10 * hy - r11 * hx),
+                 (r21 * hz - r22 * hy, r22 * hx - r20 * hz, r20 * hy - r21 * hx))
+            rn, jr = _rot(nw, nx, ny, nz), _jr(px, py, pz)
+            m = -dt
+            values += [e * h2 for row in d for e in row]
+            values += [e * dt for row in d for e in row]
+            values += [(a[0] * jr[0][j] + a[1] * jr[1][j] + a[2] * jr[2][j]) * m for a in rn for j in range(3)]
+            values += [e * -h2 for row in r for e in row]
+            values += [e * m for row in r for e in row]
+        F_flat[_transition_index(n, lay.estimates_biases)] = values
         cov = state.cov
         if cov.shape[0] == n:
             state.cov = F @ cov @ F.T + Q
@@ -248,4 +272,21 @@ class ImuPropagator:
             cross = F @ cov[:n, n:]
             cov[:n, n:] = cross
             cov[n:, :n] = cross.T
-        return a_w
+        return np.array([ax, ay, az])
+
+
+_INDEX_CACHE: dict[tuple[int, bool], np.ndarray] = {}
+
+
+def _transition_index(n: int, biases: bool) -> np.ndarray:
+    """Flat indices of F's state-dependent entries, in the order :meth:`ImuPropagator.propagate` lists them."""
+    key = (n, biases)
+    index = _INDEX_CACHE.get(key)
+    if index is None:
+        skew = [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)]  # nonzero entries of a 3 × 3 skew matrix
+        cells = [(r, 6 + c) for r, c in skew] + [(3 + r, 6 + c) for r, c in skew]
+        if biases:
+            for row0, col0 in ((0, 9), (3, 9), (6, 9), (0, 12), (3, 12)):
+                cells += [(row0 + i, col0 + j) for i in range(3) for j in range(3)]
+        index = _INDEX_CACHE[key] = np.array([r * n + c for r, c in cells], dtype=np.intp)
+    return index

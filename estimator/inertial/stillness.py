@@ -64,8 +64,8 @@ class StillnessDetector:
     def _start_block(self, t_ns: int | None) -> None:
         self._block_t0 = t_ns
         self._block_n = 0
-        self._block_g = np.zeros(3)
-        self._block_a = np.zeros(3)
+        self._block_g = (0.0, 0.0, 0.0)  # plain floats: added to for every sample
+        self._block_a = (0.0, 0.0, 0.0)
 
     def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, gravity: float, speed: float) -> StillChunk | None:
         """Add a body-frame sample; at the end of each chunk return it if it was still."""
@@ -73,10 +73,13 @@ class StillnessDetector:
             self._reset(t_ns)
         self._samples += 1
         self._block_n += 1
-        self._block_g += gyro
-        self._block_a += accel
+        (sgx, sgy, sgz), (sax, say, saz) = self._block_g, self._block_a
+        gx, gy, gz = gyro.tolist()
+        ax, ay, az = accel.tolist()
+        self._block_g = (sgx + gx, sgy + gy, sgz + gz)
+        self._block_a = (sax + ax, say + ay, saz + az)
         if (t_ns - self._block_t0) * 1e-9 >= self.options.average_s:
-            g, a = self._block_g / self._block_n, self._block_a / self._block_n
+            g, a = np.array(self._block_g) / self._block_n, np.array(self._block_a) / self._block_n
             self._n += 1
             self._g_sum += g
             self._g_sq += g * g

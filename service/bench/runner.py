@@ -31,6 +31,7 @@ from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.camera import bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.euroc import bench_euroc
+from vtolpose.service.bench.euroc_reference import bench_euroc_reference
 from vtolpose.service.bench.memory_paced import bench_memory_paced
 from vtolpose.service.bench.zenoh_queries import bench_zenoh_queries
 from vtolpose.service.bench.smoothing import (bench_smoothing_hour, bench_smoothing_landmarks, bench_smoothing_latency,
@@ -100,6 +101,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "fault-targets": bench_fault_targets,
     "fault-table": bench_fault_table,
     "euroc": bench_euroc,
+    "euroc-reference": bench_euroc_reference,
     "zenoh-queries": bench_zenoh_queries,
     "memory-paced": bench_memory_paced,
     "smoothing-sim": bench_smoothing_sim,
@@ -110,8 +112,9 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "zenoh-queries", "memory-paced",
-                   "smoothing-sim", "smoothing-landmarks", "smoothing-hour", "smoothing-latency")
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "euroc-reference",
+                   "zenoh-queries", "memory-paced", "smoothing-sim", "smoothing-landmarks", "smoothing-hour",
+                   "smoothing-latency")
 
 
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:

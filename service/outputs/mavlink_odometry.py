@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from vtolpose.drivers.links.mavlink_wire import mavutil
-from vtolpose.estimator.core.rotation import quat_to_rot, skew
+from vtolpose.estimator.core.rotation import quat_to_rot, rot_of
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.service.runtime.status import pose_problem, pose_quality
 
@@ -34,6 +34,7 @@ __all__ = ["PROFILES", "Profile", "euler_jacobian", "odometry_covariances", "odo
 
 mav = mavutil.mavlink
 _TRIU = np.triu_indices(6)  # row-major upper-right triangle: 21 indices
+_TRIU_FLAT = _TRIU[0] * 6 + _TRIU[1]  # the same in a flat 6 × 6
 NAN21 = [math.nan] * 21
 
 
@@ -57,6 +58,16 @@ def odometry_quality(pose: OutputPose) -> int:
     return -1 if pose_problem(pose) is not None else pose_quality(pose)
 
 
+def _euler_rows(q: np.ndarray) -> tuple[tuple[float, float, float], ...]:
+    """:func:`euler_jacobian`'s rows on plain floats."""
+    w, x, y, z = q.tolist()
+    sp = min(max(2.0 * (w * y - z * x), -1.0), 1.0)
+    cp = max(math.sqrt(1.0 - sp * sp), 1e-6)
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return (cy / cp, sy / cp, 0.0), (-sy, cy, 0.0), (sp * cy / cp, sp * sy / cp, 1.0)
+
+
 def euler_jacobian(q: np.ndarray) -> np.ndarray:
     """d(roll, pitch, yaw) / dθ for a world-frame attitude error θ (``R_true = Exp(θ) R``).
 
@@ -65,12 +76,10 @@ def euler_jacobian(q: np.ndarray) -> np.ndarray:
     form. It is singular at ±90° pitch, which a helicopter's estimator never reports:
     cos(pitch) is floored.
     """
-    w, x, y, z = q.tolist()
-    sp = min(max(2.0 * (w * y - z * x), -1.0), 1.0)
-    cp = max(math.sqrt(1.0 - sp * sp), 1e-6)
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array([[cy / cp, sy / cp, 0.0], [-sy, cy, 0.0], [sp * cy / cp, sp * sy / cp, 1.0]])
+    return np.array(_euler_rows(q))
+
+
+_PTH_FLAT = (np.r_[0:3, 6:9][:, None] * 9 + np.r_[0:3, 6:9][None, :]).ravel()  # [δp, δθ] entries of a flat 9 × 9
 
 
 def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -82,19 +91,19 @@ def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple
     Velocity: body-frame velocity ``v_B = Rᵀ v`` depends on the world velocity error and on the
     attitude error (``δv_B = Rᵀ δv + Rᵀ [v]× δθ``); the body rates are the bias-corrected gyro,
     uncorrelated with the velocity, with the gyro noise plus the bias variance.
+
+    Each is one product ``J C Jᵀ`` with J built from plain floats: this runs for every pose sent.
     """
     cov9 = pose.cov9
-    e = euler_jacobian(pose.q)
-    pose_cov = np.empty((6, 6))
-    pose_cov[0:3, 0:3] = cov9[0:3, 0:3]
-    cross = cov9[0:3, 6:9] @ e.T
-    pose_cov[0:3, 3:6] = cross
-    pose_cov[3:6, 0:3] = cross.T
-    pose_cov[3:6, 3:6] = e @ cov9[6:9, 6:9] @ e.T
-    rt = (quat_to_rot(pose.q) if r is None else r).T
-    jv = np.empty((3, 6))
-    jv[:, 0:3] = rt
-    jv[:, 3:6] = rt @ skew(pose.v)
+    (e00, e01, _), (e10, e11, _), (e20, e21, _) = _euler_rows(pose.q)
+    to_euler = np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+                         [0.0, 0.0, 0.0, e00, e01, 0.0], [0.0, 0.0, 0.0, e10, e11, 0.0], [0.0, 0.0, 0.0, e20, e21, 1.0]])
+    pose_cov = to_euler @ cov9.take(_PTH_FLAT).reshape(6, 6) @ to_euler.T
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = (rot_of(*pose.q.tolist()) if r is None else r.tolist())
+    vx, vy, vz = pose.v.tolist()
+    # Rᵀ and Rᵀ [v]×, row by row (row i of Rᵀ is column i of R).
+    jv = np.array([[a, b, c, b * vz - c * vy, c * vx - a * vz, a * vy - b * vx]
+                   for a, b, c in ((r00, r10, r20), (r01, r11, r21), (r02, r12, r22))])
     vel_cov = np.zeros((6, 6))
     vel_cov[0:3, 0:3] = jv @ cov9[3:9, 3:9] @ jv.T
     vel_cov[3, 3], vel_cov[4, 4], vel_cov[5, 5] = pose.omega_var.tolist()
@@ -103,10 +112,10 @@ def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple
 
 def upper_triangle(cov: np.ndarray) -> list[float]:
     """The 21 values of the upper-right triangle, row-major; all NaN when any is not finite (unknown)."""
-    values = cov[_TRIU]
-    if not np.all(np.isfinite(values)):
-        return list(NAN21)
-    return values.tolist()
+    values = cov.take(_TRIU_FLAT).tolist()
+    if not math.isfinite(sum(values)):  # a NaN or an infinity anywhere (or values so large they overflow)
+        return list(NAN21) if not all(map(math.isfinite, values)) else values
+    return values
 
 
 def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) -> dict[str, Any]:
@@ -127,12 +136,11 @@ def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) ->
         return fields
     r = quat_to_rot(pose.q)
     pose_cov, vel_cov = odometry_covariances(pose, r)
-    v_body = r.T @ pose.v
+    vx, vy, vz = (r.T @ pose.v).tolist()
+    x, y, z = pose.p.tolist()
+    rollspeed, pitchspeed, yawspeed = pose.omega_b.tolist()
     fields.update(
-        x=float(pose.p[0]), y=float(pose.p[1]), z=float(pose.p[2]),
-        q=[float(x) for x in pose.q],
-        vx=float(v_body[0]), vy=float(v_body[1]), vz=float(v_body[2]),
-        rollspeed=float(pose.omega_b[0]), pitchspeed=float(pose.omega_b[1]), yawspeed=float(pose.omega_b[2]),
+        x=x, y=y, z=z, q=pose.q.tolist(), vx=vx, vy=vy, vz=vz, rollspeed=rollspeed, pitchspeed=pitchspeed, yawspeed=yawspeed,
         pose_covariance=upper_triangle(pose_cov),
         velocity_covariance=upper_triangle(vel_cov),
     )

@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 import os
 import queue
 import re
@@ -83,6 +84,14 @@ def _floats(values: np.ndarray) -> list:
     return np.where(finite, values, None).tolist()
 
 
+def _vector(values: np.ndarray) -> list:
+    """:func:`_floats` of a flat array on plain floats (a pose's five vectors, for every pose)."""
+    out = values.tolist()
+    if math.isfinite(sum(out)):
+        return out
+    return [x if math.isfinite(x) else None for x in out]
+
+
 def _origin_json(origin: Origin) -> dict | None:
     return None if origin is None else {"lat": origin[0], "lon": origin[1], "alt": origin[2]}
 
@@ -92,8 +101,8 @@ def pose_message(pose: OutputPose, seq: int, origin: Origin) -> dict[str, Any]:
     quality = pose_quality(pose)
     return {
         "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(origin),
-        "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.omega_b),
-        "cov": _floats(pose.pose_cov.reshape(36)), "status": pose_status(pose, quality),
+        "p": _vector(pose.p), "q": _vector(pose.q), "v": _vector(pose.v), "w": _vector(pose.omega_b),
+        "cov": _vector(pose.pose_cov.reshape(36)), "status": pose_status(pose, quality),
         "seq": seq, "fused": pose.fused, "kind": "filtered" if pose.fused else "predicted", "quality": quality,
     }
 

@@ -1,0 +1,155 @@
+"""Replay speed against a reference on the same inputs, measured in the same run (issue 16).
+
+The reference is GTSAM (optional extra ``bench``, never imported at run time): the IMU
+preintegrated between GPS fixes (``CombinedImuFactor``: attitude, velocity, position and both
+biases), one GPS factor with the antenna's lever arm per fix, the states at the fixes, in an
+incremental fixed-lag smoother with a 3-s lag. It is given what vtolpose has to find for
+itself — the truth's attitude at its first state (else level from the accelerometer) — because
+it is a yardstick for speed, not for start-up. Both run on the same imported flight (the IMU as
+recorded in body axes, the 10-Hz GPS of ``service.bench.euroc``), one after the other in one
+process; the figure that matters is the ratio of their real-time factors.
+"""
+
+from __future__ import annotations
+
+import importlib
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from vtolpose.config import load_config
+from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.drivers.files.euroc_import import import_euroc
+from vtolpose.service.bench.euroc import (DATA_ENV, GPS_RATE_HZ, GPS_SEED, GPS_SIGMA_M, VARIANTS, data_roots,
+                                          find_flights)
+from vtolpose.service.bench.rows import Row
+from vtolpose.service.replay.session import replay
+
+LAG_S = 3.0
+REPLAY_TARGET = ">= 250"  # x real time, IMU+GPS, both variants (issue 16)
+RATIO_TARGET = ">= 4"  # vtolpose's real-time factor over the reference's
+_ACCEL_INIT_S = 0.5  # level from the mean specific force over this long when the truth has no attitude
+
+
+def _level_quaternion(accel_mean: np.ndarray) -> np.ndarray:
+    """Body→world (NED) attitude with zero yaw whose "down" matches the measured specific force (w first)."""
+    fx, fy, fz = (-accel_mean / np.linalg.norm(accel_mean)).tolist()  # gravity's direction in the body
+    roll, pitch = np.arctan2(fy, fz), np.arctan2(-fx, np.hypot(fy, fz))
+    cr, sr, cp, sp = np.cos(roll / 2), np.sin(roll / 2), np.cos(pitch / 2), np.sin(pitch / 2)
+    return np.array([cr * cp, sr * cp, cr * sp, -sr * sp])
+
+
+def reference_run(gtsam: Any, dataset: Dataset) -> dict[str, float]:
+    """Run the reference over the dataset's IMU and GPS; its wall time, the data's span and its position RMSE
+    (the newest state after each fix, tracked point against the truth where there is one)."""
+    from gtsam.symbol_shorthand import B, V, X
+
+    cal = dataset.calibration
+    imu, gps, truth = dataset.imu(), dataset.gps(), dataset.truth()
+    noise = cal.imu.noise
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    params = gtsam.PreintegrationCombinedParams.MakeSharedD(cal.imu.gravity)  # NED: gravity along +z
+    params.setGyroscopeCovariance(np.diag(noise.gyro_noise_density**2))
+    params.setAccelerometerCovariance(np.diag(noise.accel_noise_density**2))
+    params.setIntegrationCovariance(np.eye(3) * 1e-8)
+    params.setBiasOmegaCovariance(np.diag(noise.gyro_random_walk**2))
+    params.setBiasAccCovariance(np.diag(noise.accel_random_walk**2))
+    t_imu, gyro, accel = imu.t_ns, imu.gyro, imu.accel
+    t_gps = gps.t_ns[gps.t_ns >= t_imu[0]]
+    k0 = int(np.searchsorted(gps.t_ns, t_gps[0]))
+    yaw_sigma = 0.05  # rad
+    if truth is not None and truth.q is not None:
+        q0 = truth.q[min(int(np.searchsorted(truth.t_ns, t_gps[0])), len(truth.t_ns) - 1)]
+    else:  # no attitude truth: level, the heading left open
+        q0, yaw_sigma = _level_quaternion(accel[t_imu < t_imu[0] + int(_ACCEL_INIT_S * 1e9)].mean(axis=0)), np.pi
+    rot0 = gtsam.Rot3.Quaternion(*q0.tolist())
+    lever = gtsam.Point3(*cal.gps.lever_arm_b.tolist())
+    p0 = gps.p_ned[k0] - rot0.matrix() @ cal.gps.lever_arm_b
+    pose, vel, bias = gtsam.Pose3(rot0, gtsam.Point3(*p0.tolist())), np.zeros(3), gtsam.imuBias.ConstantBias()
+
+    smoother = gtsam.IncrementalFixedLagSmoother(LAG_S, gtsam.ISAM2Params())
+    graph, values, stamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap()
+    graph.add(gtsam.PriorFactorPose3(X(0), pose, gtsam.noiseModel.Diagonal.Sigmas(np.array([0.05, 0.05, yaw_sigma, 0.1, 0.1, 0.1]))))
+    graph.add(gtsam.PriorFactorVector(V(0), vel, gtsam.noiseModel.Isotropic.Sigma(3, 0.5)))
+    graph.add(gtsam.PriorFactorConstantBias(B(0), bias, gtsam.noiseModel.Diagonal.Sigmas(np.r_[[0.1] * 3, [0.01] * 3])))
+    values.insert(X(0), pose), values.insert(V(0), vel), values.insert(B(0), bias)
+    t0_s = t_gps[0] * 1e-9
+    for key in (X(0), V(0), B(0)):
+        stamps.insert((key, 0.0))
+
+    gps_sigma = [gtsam.noiseModel.Diagonal.Sigmas(np.array([h, h, v])) for h, v in zip(gps.sigma_h, gps.sigma_v)]
+    i = int(np.searchsorted(t_imu, t_gps[0]))
+    pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+    estimates = np.zeros((len(t_gps), 3))
+    estimates[0] = pose.translation()
+    for k in range(1, len(t_gps)):
+        t_fix = t_gps[k]
+        while i + 1 < len(t_imu) and t_imu[i + 1] <= t_fix:
+            pim.integrateMeasurement(accel[i], gyro[i], (t_imu[i + 1] - t_imu[i]) * 1e-9)
+            i += 1
+        if t_imu[i] < t_fix:  # the last sample held up to the fix
+            pim.integrateMeasurement(accel[i], gyro[i], (t_fix - t_imu[i]) * 1e-9)
+        graph.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), pim))
+        graph.add(gtsam.GPSFactorArm(X(k), gtsam.Point3(*gps.p_ned[k0 + k].tolist()), lever, gps_sigma[k0 + k]))
+        predicted = pim.predict(gtsam.NavState(pose, vel), bias)
+        values.insert(X(k), predicted.pose()), values.insert(V(k), predicted.velocity()), values.insert(B(k), bias)
+        for key in (X(k), V(k), B(k)):
+            stamps.insert((key, t_fix * 1e-9 - t0_s))
+        smoother.update(graph, values, stamps)
+        graph, values, stamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), gtsam.FixedLagSmootherKeyTimestampMap()
+        estimate = smoother.calculateEstimate()
+        pose, vel, bias = estimate.atPose3(X(k)), estimate.atVector(V(k)), estimate.atConstantBias(B(k))
+        estimates[k] = pose.translation() + pose.rotation().matrix() @ cal.truth_point_b
+        pim.resetIntegrationAndSetBias(bias)
+    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    rmse = float("nan")
+    if truth is not None:
+        inside = (t_gps >= truth.t_ns[0]) & (t_gps <= truth.t_ns[-1])
+        p_truth = np.column_stack([np.interp(t_gps[inside], truth.t_ns, truth.p[:, c]) for c in range(3)])
+        rmse = float(np.sqrt(np.mean(np.sum((estimates[inside] - p_truth) ** 2, axis=1))))
+    return {"wall_s": wall, "cpu_s": cpu, "duration_s": (int(t_imu[-1]) - int(t_imu[0])) * 1e-9, "rmse_m": rmse}
+
+
+def bench_euroc_reference(echo: Callable[[str], None] = print) -> list[Row]:
+    """Each EuRoC flight: vtolpose's IMU+GPS replay speed (both variants) and the reference's, same inputs, same run."""
+    try:
+        gtsam = importlib.import_module("gtsam")
+    except ImportError:
+        gtsam = None
+        echo("  euroc-reference: the GTSAM reference skipped: gtsam is not installed (pip install 'vtolpose[bench]')")
+    roots = data_roots()
+    flights = find_flights(roots)
+    if not flights:
+        echo(f"  euroc-reference: skipped, no EuRoC flight (mav0/imu0/data.csv) under {', '.join(map(str, roots))}; "
+             f"set {DATA_ENV} to the folder that holds them")
+        return []
+    rows: list[Row] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for flight in flights:
+            out = Path(tmp) / flight.name
+            import_euroc(flight.source, out, gps_rate_hz=GPS_RATE_HZ, gps_sigma_m=GPS_SIGMA_M, seed=GPS_SEED,
+                         overwrite=True, truth_file=flight.truth_file, camera=False)
+            dataset = Dataset.open(out)
+            rates, cpu_rates = {}, {}
+            for variant in VARIANTS:
+                cpu0 = time.process_time()
+                result = replay(dataset, load_config(None, {"estimator": {"variant": variant}}), ["imu", "gps"])
+                rates[variant] = result.duration_s / result.wall_s
+                cpu_rates[variant] = result.duration_s / (time.process_time() - cpu0)
+                rows.append(Row(f"{flight.name} replay imu,gps ({variant})", rates[variant], "x real time",
+                                f"{result.wall_s:.2f} s wall; {cpu_rates[variant]:.0f} x per CPU second", REPLAY_TARGET))
+            if gtsam is None:
+                continue
+            ref = reference_run(gtsam, dataset)
+            ref_rate, ref_cpu_rate = ref["duration_s"] / ref["wall_s"], ref["duration_s"] / ref["cpu_s"]
+            rows.append(Row(f"{flight.name} GTSAM reference", ref_rate, "x real time",
+                            f"{ref['wall_s']:.2f} s wall, {ref_cpu_rate:.0f} x per CPU second; preintegration + GPS, "
+                            f"{LAG_S:g}-s fixed lag, given the truth's initial attitude; position RMSE {ref['rmse_m']:.3f} m"))
+            for variant in VARIANTS:  # per CPU second too: on a shared machine the wall clock carries others' load
+                rows.append(Row(f"{flight.name} vtolpose / reference ({variant})", rates[variant] / ref_rate, "x",
+                                f"real-time factors, same inputs, same run; {cpu_rates[variant] / ref_cpu_rate:.2f} x "
+                                "per CPU second", RATIO_TARGET))
+    return rows
