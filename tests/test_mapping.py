@@ -189,6 +189,8 @@ def test_map_command_errors_say_what_is_missing(mapped_dataset, tmp_path, capsys
     assert "--explain" in capsys.readouterr().err
     assert main(["map", str(mapped_dataset), "--true-poses", "--boresight", "1,0"]) == 1
     assert "ROLL,PITCH,YAW" in capsys.readouterr().err
+    assert main(["map", str(mapped_dataset), "--true-poses", "--kind", "smoothed"]) == 1
+    assert "--kind" in capsys.readouterr().err
     bare = tmp_path / "bare"
     write_flight(simulate_flight("landfill", 5.0, 1), bare)
     assert main(["map", str(bare), "--true-poses"]) == 1
