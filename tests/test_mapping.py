@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import json
 from dataclasses import dataclass
 
@@ -188,18 +189,35 @@ def test_map_command_errors_say_what_is_missing(mapped_dataset, tmp_path, capsys
     assert "--explain" in capsys.readouterr().err
     assert main(["map", str(mapped_dataset), "--true-poses", "--boresight", "1,0"]) == 1
     assert "ROLL,PITCH,YAW" in capsys.readouterr().err
+    assert main(["map", str(mapped_dataset), "--true-poses", "--kind", "smoothed"]) == 1
+    assert "--kind" in capsys.readouterr().err
     bare = tmp_path / "bare"
     write_flight(simulate_flight("landfill", 5.0, 1), bare)
     assert main(["map", str(bare), "--true-poses"]) == 1
     assert "no LIDAR returns" in capsys.readouterr().err
 
 
-def test_demo_maps_the_flight_with_true_poses_and_each_filter(tmp_path, capsys):
-    assert main(["-q", "demo", "--scenario", "landfill", "--duration", "45", "--lidar", "--out", str(tmp_path / "d")]) == 0
+def test_demo_maps_the_flight_with_true_poses_and_each_kind_of_pose(tmp_path, capsys):
+    """True poses, then per sensor set the filter, the fixed lag and the smoothed trajectory, each its own map."""
+    out_dir = tmp_path / "d"
+    assert main(["-q", "demo", "--scenario", "landfill", "--duration", "30", "--lidar", "--out", str(out_dir)]) == 0
     out = capsys.readouterr().out
+    sets = ["IMU+GPS", "IMU+camera+GPS"] if importlib.util.find_spec("skimage") else ["IMU+GPS"]
+    kinds = ["filter", "fixed lag 2 s", "smoothed"]
+    labels = ["true poses"] + [f"{name} {kind}" for name in sets for kind in kinds]
     table = out[out.index("LIDAR map"):].splitlines()
-    rows = {line.split("  ")[1].strip(): line.split() for line in table[2:5]}
-    assert list(rows) == ["true poses", "filter (thesis)", "filter (biases)"]
+    rows = {line.split("  ")[1].strip(): line.split() for line in table[2:2 + len(labels)]}
+    assert list(rows) == labels
     rmse = {label: float(cells[-5]) for label, cells in rows.items()}  # columns: cells RMSE bias volume error error%
+    volume = {label: float(cells[-3]) for label, cells in rows.items()}
     assert rmse["true poses"] < 0.05
-    assert min(rmse["filter (thesis)"], rmse["filter (biases)"]) > 2 * rmse["true poses"]  # the poses cost more than the grid
+    assert min(rmse[label] for label in labels[1:]) > 2 * rmse["true poses"]  # the poses cost more than the grid
+    for name in sets:  # three different trajectories, three different maps
+        assert len({volume[f"{name} {kind}"] for kind in kinds}) == 3, name
+    # IMU + GPS on this flight: the later fixes pull the smoothed heights in, the map follows.
+    assert rmse["IMU+GPS smoothed"] < rmse["IMU+GPS filter"]
+    errors = out[out.index("the poses at the returns' times"):].splitlines()
+    assert [line.split("  ")[1].strip() for line in errors[3:3 + len(labels) - 1]] == labels[1:]
+    for stem in ["imu-gps"] + (["imu-camera-gps"] if len(sets) == 2 else []):
+        for kind in ("filtered", "fixed-lag", "smoothed"):
+            assert (out_dir / f"trajectory-{stem}-{kind}.txt").stat().st_size > 10_000, (stem, kind)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 from pathlib import Path
 
 from vtolpose.config import load_config
@@ -11,12 +12,16 @@ from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.files.tum import write_tum
 from vtolpose.drivers.simulator.lidar import simulate_lidar
+from vtolpose.drivers.simulator.render import default_camera
 from vtolpose.service.commands.common import write_json
-from vtolpose.service.mapping.poses import trajectory_window
-from vtolpose.service.mapping.side_by_side import MAP_CELL_M, map_side_by_side
+from vtolpose.service.mapping.side_by_side import MAP_CELL_M, map_side_by_side, pose_kinds
 from vtolpose.service.replay.progress import Progress
 from vtolpose.service.replay.session import replay
 from vtolpose.service.replay.report import build_report
+from vtolpose.service.replay.smoothing import replay_smoothed
+
+# The sensor sets the LIDAR map compares (default model, biases), by the label its rows carry.
+MAP_SENSOR_SETS = {"IMU+GPS": ["imu", "gps"], "IMU+camera+GPS": ["imu", "camera", "gps"]}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -32,8 +37,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, default=120.0, metavar="S")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--out", default="vtolpose-demo", metavar="DIR", help="output folder (default ./vtolpose-demo)")
-    p.add_argument("--lidar", action="store_true", help="also fly the scenario's LIDAR and map the flight with the true "
-                   "poses and with each trajectory: height RMSE and volume error side by side")
+    p.add_argument("--lidar", action="store_true", help="also fly the scenario's LIDAR, replay the flight with IMU+GPS "
+                   "and with IMU+camera+GPS (biases model, smoothed), and map it with the true poses and with each "
+                   "sensor set's filtered, fixed-lag (smoothing.fixed_lag_s) and smoothed trajectory: height RMSE, "
+                   "bias and volume error side by side, and each trajectory's pose errors at the returns' times")
     p.set_defaults(run=run)
 
 
@@ -42,10 +49,17 @@ def run(args: argparse.Namespace) -> int:
     data = out / f"{args.scenario}-seed{args.seed}"
     print(f"simulating {args.duration:g} s of the '{args.scenario}' scenario (seed {args.seed}) into {data}")
     flight = simulate_flight(args.scenario, args.duration, args.seed)
-    write_flight(flight, data, overwrite=True, lidar=simulate_lidar(flight) if args.lidar else None)
+    camera = None
+    if args.lidar:  # the map compares IMU+camera+GPS too: render the frames it needs
+        if importlib.util.find_spec("skimage") is None:
+            print("no camera frames (rendering needs scikit-image: pip install -e '.[sim]'): the LIDAR map compares "
+                  "IMU+GPS only")
+        else:
+            camera = default_camera()
+            print(f"rendering {int(args.duration * camera.rate_hz)} camera frames ...")
+    write_flight(flight, data, overwrite=True, camera=camera, lidar=simulate_lidar(flight) if args.lidar else None)
     dataset = Dataset.open(data)
     reports = {}
-    to_map = {}  # every trajectory the LIDAR map is compared with, by label, in the order printed
     for variant in ("thesis", "biases"):
         cfg = load_config(None, {"estimator": {"variant": variant}})
         progress = Progress(args.duration, f"replay ({variant})")
@@ -54,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         reports[variant] = report = build_report(result, dataset, cfg)
         write_tum(out / f"trajectory-{variant}.txt", result.trajectory.t_ns, result.trajectory.p, result.trajectory.q)
         write_json(out / f"report-{variant}.json", report)
-        to_map[f"filter ({variant})"] = trajectory_window(result.trajectory.t_ns, result.trajectory.p, result.trajectory.q)
+    to_map = smoothed_trajectories(dataset, out, args.duration) if args.lidar else {}
     print()
     for line in comparison_lines(reports):
         print(line)
@@ -63,6 +77,26 @@ def run(args: argparse.Namespace) -> int:
         print("\n".join(map_side_by_side(dataset, to_map, MAP_CELL_M[args.scenario])[1]))
     print(f"\ntrajectories and reports in {out}/ (score again with: vtolpose eval {out}/trajectory-biases.txt --truth {data})")
     return 0
+
+
+def smoothed_trajectories(dataset: Dataset, out: Path, duration_s: float) -> dict:
+    """Each sensor set's filtered, fixed-lag and smoothed trajectory (``replay --smooth``), by map label;
+    the trajectories (TUM) and reports go to ``out`` too."""
+    cfg = load_config(None, {"estimator": {"variant": "biases"}})
+    to_map = {}
+    for name, sensors in MAP_SENSOR_SETS.items():
+        if "camera" in sensors and not dataset.has_camera:
+            continue
+        stem = "-".join(sensors)
+        progress = Progress(duration_s, f"replay --smooth ({','.join(sensors)})")
+        result = replay_smoothed(dataset, cfg, out / f"trajectory-{stem}-smoothed.txt", sensors=sensors,
+                                 on_progress=lambda d, t: progress.update(d))
+        progress.finish()
+        write_json(out / f"report-{stem}-smoothed.json", build_report(result, dataset, cfg))
+        to_map.update({f"{name} {kind}": window for kind, window in pose_kinds(result).items()})
+        for kind, t in (("filtered", result.trajectory), ("fixed-lag", result.smoothing.fixed_lag)):
+            write_tum(out / f"trajectory-{stem}-{kind}.txt", t.t_ns, t.p, t.q)
+    return to_map
 
 
 # (label, report key, format) of each row of the side-by-side table.

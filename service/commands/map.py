@@ -13,7 +13,7 @@ from vtolpose.drivers.files.lidar import LIDAR_CSV
 from vtolpose.estimator.mapping.survey import height_error, score_map
 from vtolpose.service.commands.common import write_json
 from vtolpose.service.mapping.mapper import map_returns, pose_errors, true_ground, with_boresight
-from vtolpose.service.mapping.poses import ZenohPoses, file_window, truth_window, window_poses
+from vtolpose.service.mapping.poses import WAIT_KINDS, ZenohPoses, file_window, truth_window, window_poses
 from vtolpose.service.mapping.report import MappedFlight, attribution_sources, map_and_score, score_lines, table_lines
 
 
@@ -33,7 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "  vtolpose map data/landfill --trajectory traj.txt --explain   (what position, attitude and timing cost)\n"
         "  vtolpose map data/landfill --true-poses\n"
         "  vtolpose run --replay data/landfill --zenoh --hold &\n"
-        "  vtolpose map --zenoh --connect tcp/127.0.0.1:7447 --lidar-from data/landfill",
+        "  vtolpose map --zenoh --connect tcp/127.0.0.1:7447 --lidar-from data/landfill --kind smoothed",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("dataset", nargs="?", metavar="DATASET", help="dataset with mav0/lidar0")
@@ -61,6 +61,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     z.add_argument("--wait", type=float, default=10.0, metavar="S",
                    help="how long to wait for the service to reach a scan before stopping (default 10 s)")
     z.add_argument("--timeout", type=float, default=2.0, metavar="S", help="per query (default 2 s)")
+    z.add_argument("--kind", choices=WAIT_KINDS, default="filtered",
+                   help="place a scan once every pose over it is at least filtered (default: ~0.2 s behind the "
+                   "service, works whatever its configuration), or only once smoothed (the fixed-lag history, "
+                   "~2-3 s behind; needs smoothing.fixed_lag_s > 0 in the service): the better map")
     p.set_defaults(run=run)
 
 
@@ -88,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--cell {args.cell}: must be a positive number of metres")
     if not np.isfinite(args.time_offset):
         raise ValueError(f"--time-offset {args.time_offset}: must be a finite number of seconds")
+    if args.kind != "filtered" and not args.zenoh:
+        raise ValueError("--kind says which live poses to wait for: use it with --zenoh")
     if args.explain and not args.trajectory:
         raise ValueError("--explain splits a trajectory's cost: use it with --trajectory")
     dataset = Dataset.open(_dataset_path(args))
@@ -105,9 +111,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"{dataset.meta['name']}: {len(returns)} returns in {len(returns.scan_bounds())} scans from the {spec.model} "
           f"({spec.fov_deg:g}° in {spec.step_deg:g}° steps, {spec.scan_rate_hz:g} scans/s, {1e3 * spec.sweep_s:.1f} ms per sweep)")
     if args.zenoh:
-        label = f"live poses from {args.prefix} over Zenoh"
+        label = f"live {args.kind} poses from {args.prefix} over Zenoh"
         with PoseClient(args.prefix, connect=args.connect, timeout_s=args.timeout) as client:
-            source = ZenohPoses(client, wait_s=args.wait)
+            source = ZenohPoses(client, wait_s=args.wait, kind=args.kind)
             live = map_returns(returns, source, args.cell, offset_ns)
             source.close()
         flight = MappedFlight(label, live, score_map(live.grid.snapshot(), args.base, ground))

@@ -23,6 +23,9 @@ from vtolpose.estimator.core.rotation import quat_to_rot
 
 PoseSource = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
+# What a live mapper can wait for before placing a scan, worst first (docs/mapping.md).
+WAIT_KINDS = ("filtered", "smoothed")
+
 
 def trajectory_window(t_ns: np.ndarray, p: np.ndarray, q: np.ndarray) -> PoseWindow:
     """A whole trajectory as the window type the client returns (velocity and rate unused: zero)."""
@@ -92,16 +95,22 @@ def one_pose_per_scan(window: PoseWindow) -> PoseSource:
 class ZenohPoses:
     """Poses from a running service: one ``trajectory()`` query per scan, interpolated per return.
 
-    A scan is placed once the service's history covers it with final (fused) poses; until then
-    the query is repeated every ``poll_s``. How far the service has got comes from its live poses
-    and from its status document (``<prefix>/status``, once a second: the history's time span), so a
-    scan the history no longer holds is skipped at once rather than waited for.
+    A scan is placed once the service's history covers it with poses of at least ``kind``:
+    ``filtered`` takes them once fused (filtered, or smoothed if the fixed lag has already passed;
+    ~0.2 s behind), ``smoothed`` waits until every pose over the scan is smoothed (the daemon's
+    fixed-lag history, ~2-3 s behind). Until then the query is repeated every ``poll_s``. How far
+    the service has got comes from its live poses and from its status document (``<prefix>/status``,
+    once a second: the history's time span), so a scan the history no longer holds is skipped at
+    once rather than waited for.
     """
 
-    def __init__(self, client: PoseClient, wait_s: float = 10.0, poll_s: float = 0.05) -> None:
+    def __init__(self, client: PoseClient, wait_s: float = 10.0, poll_s: float = 0.05, kind: str = "filtered") -> None:
+        if kind not in WAIT_KINDS:
+            raise ValueError(f"kind {kind!r}: a mapper waits for one of {', '.join(WAIT_KINDS)}")
         self.client = client
         self.wait_s = wait_s
         self.poll_s = poll_s
+        self.kind = kind
         self.queries = 0
         self._newest_ns: int | None = None
         self._lock = threading.Lock()
@@ -128,6 +137,15 @@ class ZenohPoses:
         with self._lock:
             return self._newest_ns
 
+    def _final(self, window: PoseWindow) -> bool:
+        """Whether every pose of the answer is of the kind waited for."""
+        if self.kind == "filtered":
+            return bool(window.fused.all())
+        if window.kind is None:
+            raise ValueError("the service's trajectory answers carry no pose kinds (an older vtolpose): "
+                             "it cannot say which poses are smoothed; map with kind 'filtered'")
+        return bool(np.all(window.kind == "smoothed"))
+
     def __call__(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t0, t1 = int(t_ns[0]), int(t_ns[-1])
         deadline = time.monotonic() + self.wait_s
@@ -145,9 +163,11 @@ class ZenohPoses:
                 self._note(int(window.t_ns[-1]))
                 if window.t_ns[0] > t0:
                     raise OutsideHistory(f"scan at t_ns={t0}..{t1} starts before the service's history")
-                if window.t_ns[-1] >= t1 and window.fused.all():
+                if window.t_ns[-1] >= t1 and self._final(window):
                     return window.interpolate(t_ns)
             if time.monotonic() > deadline:
-                raise TimeoutError(f"no final poses for the scan at t_ns={t0}..{t1} within {self.wait_s:g} s "
-                                   "(is the service running, and has it reached this scan?)")
+                hint = ("is the service running, has it reached this scan" +
+                        (", and does it smooth (smoothing.fixed_lag_s > 0)?)" if self.kind == "smoothed" else "?)"))
+                raise TimeoutError(f"no {self.kind} poses for the scan at t_ns={t0}..{t1} within {self.wait_s:g} s "
+                                   f"({hint}")
             time.sleep(self.poll_s)
