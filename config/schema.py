@@ -131,6 +131,7 @@ SCHEMA: dict[str, Field] = {
     "features.max_features": Field("int", minimum=1, maximum=10000),
     "features.sift_contrast_threshold": POS,
     "features.orb_fast_threshold": Field("int", minimum=1, maximum=255),
+    "features.sift_image_scale": Field("float", minimum=0.25, maximum=1.0),
     "features.black_level": Field("float", minimum=0.0, maximum=255.0),
     "features.saturated_level": Field("int", minimum=1, maximum=255),
     "features.saturated_fraction": Field("float", positive=True, maximum=1.0),

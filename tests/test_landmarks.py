@@ -241,7 +241,8 @@ def test_the_camera_is_blind_to_a_shift_and_a_turn_about_down_and_the_iterated_u
         moved = [predict(perturbed(s, sign * 1e-6 * N[:, k]), CAMERA, R_BC, T_BC, 1.0).uv for sign in (1.0, -1.0)]
         assert np.abs(moved[0] - moved[1]).max() / 2e-6 < 1e-3, k  # pixels per unit move: none
     assert np.abs(N[:, 3] @ N[:, 3]) > 1.0  # the turn moves the landmarks' angles, not only the heading
-    cols, H = _stacked_jacobian(s, predict(s, CAMERA, R_BC, T_BC, 1.0), idx)
+    pred = predict(s, CAMERA, R_BC, T_BC, 1.0)
+    cols, H = _stacked_jacobian(s, idx, pred.H_pose[idx], pred.H_landmark[idx])
     np.testing.assert_allclose(observability_constrained(H, N), H, atol=1e-9 * np.abs(H).max())  # blind already here
     far = s.copy()
     measured = base + np.random.default_rng(1).normal(0.0, 3.0, base.shape)
@@ -251,3 +252,20 @@ def test_the_camera_is_blind_to_a_shift_and_a_turn_about_down_and_the_iterated_u
     info_before = turn @ np.linalg.solve(s.cov, turn)
     info_after = turn @ np.linalg.solve(far.cov, turn)
     assert info_after == pytest.approx(info_before, rel=1e-6)
+
+
+def test_stacked_jacobian_puts_each_landmark_block_on_its_own_rows_and_columns():
+    s = make_state(n_landmarks=7, seed=3)
+    pred = predict(s, CAMERA, R_BC, T_BC, 1.0)
+    idx = np.array([5, 1, 3])
+    cols, H = _stacked_jacobian(s, idx, pred.H_pose[idx], pred.H_landmark[idx])
+    assert H.shape == (6, 6 + 6 * 3)
+    for j, i in enumerate(idx):
+        rows = slice(2 * j, 2 * j + 2)
+        np.testing.assert_array_equal(H[rows, :6], pred.H_pose[i])
+        np.testing.assert_array_equal(H[rows, 6 + 6 * j : 12 + 6 * j], pred.H_landmark[i])
+        np.testing.assert_array_equal(cols[6 + 6 * j : 12 + 6 * j], s.robot_dim + 6 * i + np.arange(6))
+        others = np.delete(H[rows, 6:], np.s_[6 * j : 6 * j + 6], axis=1)
+        assert not others.any()
+    # Only the matched landmarks projected: the same numbers as projecting all and picking.
+    np.testing.assert_array_equal(predict_h(s, R_BC, T_BC, idx)[0], predict_h(s, R_BC, T_BC)[0][idx])

@@ -48,10 +48,12 @@ class Predictions:
         return len(self.uv)
 
 
-def predict_h(state: FilterState, R_BC: np.ndarray, t_BC: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``h_C (M, 3)``, ``h_W``, ``∂h_C/∂[δp, δθ] (M, 3, 6)`` and ``∂h_C/∂y (M, 3, 6)``."""
+def predict_h(
+    state: FilterState, R_BC: np.ndarray, t_BC: np.ndarray, indices: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``h_C (M, 3)``, ``h_W``, ``∂h_C/∂[δp, δθ] (M, 3, 6)`` and ``∂h_C/∂y (M, 3, 6)`` (of landmarks ``indices`` only, if given)."""
     R = state.R
-    y = state.landmarks
+    y = state.landmarks if indices is None else state.landmarks[indices]
     A = R_BC.T @ R.T
     lever_w = R @ t_BC
     c_w = state.p + lever_w
@@ -116,23 +118,26 @@ def stacked_update(
     The Jacobian is non-zero only in the robot's ``[δp, δθ]`` columns and the six columns of
     each matched landmark, so only those are passed to :func:`vtolpose.estimator.core.kalman.ekf_update`.
     """
-    cols, H = _stacked_jacobian(state, predictions, indices)
+    indices = np.asarray(indices, dtype=int)
+    cols, H = _stacked_jacobian(state, indices, predictions.H_pose[indices], predictions.H_landmark[indices])
     H = observability_constrained(H, unobservable_directions(state, indices))
     residual = (np.asarray(measured_uv, dtype=float) - predictions.uv[indices]).reshape(-1)
     R = np.eye(len(residual)) * pixel_sigma**2
     return ekf_update(state, cols, H, residual, R, gate=None, held=held)
 
 
-def _stacked_jacobian(state: FilterState, predictions: Predictions, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Columns touched by the matches of ``indices`` and the stacked Jacobian over them."""
-    indices = np.asarray(indices, dtype=int)
+def _stacked_jacobian(
+    state: FilterState, indices: np.ndarray, H_pose: np.ndarray, H_landmark: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Columns touched by the matches of ``indices`` and the stacked Jacobian over them, from their
+    ``(k, 2, 6)`` pose and landmark Jacobians (each landmark's block on the diagonal)."""
     k = len(indices)
     lm_cols = (state.robot_dim + LANDMARK_DIM * indices[:, None] + np.arange(LANDMARK_DIM)).reshape(-1)
     cols = np.concatenate([ROBOT_POSE_COLS, lm_cols])
     H = np.zeros((2 * k, 6 + LANDMARK_DIM * k))
-    H[:, 0:6] = predictions.H_pose[indices].reshape(2 * k, 6)
-    for j, i in enumerate(indices):
-        H[2 * j : 2 * j + 2, 6 + LANDMARK_DIM * j : 6 + LANDMARK_DIM * (j + 1)] = predictions.H_landmark[i]
+    H[:, 0:6] = H_pose.reshape(2 * k, 6)
+    blocks = H[:, 6:].reshape(k, 2, k, LANDMARK_DIM)  # a view: row pair j, landmark j
+    blocks[np.arange(k), :, np.arange(k), :] = H_landmark
     return cols, H
 
 
@@ -156,15 +161,17 @@ def iterated_update(
     gauge = unobservable_directions(state, indices)
 
     def linearise(at: FilterState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        pred = predict(at, camera, R_BC, t_BC, pixel_sigma)
-        cols, H = _stacked_jacobian(at, pred, indices)
+        # Only the matched landmarks, and no innovation covariances: the gain is formed from the stack.
+        h_c, _, dh_pose, dh_y = predict_h(at, R_BC, t_BC, indices)
+        uv, _, J_pi = camera.project_jacobian(h_c)
+        cols, H = _stacked_jacobian(at, indices, J_pi @ dh_pose, J_pi @ dh_y)
         H = observability_constrained(H, gauge)
         moved = np.concatenate([
             state.p - at.p,
             quat_log(quat_mul(state.q, quat_conj(at.q))),
             (state.landmarks[indices] - at.landmarks[indices]).reshape(-1),
         ])
-        return cols, H, measured - pred.uv[indices].reshape(-1) - H @ moved
+        return cols, H, measured - uv.reshape(-1) - H @ moved
 
     estimate = _nominal_copy(state)
     for _ in range(max(1, iterations) - 1):

@@ -29,7 +29,7 @@ from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
-from vtolpose.service.bench.camera import bench_camera_update, bench_features, bench_replay_camera
+from vtolpose.service.bench.camera import bench_camera, bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.euroc import bench_euroc
 from vtolpose.service.bench.euroc_reference import bench_euroc_reference
 from vtolpose.service.bench.memory_paced import bench_memory_paced
@@ -95,6 +95,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "camera-update": bench_camera_update,
     "features": bench_features,
     "replay-camera": bench_replay_camera,
+    "camera": bench_camera,
     "runtime-latency": bench_runtime_latency,
     "runtime-hour": bench_runtime_hour,
     "soak-camera": bench_soak_camera,
@@ -117,10 +118,14 @@ LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table"
                    "smoothing-latency")
 
 
+# Several of the above together (camera: features, then replay-camera): only when named.
+GROUPS = ("camera",)
+
+
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:
     """Run ``names`` (default: all but the long ones), print each figure as it comes, then a verdict line."""
     rows: list[Row] = []
-    default = [n for n in BENCHMARKS if include_long or n not in LONG_BENCHMARKS]
+    default = [n for n in BENCHMARKS if (include_long or n not in LONG_BENCHMARKS) and n not in GROUPS]
     for name in names or default:
         if name not in BENCHMARKS:
             raise ValueError(f"unknown benchmark {name!r}; choose from {', '.join(BENCHMARKS)}")

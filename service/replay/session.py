@@ -114,6 +114,7 @@ class ReplayResult:
     failures: dict = field(default_factory=dict)  # isolated failures of outputs and the trajectory file
     data_t0_ns: int = 0  # the first IMU sample: event times are counted from here
     smoothing: Any = None  # replay --smooth: a service.replay.smoothing.SmoothingResult
+    extract_cpu_ms: list[float] = field(default_factory=list)  # as extract_ms, CPU time of the extracting thread
 
 
 class FrameProcessor:
@@ -132,6 +133,7 @@ class FrameProcessor:
         self.on_frame = on_frame
         self.reports: deque[FrameReport] = deque(maxlen=keep)
         self.extract_ms: deque[float] = deque(maxlen=keep)
+        self.extract_cpu_ms: deque[float] = deque(maxlen=keep)
 
     def __call__(self, frame: CameraFrame) -> Callable[[Estimator], FrameReport]:
         features = extract_features(frame.image, frame.t_ns, self.options, self.expected_shape)
@@ -140,6 +142,7 @@ class FrameProcessor:
             report = est.process_features(features)
             self.reports.append(report)
             self.extract_ms.append(features.extract_ms)
+            self.extract_cpu_ms.append(features.extract_cpu_ms)
             if self.on_frame is not None:
                 self.on_frame(frame.image, features, report)
             return report
@@ -214,6 +217,7 @@ def replay(
         list(processor.reports) if processor else [], list(processor.extract_ms) if processor else [],
         processor.options.detector if processor else None, fusion_counts, injector, summary.status.get("health", {}),
         summary.status.get("failures", {}), int(imu_t[0]),
+        extract_cpu_ms=list(processor.extract_cpu_ms) if processor else [],
     )
 
 

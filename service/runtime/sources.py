@@ -71,8 +71,9 @@ class ReplaySource:
     """A dataset's IMU, GPS and (optionally) camera streams in time order, paced by ``clock``.
 
     At equal times the IMU goes first, then GPS, then camera (the offline replay's order).
-    Camera frames are given as ``(t_ns, path)`` with a ``load(path) -> image | None``; when paced,
-    the next frame is loaded on a thread ahead of its time so that loading never delays the IMU.
+    Camera frames are given as ``(t_ns, path)`` with a ``load(path) -> image | None``; the next
+    frame is loaded on a thread ahead of its time, so that decoding never delays the IMU when paced
+    and, as fast as possible, runs beside the IMU's work instead of between it.
     ``last_arrival_ns`` is the ``perf_counter_ns`` at which the latest sample was handed out.
     """
 
@@ -109,14 +110,11 @@ class ReplaySource:
 
     async def _frame(self, k: int, ahead: dict[int, asyncio.Future]) -> CameraFrame | None:
         t_ns, path = self.frames[k]
-        if self.clock.speed == 0.0:
-            image = self.load(path)  # as fast as possible: nothing to overlap with, keep it simple
-        else:
-            loop = asyncio.get_running_loop()
-            future = ahead.pop(k, None) or loop.run_in_executor(None, self.load, path)
-            if k + 1 < len(self.frames):
-                ahead[k + 1] = loop.run_in_executor(None, self.load, self.frames[k + 1][1])
-            image = await future
+        loop = asyncio.get_running_loop()
+        future = ahead.pop(k, None) or loop.run_in_executor(None, self.load, path)
+        if k + 1 < len(self.frames):
+            ahead[k + 1] = loop.run_in_executor(None, self.load, self.frames[k + 1][1])
+        image = await future
         if image is None:
             self.unreadable_frames += 1
             return None
