@@ -24,7 +24,7 @@ from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera, render_frames
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline
 from vtolpose.estimator.vision.camera_update import predict
-from vtolpose.estimator.vision.features import DETECTORS, FeatureOptions, FrameFeatures, extract_features
+from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
 from vtolpose.estimator.vision.map_manager import MapOptions
 from vtolpose.estimator.core.rotation import quat_from_euler
 from vtolpose.estimator.core.state import FilterState, StateLayout
