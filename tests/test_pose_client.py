@@ -392,6 +392,8 @@ def test_heavy_queries_leave_the_pose_stream_whole():
             time.sleep(0.001)
         whole_answers = [[r.ok is None and "longer than" in r.err.payload.to_string() for r in rs] for rs in whole]
         window_answers = [[r.ok is not None or "busy" in r.err.payload.to_string() for r in rs] for rs in windows]
+        other_replies = [r.err.payload.to_string()[:120] for rs in windows for r in rs
+                         if r.ok is None and "busy" not in r.err.payload.to_string()]
     finally:
         stop.set()
         runtime.join()
@@ -403,5 +405,7 @@ def test_heavy_queries_leave_the_pose_stream_whole():
     # answer at once, never a wait. The whole-history queries that pass are refused with the reason; the
     # windows are answered or told busy (max_pending_queries), and most of them do reach the query thread.
     assert all(a in ([True], []) for a in whole_answers) and sum(a == [True] for a in whole_answers) >= 1
-    assert all(a in ([True], []) for a in window_answers) and sum(a == [True] for a in window_answers) >= 100
+    assert all(a in ([True], []) for a in window_answers) and sum(a == [True] for a in window_answers) >= 100, (
+        f"{sum(len(a) > 1 for a in window_answers)} window queries answered more than once; other replies: "
+        f"{other_replies[:5]}")
     assert seqs == sorted(seqs) and len(seqs) >= 0.9 * out.stats["poses_published"]
