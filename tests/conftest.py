@@ -5,6 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
+
+# Property tests check what comes out, never how fast: on a loaded machine (CI, other jobs) a draw can
+# wait a second for the CPU, which Hypothesis's deadline and "too slow" health check would call a failure.
+settings.register_profile("vtolpose", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("vtolpose")
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
@@ -26,3 +32,17 @@ def euroc_dev() -> Path:
     if not all((EUROC_DEV / name / "mav0" / "imu0" / "data.csv").is_file() for name in ("MH03", "V101", "V201")):
         pytest.skip(f"needs the shared flight data at {EUROC_DEV} (present in CI, absent in a plain clone)")
     return EUROC_DEV
+
+
+@pytest.fixture(scope="session")
+def rendered_book_dir(tmp_path_factory) -> Path:
+    """The rendered 24 s book flight (seed 1: 10 s on the spot, then the arm waves the platform), made once
+    for every module that replays it (rendering takes seconds); skipped without the 'sim' extra."""
+    pytest.importorskip("skimage", reason="rendering needs scikit-image (the 'sim' extra)")
+    from vtolpose.drivers.simulator import simulate_flight
+    from vtolpose.drivers.simulator.export import write_flight
+    from vtolpose.drivers.simulator.render import default_camera
+
+    root = tmp_path_factory.mktemp("book") / "book"
+    write_flight(simulate_flight("book", 24.0, 1), root, camera=default_camera())
+    return root

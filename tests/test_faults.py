@@ -245,13 +245,8 @@ def test_replay_command_plays_faults_into_the_report(landfill, tmp_path, capsys)
 
 
 @pytest.fixture(scope="module")
-def book(tmp_path_factory) -> Dataset:
-    pytest.importorskip("skimage", reason="rendering needs scikit-image (the 'sim' extra)")
-    from vtolpose.drivers.simulator.render import default_camera
-
-    root = tmp_path_factory.mktemp("faults") / "book"
-    write_flight(simulate_flight("book", 24.0, 1), root, camera=default_camera())
-    return Dataset.open(root)
+def book(rendered_book_dir) -> Dataset:
+    return Dataset.open(rendered_book_dir)  # the 24 s rendered book flight (conftest.py)
 
 
 def camera_run(book: Dataset, *faults: str) -> FaultRun:

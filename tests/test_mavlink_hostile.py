@@ -177,16 +177,22 @@ def test_thousands_of_one_shot_senders_never_grow_the_receiver_list(tmp_path):
         legit.mav.heartbeat_send(6, 8, 0, 0, 4)
         settle(out, lambda: out.link_stats()["endpoints"]["fc"]["peers"] == 1)
         heartbeat = mav.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3).pack(mav.MAVLink(None, 2, 1))
+        heartbeat_ports = []
         for k in range(3000):  # each from its own port, once: valid MAVLink, and junk
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
                 s.sendto(heartbeat if k % 2 else os.urandom(40), ("127.0.0.1", port))
+                if k % 2:
+                    heartbeat_ports.append(s.getsockname()[1])
             if k % 10 == 0:
                 out.poll()
         for _ in range(50):
             out.poll()
         stats = out.link_stats()["endpoints"]["fc"]
         assert stats["received"] > 1000  # the one-shot heartbeats did arrive (none lost to a full socket)
-        assert stats["peers"] == 4 and stats["peers_refused_full"] == stats["received"] - 4  # the bound, never more
+        # The kernel may hand a later sender the port of one that became a peer: that heartbeat is the peer's.
+        peer_ports = {legit.port.getsockname()[1], *list(dict.fromkeys(heartbeat_ports))[:3]}
+        reused = sum(p in peer_ports for p in heartbeat_ports) - 3
+        assert stats["peers"] == 4 and stats["peers_refused_full"] == stats["received"] - 4 - reused  # the bound
         assert stats["bad_bytes"] >= 1000 * 40  # junk never became a peer
         assert out.publish(make_pose())
         assert legit.recv_match(type="ODOMETRY", blocking=True, timeout=2.0) is not None  # the first peer keeps its place

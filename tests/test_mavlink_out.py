@@ -63,12 +63,13 @@ def receive(conn, kind: str, timeout_s: float = 5.0):
     return None
 
 
-def settle(out: MavlinkOutput, done, timeout_s: float = 5.0) -> None:
-    """Poll ``out`` until ``done()`` (messages cross loopback asynchronously)."""
+def settle(out: MavlinkOutput, done, timeout_s: float = 10.0) -> None:
+    """Poll ``out`` until ``done()`` (messages cross loopback asynchronously); fail saying so if it never is."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and not done():
         out.poll()
         time.sleep(0.005)
+    assert done(), f"what the peer sent was not handled within {timeout_s:g} s; link counters: {out.link_stats()}"
 
 
 # ------------------------------------------------------------------------------------- fields

@@ -130,7 +130,11 @@ def test_sigkill_loses_at_most_the_last_second(tmp_path):
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     assert proc.stdout.readline().strip() == "ready"
-    time.sleep(1.6)  # one flush done, the next one 0.4 s away
+    imu_file, deadline = root / IMU_CSV, time.monotonic() + 30.0
+    while time.monotonic() < deadline and (not imu_file.exists() or imu_file.read_bytes().count(b"\n") <= 101):
+        time.sleep(0.02)  # until a flush wrote more than 100 rows (a loaded machine runs the writer slowly)
+    assert imu_file.exists() and imu_file.read_bytes().count(b"\n") > 101, "no rows reached the file in 30 s"
+    time.sleep(1.6)  # a flush has just written them: the next one comes 1 s later, then kill 0.6 s after it
     killed_at = time.monotonic_ns()
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=5)

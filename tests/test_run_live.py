@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -16,6 +17,7 @@ from vtolpose.service.outputs.pose_client import PoseClient
 
 emulators = pytest.importorskip("vtolpose.drivers.emulators")
 REPO_ROOT = Path(__file__).resolve().parents[1]
+LIVE_DELAY_S = 0.5  # fusion.delay_s of the emulated live run
 
 
 def free_port() -> int:
@@ -24,16 +26,24 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_live_run_with_emulated_devices(tmp_path):
-    root = tmp_path / "flight"
-    write_flight(simulate_flight("landfill", 30.0, 3), root)
+@pytest.fixture(scope="module")
+def live_run(tmp_path_factory) -> SimpleNamespace:
+    """One `vtolpose run` from the emulated devices (IMU400CC and NMEA on pseudo-terminals): poses and status
+    over Zenoh to this process, the trajectory to a file, the flight recorded; both tests below read it."""
+    tmp = tmp_path_factory.mktemp("live")
+    root = tmp / "flight"
+    write_flight(simulate_flight("landfill", 30.0, 4), root)
+    rec, live_traj = tmp / "rec", tmp / "live.txt"
     port = free_port()
     with emulators.Imu400Emulator.from_dataset(root) as imu, emulators.NmeaEmulator.from_dataset(root) as gps:
-        config = tmp_path / "vehicle.yaml"
+        config = tmp / "vehicle.yaml"
         config.write_text(
             f"sensors:\n  imu: {{port: {imu.port}}}\n  gps: {{type: nmea, port: {gps.port}}}\n  camera: {{type: none}}\n"
             f"run:\n  calibration_file: {root / 'dataset.yaml'}\n"
             f"outputs:\n  zenoh: {{enabled: true, listen: [], connect: ['tcp/127.0.0.1:{port}']}}\n"
+            # A fix the NMEA reader hands over later than the fusion horizon is refused live but fused by the
+            # replay of the recording; on a loaded test machine 0.15 s is not enough to rule that out.
+            f"fusion:\n  delay_s: {LIVE_DELAY_S}\n"
         )
         with PoseClient("vtolpose/vtol1", listen=[f"tcp/127.0.0.1:{port}"], mode="peer") as client:
             poses, status = [], []
@@ -41,15 +51,25 @@ def test_live_run_with_emulated_devices(tmp_path):
             client.session.declare_subscriber("vtolpose/vtol1/status",
                                               lambda s: status.append(json.loads(s.payload.to_string())))
             started = time.monotonic()
-            done = subprocess.run([sys.executable, "-m", "vtolpose", "run", "--config", str(config), "--duration", "5"],
+            done = subprocess.run([sys.executable, "-m", "vtolpose", "run", "--config", str(config), "--duration", "6",
+                                   "--record", str(rec), "--out", str(live_traj)],
                                   cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
-            assert done.returncode == 0, done.stderr
-            assert "stopped by duration" in done.stdout and time.monotonic() - started < 30
+            wall_s = time.monotonic() - started
+    return SimpleNamespace(done=done, wall_s=wall_s, poses=poses, status=status, rec=rec, live_traj=live_traj, tmp=tmp)
+
+
+def test_live_run_with_emulated_devices(live_run):
+    done, poses, status = live_run.done, live_run.poses, live_run.status
+    assert done.returncode == 0, done.stderr
+    assert "stopped by duration" in done.stdout and live_run.wall_s < 30
     assert len(poses) > 150 and all(b.t_ns > a.t_ns for a, b in zip(poses, poses[1:]))
     last = status[-1]
-    assert last["initialized"] and last["sensors"]["imu"]["rate_hz"] > 60 and last["sensors"]["gps"]["total"] > 0
-    assert last["sensors"]["imu"]["age_s"] < 0.5
-    assert last["fusion"]["lag_s"] == pytest.approx(0.15, abs=0.02)
+    assert last["initialized"] and last["sensors"]["gps"]["total"] > 0, last
+    # Rates and ages from the documents sent while the devices streamed (the last one is sent on the way out,
+    # after the readers stopped; a loaded machine may also starve one period).
+    streaming = [s["sensors"]["imu"] for s in status[:-1] if "imu" in s["sensors"]]
+    assert max(s["rate_hz"] for s in streaming) > 60 and min(s["age_s"] for s in streaming) < 0.5, streaming
+    assert last["fusion"]["lag_s"] == pytest.approx(LIVE_DELAY_S, abs=0.02)  # the filter runs the horizon behind
     assert {"landmarks", "rejected", "filter_resets", "cpu_percent", "history"} <= set(last)
 
 
@@ -79,26 +99,16 @@ def test_autopilot_gps_on_the_output_link_feeds_the_fusion(tmp_path):
     assert live.origin() == (58.43, 15.68, 60.0)
 
 
-def test_a_live_recording_replays_to_the_same_trajectory(tmp_path):
+def test_a_live_recording_replays_to_the_same_trajectory(live_run):
     """`vtolpose run --record` from the emulated devices, then `vtolpose replay` of what it wrote."""
     import numpy as np
 
+    from vtolpose.drivers.files.dataset import Dataset
     from vtolpose.drivers.files.tum import read_tum
 
-    root = tmp_path / "flight"
-    write_flight(simulate_flight("landfill", 30.0, 4), root)
-    rec, live_traj, replay_traj = tmp_path / "rec", tmp_path / "live.txt", tmp_path / "replay.txt"
-    with emulators.Imu400Emulator.from_dataset(root) as imu, emulators.NmeaEmulator.from_dataset(root) as gps:
-        config = tmp_path / "vehicle.yaml"
-        config.write_text(
-            f"sensors:\n  imu: {{port: {imu.port}}}\n  gps: {{type: nmea, port: {gps.port}}}\n  camera: {{type: none}}\n"
-            f"run:\n  calibration_file: {root / 'dataset.yaml'}\n"
-        )
-        done = subprocess.run([sys.executable, "-m", "vtolpose", "run", "--config", str(config), "--duration", "6",
-                               "--record", str(rec), "--out", str(live_traj)],
-                              cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
-        assert done.returncode == 0, done.stderr
-    done = subprocess.run([sys.executable, "-m", "vtolpose", "-q", "replay", str(rec), "--out", str(replay_traj),
+    assert live_run.done.returncode == 0, live_run.done.stderr
+    live_traj, replay_traj = live_run.live_traj, live_run.tmp / "replay.txt"
+    done = subprocess.run([sys.executable, "-m", "vtolpose", "-q", "replay", str(live_run.rec), "--out", str(replay_traj),
                            "--no-progress"], cwd=REPO_ROOT, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     t_live, p_live, _ = read_tum(live_traj)
@@ -108,7 +118,18 @@ def test_a_live_recording_replays_to_the_same_trajectory(tmp_path):
     assert len(common) >= 0.95 * min(len(t_live), len(t_rep))
     # The live run stops while a last fix may still be on its way in; that fix is in the recording
     # and moves the replay's final fused poses. Compare everything before the final second.
-    before_end = common <= t_live[-1] - 1_000_000_000
-    assert before_end.sum() > 150
+    end = t_live[-1] - 1_000_000_000
+    # A fix that reached the live filter after its horizon had passed (a loaded machine) was refused there
+    # but is fused by the replay, which leaves a row at its time: then compare only before that fix, and
+    # only if the live run counted a late refusal and the first row the live run lacks is a recorded fix.
+    late = sum(c.get("too_late", 0) for c in live_run.status[-1]["fusion"]["rejected"].values())
+    unfused = np.setdiff1d(t_rep, t_live)
+    unfused = unfused[unfused <= end]
+    if len(unfused):
+        fixes = Dataset.open(live_run.rec).gps().t_ns
+        assert late > 0 and unfused[0] in fixes, f"the replay has rows the live run lacks from {unfused[0]} (late: {late})"
+        end = unfused[0] - 1
+    before_end = common <= end
+    assert before_end.sum() > (100 if late == 0 else 50), (before_end.sum(), late)  # 1.5 s (0.8 s) of filter steps
     # Recorded as text (10 decimals; GPS through lat/lon): the same trajectory to well under a millimetre.
     assert np.abs(p_live[i_live][before_end] - p_rep[i_rep][before_end]).max() < 1e-3
