@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 pytest.importorskip("skimage", reason="rendering needs scikit-image (the 'sim' extra)")
