@@ -47,16 +47,19 @@ _INTEGER = re.compile(r"-?[0-9]{1,19}")  # nothing else: no sign '+', spaces, '_
 _INT64 = (-(1 << 63), (1 << 63) - 1)
 JSON_CHUNK_ROWS = 128  # rows serialised at a time when answering a trajectory (well under 1 ms each)
 WORKER_NICE = 10
-WORKER_DUTY = 0.25  # the query thread rests 3x as long as it worked: at most a quarter of a core, whatever the load
+WORKER_DUTY = 0.25  # the query thread rests 3x its CPU time: at most a quarter of a core, whatever the load
 
 
 @dataclass(frozen=True, slots=True)
 class QueryLimits:
-    """``outputs.zenoh.max_window_s``, ``max_queries_per_s``, ``max_pending_queries``."""
+    """``outputs.zenoh.max_window_s``, ``max_queries_per_s``, ``max_pending_queries``; and ``max_wait_s``:
+    a query that waited longer than this behind others is told busy, not worked on (the pose client has
+    given up on it after its 2-s timeout, and an answer then only costs the loop's core)."""
 
     max_window_s: float = 10.0
     max_queries_per_s: float = 200.0
     max_pending: int = 64
+    max_wait_s: float = 2.0
 
     @classmethod
     def from_config(cls, cfg: dict[str, Any]) -> "QueryLimits":
@@ -248,7 +251,7 @@ class ZenohOutput:
             self._error(query, str(exc))
             return
         try:
-            self._queries.put_nowait((kind, query, args))
+            self._queries.put_nowait((kind, query, args, time.monotonic()))
         except queue.Full:
             self.stats["queries_busy"] += 1
             self._error(query, f"busy: {self.limits.max_pending} queries are waiting; ask again later")
@@ -261,10 +264,15 @@ class ZenohOutput:
             log.debug("query thread nice %d refused: %s", WORKER_NICE, exc)
         while not self._stop.is_set():
             try:
-                kind, query, args = self._queries.get(timeout=0.2)
+                kind, query, args, queued = self._queries.get(timeout=0.2)
             except queue.Empty:
                 continue
-            started = time.perf_counter()
+            waited = time.monotonic() - queued
+            if waited > self.limits.max_wait_s:
+                self.stats["queries_busy"] += 1
+                self._error(query, f"busy: this query waited {waited:.1f} s behind others; ask again later")
+                continue
+            started = time.thread_time()  # its own CPU time: waiting for the history lock is not work
             try:
                 self._answer(query, kind, args)
             except OutsideHistory as exc:
@@ -276,7 +284,7 @@ class ZenohOutput:
                 self._error(query, f"internal error: {type(exc).__name__}")
             finally:
                 query.drop()  # the final answer: the asker stops waiting (idempotent)
-            self._stop.wait((time.perf_counter() - started) * (1.0 / WORKER_DUTY - 1.0))
+            self._stop.wait((time.thread_time() - started) * (1.0 / WORKER_DUTY - 1.0))
 
     def _answer(self, query: zenoh.Query, kind: str, args: tuple[int, ...]) -> None:
         if kind == "pose/at":
@@ -296,7 +304,7 @@ class ZenohOutput:
     def _refuse_waiting(self, why: str) -> None:
         while True:
             try:
-                _, query, _ = self._queries.get_nowait()
+                _, query, _, _ = self._queries.get_nowait()
             except queue.Empty:
                 return
             self._error(query, why)
