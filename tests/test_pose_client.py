@@ -318,17 +318,20 @@ def test_windows_are_capped_and_refused_before_any_work(service, client):
     assert len(client.trajectory(1_000_000_000, 10_000_000_000).t_ns) == 901  # exactly the cap is allowed
 
 
-def test_queries_beyond_the_queue_are_refused_as_busy():
-
+def one_second_service(limits: QueryLimits) -> tuple[ZenohOutput, threading.Lock, zenoh.Session]:
+    """A service with 1 s of history at 100 Hz, its history lock, and a client session connected to it."""
     port = free_port()
     history, lock = PoseHistory(120.0), threading.Lock()
     for k in range(1, 101):
         pose = output_pose(k * 10 * MS)
         history.add_fused(pose.t_ns, history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov))
-    out = ZenohOutput(ZenohSettings("peer", [f"tcp/127.0.0.1:{port}"], [], False), PREFIX, history, lock,
-                      limits=QueryLimits(max_pending=4, max_queries_per_s=10000.0))
+    out = ZenohOutput(ZenohSettings("peer", [f"tcp/127.0.0.1:{port}"], [], False), PREFIX, history, lock, limits=limits)
     out.open()
-    s = session("client", connect=[f"tcp/127.0.0.1:{port}"])
+    return out, lock, session("client", connect=[f"tcp/127.0.0.1:{port}"])
+
+
+def test_queries_beyond_the_queue_are_refused_as_busy():
+    out, lock, s = one_second_service(QueryLimits(max_pending=4, max_queries_per_s=10000.0))
     try:
         with lock:  # the query thread is stuck on the history: queries pile up
             pending = []
@@ -350,15 +353,7 @@ def test_queries_beyond_the_queue_are_refused_as_busy():
 
 
 def test_queries_that_waited_too_long_are_told_busy_not_worked_on():
-    port = free_port()
-    history, lock = PoseHistory(120.0), threading.Lock()
-    for k in range(1, 101):
-        pose = output_pose(k * 10 * MS)
-        history.add_fused(pose.t_ns, history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov))
-    out = ZenohOutput(ZenohSettings("peer", [f"tcp/127.0.0.1:{port}"], [], False), PREFIX, history, lock,
-                      limits=QueryLimits(max_pending=4, max_queries_per_s=10000.0, max_wait_s=0.3))
-    out.open()
-    s = session("client", connect=[f"tcp/127.0.0.1:{port}"])
+    out, lock, s = one_second_service(QueryLimits(max_pending=4, max_queries_per_s=10000.0, max_wait_s=0.3))
     try:
         with lock:  # the query thread is stuck on the history for a second: the queued ones grow old
             pending = []
