@@ -52,7 +52,7 @@ while time.monotonic() < end:  # again and again until the window closes
         try:
             s.sendto(b, ("127.0.0.1", port))
             sent += 1
-        except OSError:
+        except OSError:  # the socket buffer is full (ENOBUFS): that datagram is not sent, nor counted
             pass
 print(sent, flush=True)
 """

@@ -330,19 +330,26 @@ def one_second_service(limits: QueryLimits) -> tuple[ZenohOutput, threading.Lock
     return out, lock, session("client", connect=[f"tcp/127.0.0.1:{port}"])
 
 
-def test_queries_beyond_the_queue_are_refused_as_busy():
-    out, lock, s = one_second_service(QueryLimits(max_pending=4, max_queries_per_s=10000.0))
+def ask_while_history_held(out: ZenohOutput, lock: threading.Lock, s: zenoh.Session, n: int, spacing_s: float) -> list:
+    """``n`` pose/at queries while the history is held for a second (the query thread stuck on it, the rest
+    queued); each query's replies as "pose" or the error text. Closes the session and the output."""
     try:
-        with lock:  # the query thread is stuck on the history: queries pile up
+        with lock:
             pending = []
-            for k in range(30):  # 2 ms apart: not one burst, which the per-link rate limit would thin out
+            for k in range(n):
                 pending.append(s.get(f"{PREFIX}/pose/at?t_ns={500_000_000 + k}", timeout=10.0))
-                time.sleep(0.002)
+                time.sleep(spacing_s)
             time.sleep(1.0)
-        answers = [[("pose" if r.ok is not None else r.err.payload.to_string()) for r in replies] for replies in pending]
+        return [[("pose" if r.ok is not None else r.err.payload.to_string()) for r in replies] for replies in pending]
     finally:
         s.close()
         out.close()
+
+
+def test_queries_beyond_the_queue_are_refused_as_busy():
+    out, lock, s = one_second_service(QueryLimits(max_pending=4, max_queries_per_s=10000.0))
+    # 2 ms apart: not one burst, which the per-link rate limit would thin out
+    answers = ask_while_history_held(out, lock, s, 30, 0.002)
     # Every query that reached the service was answered: with its pose once the history was free, or at
     # once with "busy" (on a loaded machine a few may arrive together and be dropped by the rate limit,
     # which ends them at once too; none waits for its timeout).
@@ -354,17 +361,7 @@ def test_queries_beyond_the_queue_are_refused_as_busy():
 
 def test_queries_that_waited_too_long_are_told_busy_not_worked_on():
     out, lock, s = one_second_service(QueryLimits(max_pending=4, max_queries_per_s=10000.0, max_wait_s=0.3))
-    try:
-        with lock:  # the query thread is stuck on the history for a second: the queued ones grow old
-            pending = []
-            for k in range(4):
-                pending.append(s.get(f"{PREFIX}/pose/at?t_ns={500_000_000 + k}", timeout=10.0))
-                time.sleep(0.05)
-            time.sleep(1.0)
-        answers = [[("pose" if r.ok is not None else r.err.payload.to_string()) for r in replies] for replies in pending]
-    finally:
-        s.close()
-        out.close()
+    answers = ask_while_history_held(out, lock, s, 4, 0.05)  # the queued ones grow old behind the held lock
     reached = [a for a in answers if a]
     assert len(reached) >= 3, answers
     assert reached[0] == ["pose"]  # the one being answered when the history was held

@@ -61,7 +61,7 @@ def test_pose_at_switches_from_filtered_to_smoothed_once_the_lag_has_passed(flig
         while time.monotonic() < deadline and not (answers and answers[-1][1].kind == "smoothed"):
             try:
                 answers.append((newest[0], client.pose_at(t_star)))
-            except (PoseUnavailable, TimeoutError):
+            except (PoseUnavailable, TimeoutError):  # t_star not in the history yet, or the answer late: ask again
                 pass
             time.sleep(0.02)
         window = client.trajectory(t_star - 100_000_000, t_star)

@@ -262,13 +262,20 @@ def smoothing_lines(scores: list[FlightScore]) -> list[str]:
     return lines
 
 
-def bench_euroc(echo: Callable[[str], None] = print) -> list[Row]:
-    """Every EuRoC flight under ../shared/data: import, replay both models, score (issue 12's table)."""
+def flights_or_skip(bench: str, echo: Callable[[str], None]) -> list:
+    """The EuRoC flights under the data roots; none: a skip line that says where to put them."""
     roots = data_roots()
     flights = find_flights(roots)
     if not flights:
-        echo(f"  euroc: skipped, no EuRoC flight (mav0/imu0/data.csv) under {', '.join(map(str, roots))}; "
+        echo(f"  {bench}: skipped, no EuRoC flight (mav0/imu0/data.csv) under {', '.join(map(str, roots))}; "
              f"set {DATA_ENV} to the folder that holds them")
+    return flights
+
+
+def bench_euroc(echo: Callable[[str], None] = print) -> list[Row]:
+    """Every EuRoC flight under ../shared/data: import, replay both models, score (issue 12's table)."""
+    flights = flights_or_skip("euroc", echo)
+    if not flights:
         return []
     scores: list[FlightScore] = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -23,8 +23,7 @@ import numpy as np
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.euroc_import import import_euroc
-from vtolpose.service.bench.euroc import (DATA_ENV, GPS_RATE_HZ, GPS_SEED, GPS_SIGMA_M, VARIANTS, data_roots,
-                                          find_flights)
+from vtolpose.service.bench.euroc import GPS_RATE_HZ, GPS_SEED, GPS_SIGMA_M, VARIANTS, flights_or_skip
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import replay
 
@@ -120,11 +119,8 @@ def bench_euroc_reference(echo: Callable[[str], None] = print) -> list[Row]:
     except ImportError:
         gtsam = None
         echo("  euroc-reference: the GTSAM reference skipped: gtsam is not installed (pip install 'vtolpose[bench]')")
-    roots = data_roots()
-    flights = find_flights(roots)
+    flights = flights_or_skip("euroc-reference", echo)
     if not flights:
-        echo(f"  euroc-reference: skipped, no EuRoC flight (mav0/imu0/data.csv) under {', '.join(map(str, roots))}; "
-             f"set {DATA_ENV} to the folder that holds them")
         return []
     rows: list[Row] = []
     with tempfile.TemporaryDirectory() as tmp:
