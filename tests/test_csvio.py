@@ -126,3 +126,50 @@ def test_seconds_text_is_exact() -> None:
     assert seconds_text(1403636579758560001) == "1403636579.758560001"
     assert seconds_text(5) == "0.000000005"
     assert seconds_text(-1_500_000_000) == "-1.500000000"
+
+
+CLEAN_AND_MESSY = {
+    "clean": [HEADER, "1,1.5,-2,3e-3", "2,4,5,6", "1403636579758560001,7, 8 ,9"],
+    "comment in the body": [HEADER, "1,1,2,3", "# a note", "2,4,5,6"],
+    "trailing note": [HEADER, "1,1,2,3 # note", "2,4,5,6"],
+    "blank line": [HEADER, "1,1,2,3", "", "2,4,5,6"],
+    "scientific time": [HEADER, "1.4E+1,1,2,3", "20,4,5,6"],
+    "fractional time": [HEADER, "1.5,1,2,3", "20,4,5,6"],
+    "time out of order": [HEADER, "5,1,2,3", "4,4,5,6", "6,7,8,9"],
+    "non-finite value": [HEADER, "1,nan,2,3", "2,4,5,6"],
+    "empty fields": [HEADER, "1,1,2,3", ",,,"],
+    "underscore digits": [HEADER, "1_0,1,2,3", "20,1_5,5,6"],
+    "beyond int64": [HEADER, "9223372036854775808,1,2,3", "9223372036854775809,4,5,6"],
+    "signed time": [HEADER, "-5,1,2,3", "+7,4,5,6"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(CLEAN_AND_MESSY))
+def test_fast_path_and_line_reader_agree(case: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Clean tables go through numpy's parser, anything else through the line reader: same result."""
+    import vtolpose.drivers.files.csvio as csvio
+    f = write(tmp_path / "d.csv", *CLEAN_AND_MESSY[case])
+    try:
+        fast = read_numeric_csv(f, 3)
+    except ValueError as exc:
+        fast = exc
+    monkeypatch.setattr(csvio, "_read_clean", lambda text, n_values: None)
+    try:
+        slow = read_numeric_csv(f, 3)
+    except ValueError as exc:
+        slow = exc
+    if isinstance(slow, Exception):
+        assert str(fast) == str(slow)
+        return
+    assert fast.t_ns.dtype == slow.t_ns.dtype and fast.values.dtype == slow.values.dtype
+    np.testing.assert_array_equal(fast.t_ns, slow.t_ns)
+    np.testing.assert_array_equal(fast.values, slow.values)
+    assert fast.skipped == slow.skipped
+
+
+def test_clean_table_takes_the_fast_path(tmp_path: Path) -> None:
+    import vtolpose.drivers.files.csvio as csvio
+    text = "\n".join([HEADER, "1,1.5,-2,3e-3", "2,4,5,6"]) + "\n"
+    clean = csvio._read_clean(text, 3)
+    assert clean is not None and clean.t_ns.tolist() == [1, 2] and clean.skipped == 0
+    assert csvio._read_clean(text.replace("2,4,5,6", "2,4,5,6 # late note"), 3) is None

@@ -9,6 +9,7 @@ integer nanoseconds but may be written in scientific notation: they are parsed e
 
 from __future__ import annotations
 
+import io
 import logging
 from decimal import Decimal
 from pathlib import Path
@@ -62,6 +63,30 @@ def _split(line: str, delimiter: str | None) -> list[str]:
     return line.split(delimiter) if delimiter is not None else line.split()
 
 
+def _read_clean(text: str, n_values: int) -> CsvData | None:
+    """A well-formed table (a ``#`` header of ``n_values + 1`` columns, then only data lines with
+    integer times in increasing order and finite values) through numpy's C parser, several times
+    faster than the line-by-line reader; None when anything is off, so that reader takes over and
+    counts what it skips. The two give the same arrays for every table this one accepts."""
+    if "\r" in text or "\n\n" in text.rstrip("\n") or not text.startswith("#"):
+        return None
+    header, _, body = text.partition("\n")
+    if "#" in body or len(header[1:].split(",")) != n_values + 1 or not body.strip():
+        return None
+    try:  # int64 times: digits with an optional sign, as the line-by-line reader takes them exactly
+        table = np.loadtxt(io.StringIO(body), delimiter=",", comments=None, ndmin=1,
+                           dtype={"names": [f"c{i}" for i in range(n_values + 1)], "formats": ["i8"] + ["f8"] * n_values})
+    except ValueError:
+        return None
+    t_ns = table["c0"]
+    if len(t_ns) != body.rstrip("\n").count("\n") + 1:  # a blank line the parser passed over
+        return None
+    values = np.column_stack([table[f"c{i + 1}"] for i in range(n_values)])
+    if np.any(np.diff(t_ns) <= 0) or not np.all(np.isfinite(values)):
+        return None
+    return CsvData(np.ascontiguousarray(t_ns), values, 0)
+
+
 def read_numeric_csv(
     path: str | Path,
     n_values: int,
@@ -86,6 +111,9 @@ def read_numeric_csv(
         text = path.read_text(encoding="utf-8-sig", errors="replace")
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: file not found (expected a table of {expected})") from None
+    clean = _read_clean(text, n_values) if delimiter == "," and time_unit_ns == 1 else None
+    if clean is not None:
+        return clean
     lines = text.splitlines()
 
     if require_header:
