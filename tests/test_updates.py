@@ -147,3 +147,33 @@ def test_a_held_state_is_never_corrected_and_its_covariance_follows_the_schmidt_
     else:
         assert s.landmarks[1, 5] == before.landmarks[1, 5]
         assert np.allclose(s.landmarks.reshape(-1), before.landmarks.reshape(-1) + dx[s.robot_dim:], atol=1e-12)
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 4])
+def test_small_and_stacked_updates_equal_the_textbook_gain_and_nis(m):
+    """m ≤ 3 goes through the scalar Cholesky, larger m through LAPACK: both are the textbook update."""
+    rng = np.random.default_rng(m)
+    s = make_state("biases")
+    A = rng.normal(size=(15, 15))
+    s.cov = A @ A.T * 1e-3 + np.eye(15) * 1e-4
+    P0, x0 = s.cov.copy(), np.concatenate([s.p, s.v])
+    H = rng.normal(size=(m, 15))
+    R = np.diag(rng.uniform(1e-3, 1e-2, m))
+    r = rng.normal(size=m) * 0.01
+    S = H @ P0 @ H.T + R
+    K = P0 @ H.T @ np.linalg.inv(S)
+    out = ekf_update(s, slice(0, 15), H, r, R)
+    assert out.accepted and out.nis == pytest.approx(float(r @ np.linalg.solve(S, r)), rel=1e-9)
+    np.testing.assert_allclose(np.concatenate([s.p, s.v]), x0 + (K @ r)[:6], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(s.cov, (np.eye(15) - K @ H) @ P0, rtol=0, atol=1e-12)
+
+
+def test_small_inverse_refuses_what_is_not_positive_definite():
+    from vtolpose.estimator.core.kalman import _small_inverse
+    for S in (np.array([[0.0]]), np.array([[np.nan]]), np.array([[1.0, 2.0], [2.0, 1.0]]),
+              np.diag([1.0, 1.0, -1e-9]), np.diag([1.0, np.inf, 1.0])):
+        assert _small_inverse(S) is None
+    S = np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]])
+    S_inv, L_inv = _small_inverse(S)
+    np.testing.assert_allclose(S_inv, np.linalg.inv(S), rtol=1e-12)
+    np.testing.assert_allclose(L_inv, np.linalg.inv(np.linalg.cholesky(S)), rtol=1e-12, atol=1e-15)
