@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from vtolpose.drivers.files.calibration_yaml import CalibrationError, YamlReader, load_yaml_file
-from vtolpose.drivers.files.csvio import CsvData, read_numeric_csv, write_numeric_csv
+from vtolpose.drivers.files.csvio import read_numeric_csv, write_numeric_csv
 from vtolpose.estimator.mapping.geometry import LidarMount
 
 log = logging.getLogger(__name__)
@@ -192,26 +192,6 @@ def read_lidar_spec(root: str | Path) -> tuple[LidarSpec, str | None]:
     return _spec_from_yaml(load_yaml_file(path), str(path))
 
 
-def _read_clean_csv(path: Path) -> CsvData | None:
-    """A well-formed ``data.csv`` through numpy's C parser (a million returns in a second, where the
-    line-by-line reader takes ten); None when anything is off, so the tolerant reader takes over
-    and counts what it skips."""
-    with path.open("rb") as f:
-        first = f.readline()
-    if not first.startswith(b"#") or len(first.split(b",")) != 4:
-        return None
-    try:
-        table = np.loadtxt(path, delimiter=",", comments="#", ndmin=1,
-                           dtype={"names": ("t", "scan", "angle", "range"), "formats": ("i8", "f8", "f8", "f8")})
-    except ValueError:
-        return None
-    t = table["t"]
-    values = np.column_stack([table["scan"], table["angle"], table["range"]])
-    if not t.size or np.any(np.diff(t) <= 0) or not np.all(np.isfinite(values)):
-        return None
-    return CsvData(t, values, 0)
-
-
 def read_lidar(root: str | Path) -> LidarReturns | None:
     """Every return of ``mav0/lidar0``, or None when the dataset has no LIDAR.
 
@@ -222,7 +202,7 @@ def read_lidar(root: str | Path) -> LidarReturns | None:
     if not (root / LIDAR_CSV).is_file():
         return None
     spec, scenario = read_lidar_spec(root)
-    data = _read_clean_csv(root / LIDAR_CSV) or read_numeric_csv(root / LIDAR_CSV, 3, header=LIDAR_HEADER)
+    data = read_numeric_csv(root / LIDAR_CSV, 3, header=LIDAR_HEADER)  # clean files through numpy's parser
     scan, angle, rng = data.values.T
     keep = (scan >= 0) & (scan == np.floor(scan)) & (rng > 0.0)
     if not np.all(keep):
