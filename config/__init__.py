@@ -188,7 +188,8 @@ class Provenance:
 def _cross_checks(cfg: dict[str, Any], where: Provenance) -> None:
     if cfg["smoothing.fixed_lag_s"] > 0 and cfg["smoothing.max_window_s"] <= cfg["smoothing.fixed_lag_s"]:
         raise ConfigError(f"{where('smoothing.max_window_s', 'smoothing.fixed_lag_s')}: key 'smoothing.max_window_s' "
-                          "must exceed 'smoothing.fixed_lag_s' (the smoother needs the lag's worth of steps and some to work on)")
+                          f"({cfg['smoothing.max_window_s']:g} s) must exceed key 'smoothing.fixed_lag_s' "
+                          f"({cfg['smoothing.fixed_lag_s']:g} s): the smoother needs the lag's worth of steps and some to work on")
     check_outputs(cfg, where)
 
 
