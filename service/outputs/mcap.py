@@ -20,7 +20,6 @@ NED origin goes into the file's ``vtolpose`` metadata record when it closes.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from pathlib import Path
 from typing import Any, Callable
@@ -38,7 +37,7 @@ from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.service.outputs import ros2_msgs
 from vtolpose.service.outputs.foxglove import FoxgloveScene, Landmarks, Origin
 from vtolpose.service.outputs.view_worker import ViewWorker
-from vtolpose.service.outputs.zenoh import pose_message
+from vtolpose.service.outputs.pose_json import PoseJson
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +71,7 @@ class McapOutput:
         self.camera = _ros_channel(self.context, IMAGE_TOPIC, ros2_msgs.COMPRESSED_IMAGE)
         self.writer: Any = None
         self._seq = 0
+        self._pose_json = PoseJson()  # the worker's: json.dumps(pose_message(...)) in less of the interpreter's time
         self.counts = {"estimates": 0, "imu": 0, "gps": 0, "frames": 0}
 
     def open(self) -> None:
@@ -108,7 +108,7 @@ class McapOutput:
 
     # On the worker thread.
     def _estimate(self, pose: OutputPose, seq: int, origin: Origin) -> None:
-        self.poses.log(json.dumps(pose_message(pose, seq, origin)), log_time=pose.t_ns)
+        self.poses.log(self._pose_json(pose, seq, origin), log_time=pose.t_ns)
         self.counts["estimates"] += 1
         self.scene.pose(pose)
 

@@ -36,13 +36,13 @@ import zenoh
 
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.pose_history import OutsideHistory, PoseHistory, PoseWindow
+from vtolpose.service.outputs.pose_json import Origin, PoseJson, origin_json
+from vtolpose.service.outputs.pose_json import pose_message, pose_status  # noqa: F401 - also imported from here
 from vtolpose.service.outputs.zenoh_session import ZenohSettings, service_config
-from vtolpose.service.runtime.status import heading_weak, pose_quality
 
 log = logging.getLogger(__name__)
 
 JSON = zenoh.Encoding.APPLICATION_JSON
-Origin = tuple[float, float, float] | None
 _INTEGER = re.compile(r"-?[0-9]{1,19}")  # nothing else: no sign '+', spaces, '_' or exponents
 _INT64 = (-(1 << 63), (1 << 63) - 1)
 JSON_CHUNK_ROWS = 128  # rows serialised at a time when answering a trajectory (well under 1 ms each)
@@ -67,47 +67,12 @@ class QueryLimits:
                    cfg["outputs.zenoh.max_pending_queries"])
 
 
-def pose_status(pose: OutputPose, quality: int) -> str:
-    if pose.initialising:
-        return "initialising"
-    if not pose.position_initialized:
-        return "no_position"
-    if not pose.heading_aligned:
-        return "heading_unaligned"
-    if heading_weak(pose):
-        return "heading_weak"
-    return "ok" if quality > 0 else "poor"
-
-
 def _floats(values: np.ndarray) -> list:
     """A plain list for JSON; non-finite numbers become null (JSON has no NaN)."""
     finite = np.isfinite(values)
     if finite.all():
         return values.tolist()
     return np.where(finite, values, None).tolist()
-
-
-def _vector(values: np.ndarray) -> list:
-    """:func:`_floats` of a flat array on plain floats (a pose's five vectors, for every pose)."""
-    out = values.tolist()
-    if math.isfinite(sum(out)):
-        return out
-    return [x if math.isfinite(x) else None for x in out]
-
-
-def _origin_json(origin: Origin) -> dict | None:
-    return None if origin is None else {"lat": origin[0], "lon": origin[1], "alt": origin[2]}
-
-
-def pose_message(pose: OutputPose, seq: int, origin: Origin) -> dict[str, Any]:
-    """The ``<prefix>/pose`` document (INTERFACES.md), plus ``fused``, ``kind`` and ``quality``."""
-    quality = pose_quality(pose)
-    return {
-        "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(origin),
-        "p": _vector(pose.p), "q": _vector(pose.q), "v": _vector(pose.v), "w": _vector(pose.omega_b),
-        "cov": _vector(pose.pose_cov.reshape(36)), "status": pose_status(pose, quality),
-        "seq": seq, "fused": pose.fused, "kind": "filtered" if pose.fused else "predicted", "quality": quality,
-    }
 
 
 def parse_time_parameter(parameters: Any, name: str) -> int:
@@ -133,7 +98,7 @@ def _rows_json(values: np.ndarray) -> str:
 
 def trajectory_json(window: PoseWindow, origin: Origin) -> str:
     """The ``<prefix>/trajectory`` answer, as :func:`json.dumps` of the same document would write it."""
-    head = json.dumps({"frame": "NED", "origin": _origin_json(origin), "t_ns": window.t_ns.tolist()})[:-1]
+    head = json.dumps({"frame": "NED", "origin": origin_json(origin), "t_ns": window.t_ns.tolist()})[:-1]
     fields = ", ".join(f'"{name}": {_rows_json(values)}' for name, values in
                        (("p", window.p), ("q", window.q), ("v", window.v), ("w", window.w),
                         ("cov", window.cov.reshape(-1, 36))))
@@ -164,6 +129,7 @@ class ZenohOutput:
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._seq = 0
+        self._pose_json = PoseJson()
         self._queries: queue.Queue = queue.Queue(maxsize=limits.max_pending)
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
@@ -175,6 +141,7 @@ class ZenohOutput:
         drop = zenoh.CongestionControl.DROP  # a slow subscriber must never stall the estimator
         self._pose_pub = s.declare_publisher(f"{self.prefix}/pose", encoding=JSON, congestion_control=drop, express=True,
                                              priority=zenoh.Priority.REAL_TIME)
+        self._pose_id = self._pose_pub.id  # the publisher's for its life: asked once, not per pose
         self._status_pub = s.declare_publisher(f"{self.prefix}/status", encoding=JSON, congestion_control=drop)
         self._stop.clear()
         self._worker = threading.Thread(target=self._answer_queries, name="zenoh-queries", daemon=True)
@@ -212,9 +179,8 @@ class ZenohOutput:
     def publish(self, pose: OutputPose) -> None:
         if self.session is None:
             return
-        self._seq += 1
-        self._pose_pub.put(json.dumps(pose_message(pose, self._seq, self.origin())),
-                           source_info=zenoh.SourceInfo(self._pose_pub.id, self._seq))
+        self._seq = seq = self._seq + 1
+        self._pose_pub.put(self._pose_json(pose, seq, self.origin()), source_info=zenoh.SourceInfo(self._pose_id, seq))
         self.stats["poses_published"] += 1
 
     def publish_status(self, status: dict[str, Any]) -> None:
@@ -291,7 +257,7 @@ class ZenohOutput:
             with self.lock:
                 pose = self.history.at(args[0])
             text = json.dumps({
-                "t_ns": pose.t_ns, "frame": "NED", "origin": _origin_json(self.origin()),
+                "t_ns": pose.t_ns, "frame": "NED", "origin": origin_json(self.origin()),
                 "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.w),
                 "cov": _floats(pose.cov.reshape(36)), "fused": pose.fused, "kind": pose.kind,
             })

@@ -25,25 +25,29 @@ log = logging.getLogger(__name__)
 # Quality: 100 at or below the "good" sigma, falling on a log scale to 1 at the "poor" one.
 _POS_SIGMA_GOOD_M, _POS_SIGMA_POOR_M = 0.1, 10.0
 _ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD = math.radians(0.5), math.radians(20.0)
+_POS_DECADES = math.log10(_POS_SIGMA_POOR_M / _POS_SIGMA_GOOD_M)
+_ATT_DECADES = math.log10(_ATT_SIGMA_POOR_RAD / _ATT_SIGMA_GOOD_RAD)
 
 
-def pose_problem(pose: OutputPose) -> str | None:
+def pose_problem(pose: OutputPose, diagonal: list[float] | None = None) -> str | None:
     """Why ``pose`` must not be used for navigation, or None: the filter is initialising (it started
     moving and has no start it can stand on yet), no position yet, heading not aligned, a covariance
     that is not finite (or a negative variance), or the filter's health capping it to 0.
 
     A camera-only filter that never heard a GPS works in a frame of its own (``local_position``):
     its origin is where it started and its heading, unless one was known, the one it started with.
-    Such a pose is usable relative to that frame, and its covariance says so (``published_cov9``)."""
+    Such a pose is usable relative to that frame, and its covariance says so (``published_cov9``).
+    ``diagonal``: ``pose.cov9``'s diagonal as a list, when the caller already has it."""
     if pose.initialising:
         return "initialising"
     if not (pose.position_initialized or pose.local_position):
         return "no position"
     if not (pose.heading_aligned or pose.local_position):
         return "heading not aligned"
-    d = pose.cov9.diagonal().tolist()
-    if not all(math.isfinite(x) and x >= 0.0 for x in d[0:3] + d[6:9]):
-        return "covariance not finite"
+    d = pose.cov9.diagonal().tolist() if diagonal is None else diagonal
+    for x in (d[0], d[1], d[2], d[6], d[7], d[8]):  # a loop, not a generator: this runs for every pose
+        if not (math.isfinite(x) and x >= 0.0):
+            return "covariance not finite"
     if pose.quality_cap <= 0:
         return "health"
     return None
@@ -53,26 +57,26 @@ def pose_problem(pose: OutputPose) -> str | None:
 HEADING_WEAK_SIGMA_RAD = math.radians(5.0)
 
 
-def heading_weak(pose: OutputPose) -> bool:
+def heading_weak(pose: OutputPose, diagonal: list[float] | None = None) -> bool:
     """Whether the heading, placed but still poorly known, deserves a word in the pose's status."""
-    var = float(pose.cov9[8, 8])
+    var = float(pose.cov9[8, 8]) if diagonal is None else diagonal[8]
     return pose.heading_aligned and not (math.isfinite(var) and var <= HEADING_WEAK_SIGMA_RAD**2)
 
 
-def pose_quality(pose: OutputPose) -> int:
+def pose_quality(pose: OutputPose, diagonal: list[float] | None = None) -> int:
     """0 = invalid (:func:`pose_problem`); else 1–100 from the largest position and attitude sigmas, never
     above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
-    if pose_problem(pose) is not None:
+    d = pose.cov9.diagonal().tolist() if diagonal is None else diagonal
+    if pose_problem(pose, d) is not None:
         return 0
-    d = pose.cov9.diagonal().tolist()
-    var_p, var_a = max(d[0:3]), max(d[6:9])
-
-    def score(sigma: float, good: float, poor: float) -> float:
-        return 1.0 - min(max(math.log10(max(sigma, 1e-12) / good) / math.log10(poor / good), 0.0), 1.0)
-
-    q = min(score(math.sqrt(var_p), _POS_SIGMA_GOOD_M, _POS_SIGMA_POOR_M),
-            score(math.sqrt(var_a), _ATT_SIGMA_GOOD_RAD, _ATT_SIGMA_POOR_RAD))
+    q = min(_score(math.sqrt(max(d[0:3])), _POS_SIGMA_GOOD_M, _POS_DECADES),
+            _score(math.sqrt(max(d[6:9])), _ATT_SIGMA_GOOD_RAD, _ATT_DECADES))
     return min(max(1, int(round(100.0 * q))), pose.quality_cap)
+
+
+def _score(sigma: float, good: float, decades: float) -> float:
+    """1 at or below ``good``, 0 at ``decades`` decades above it, log-linear between."""
+    return 1.0 - min(max(math.log10(max(sigma, 1e-12) / good) / decades, 0.0), 1.0)
 
 
 def resident_memory_mb() -> float | None:
