@@ -86,3 +86,22 @@ def test_camera_requested_but_absent_is_a_note_not_an_error(tmp_path: Path):
     assert any("camera" in note for note in result.notes)
     assert result.frames == [] and "camera" not in result.estimator.counts
     assert "camera" not in build_report(result, Dataset.open(root), cfg)
+
+
+def test_parallel_frame_extraction_gives_the_same_replay(book: Dataset):
+    """A full-speed replay extracts several frames at once (replay.camera_workers, one per core by
+    default); lock-step fuses them in time order, so the trajectory is the one a single worker gives."""
+    import numpy as np
+    from vtolpose.service.runtime.daemon import replay_camera_workers
+
+    trajectories = {}
+    for workers in (1, 3):
+        cfg = load_config(None, {"features": {"detector": "orb"}, "replay": {"camera_workers": workers}})
+        assert replay_camera_workers(cfg) == workers
+        result = replay(book, cfg, ["imu", "camera", "gps"])
+        trajectories[workers] = result.trajectory
+        assert len(result.frames) == int(DURATION_S * 7.5)
+    one, three = trajectories[1], trajectories[3]
+    assert np.array_equal(one.t_ns, three.t_ns)
+    assert np.array_equal(one.p, three.p) and np.array_equal(one.q, three.q)
+    assert replay_camera_workers(load_config(None, {})) >= 1

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import os
 import signal
 from pathlib import Path
 from typing import Any, AsyncIterator, Callable, Sequence
@@ -51,6 +52,12 @@ def load_calibration_file(path: str | Path) -> Calibration:
     return calibration_from_yaml(doc, str(path))
 
 
+def replay_camera_workers(cfg: dict[str, Any]) -> int:
+    """Frames a full-speed replay extracts at once: ``replay.camera_workers``, 0 meaning one per core.
+    Lock-step fuses them in time order whatever order they finish in, so the result does not change."""
+    return cfg["replay.camera_workers"] or max(1, min(os.cpu_count() or 1, 16))
+
+
 def build_runtime(
     cfg: dict[str, Any],
     calibration: Calibration,
@@ -70,7 +77,8 @@ def build_runtime(
     calibration = calibration_with_overrides(cfg, calibration)
     estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
     options = RuntimeOptions(
-        fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"], camera_workers=cfg["fusion.camera_workers"],
+        fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"],
+        camera_workers=replay_camera_workers(cfg) if lockstep else cfg["fusion.camera_workers"],
         lockstep=lockstep, measure_latency=measure_latency, realtime_priority=cfg["run.realtime_priority"] if live else None,
         imu_range=imu_range(cfg),
     )

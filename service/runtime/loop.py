@@ -402,9 +402,11 @@ class Runtime:
                                             initializer=background_thread_priority)
         # Paced (live) runs: OpenCV's own worker pool would run feature extraction on every core at
         # normal priority beside the loop; one thread per camera worker keeps it in the niced workers
-        # (SIFT ~40 % slower per frame, well inside a frame period). Full-speed replays keep the pool.
+        # (SIFT ~40 % slower per frame, well inside a frame period). Full-speed replays with several
+        # workers (one per core) extract whole frames in parallel, each on one thread; with one
+        # worker they keep the pool.
         opencv_threads = cv2.getNumThreads()
-        if not self.options.lockstep:
+        if not self.options.lockstep or self.options.camera_workers > 1:
             cv2.setNumThreads(1)
         opened: list[PoseOutput] = []
         # Without outputs nobody reads the present pose (an offline replay): no output predictor.
