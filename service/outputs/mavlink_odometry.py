@@ -19,6 +19,7 @@ What differs per autopilot (docs/mavlink.md has the sources):
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,8 +30,8 @@ from vtolpose.estimator.core.rotation import quat_to_rot, rot_of
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.service.runtime.status import pose_problem, pose_quality
 
-__all__ = ["PROFILES", "Profile", "euler_jacobian", "odometry_covariances", "odometry_fields", "odometry_quality",
-           "upper_triangle"]
+__all__ = ["ODOMETRY_CRC_EXTRA", "ODOMETRY_ID", "PROFILES", "Profile", "euler_jacobian", "odometry_covariances",
+           "odometry_fields", "odometry_payload", "odometry_quality", "upper_triangle"]
 
 mav = mavutil.mavlink
 _TRIU = np.triu_indices(6)  # row-major upper-right triangle: 21 indices
@@ -145,3 +146,17 @@ def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) ->
         velocity_covariance=upper_triangle(vel_cov),
     )
     return fields
+
+
+ODOMETRY_ID = mav.MAVLINK_MSG_ID_ODOMETRY
+ODOMETRY_CRC_EXTRA = mav.MAVLink_odometry_message.crc_extra  # 91: the checksum's seed from the message's definition
+# The wire order (fields by size, largest first; the MAVLink 2 extensions last), all little-endian.
+_ODOMETRY = struct.Struct("<Q3f4f6f21f21f4Bb")
+
+
+def odometry_payload(f: dict[str, Any]) -> bytes:
+    """ODOMETRY's full 233-byte payload from :func:`odometry_fields` (the frame cuts its trailing zeros),
+    byte for byte what pymavlink's ``MAVLink_odometry_message(**f)`` packs."""
+    return _ODOMETRY.pack(f["time_usec"], f["x"], f["y"], f["z"], *f["q"], f["vx"], f["vy"], f["vz"], f["rollspeed"],
+                          f["pitchspeed"], f["yawspeed"], *f["pose_covariance"], *f["velocity_covariance"], f["frame_id"],
+                          f["child_frame_id"], f["reset_counter"], f["estimator_type"], f["quality"])
