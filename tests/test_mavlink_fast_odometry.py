@@ -16,10 +16,12 @@ import pytest
 
 from vtolpose.config.mavlink import EndpointSpec
 from vtolpose.drivers.links.mavlink_outbound import frame_v2, send_v2
-from vtolpose.estimator.core.rotation import quat_from_euler
+from vtolpose.estimator.core.rotation import quat_from_euler, quat_to_rot, skew
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.service.outputs import mavlink as mavlink_output
-from vtolpose.service.outputs.mavlink import COMPONENT_ID, Endpoint, MavlinkOutput, mavutil, odometry_fields
+from vtolpose.service.outputs.mavlink import (
+    COMPONENT_ID, Endpoint, MavlinkOutput, euler_jacobian, mavutil, odometry_covariances, odometry_fields,
+)
 from vtolpose.service.outputs.mavlink_odometry import ODOMETRY_CRC_EXTRA, ODOMETRY_ID, PROFILES, odometry_payload
 
 mav = mavutil.mavlink
@@ -134,6 +136,32 @@ def assert_same_frames(signed: bool, seed: int, count: int = 700, crc_extra: int
                                                                                   f["reset_counter"], f["quality"])
         np.testing.assert_array_equal(msg.pose_covariance, np.float32(f["pose_covariance"]))
         np.testing.assert_array_equal(msg.q, np.float32(f["q"]))
+
+
+def test_the_fields_are_the_plain_products_of_the_estimators_covariance():
+    """The per-pose fast arithmetic against the definitions written out with whole matrices."""
+    rng = np.random.default_rng(21)
+    triu = np.triu_indices(6)
+    checked = 0
+    while checked < 200:
+        pose = random_pose(rng)
+        f = odometry_fields(pose, PROFILES["generic"])
+        if f["quality"] < 0 or math.isnan(f["pose_covariance"][0]) or math.isnan(f["velocity_covariance"][0]):
+            continue
+        r = quat_to_rot(pose.q)
+        to_euler = np.eye(6)
+        to_euler[3:, 3:] = euler_jacobian(pose.q)
+        pose_cov = to_euler @ pose.cov9[np.ix_(POSE, POSE)] @ to_euler.T
+        jv = np.hstack([r.T, r.T @ skew(pose.v)])
+        vel_cov = np.zeros((6, 6))
+        vel_cov[:3, :3] = jv @ pose.cov9[3:9, 3:9] @ jv.T
+        vel_cov[3:, 3:] = np.diag(pose.omega_var)
+        np.testing.assert_allclose(f["pose_covariance"], pose_cov[triu], rtol=1e-9, atol=1e-15 * np.abs(pose_cov).max())
+        np.testing.assert_allclose(f["velocity_covariance"], vel_cov[triu], rtol=1e-9, atol=1e-15 * np.abs(vel_cov).max())
+        np.testing.assert_allclose([f["vx"], f["vy"], f["vz"]], r.T @ pose.v, rtol=1e-12, atol=1e-12)
+        for got, want in zip(odometry_covariances(pose), (pose_cov, vel_cov)):
+            np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-15 * np.abs(want).max())
+        checked += 1
 
 
 @pytest.mark.parametrize("signed", [False, True], ids=["unsigned", "signed"])

@@ -62,8 +62,11 @@ def heading_weak(pose: OutputPose) -> bool:
 def pose_quality(pose: OutputPose) -> int:
     """0 = invalid (:func:`pose_problem`); else 1–100 from the largest position and attitude sigmas, never
     above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
-    if pose_problem(pose) is not None:
-        return 0
+    return 0 if pose_problem(pose) is not None else usable_pose_quality(pose)
+
+
+def usable_pose_quality(pose: OutputPose) -> int:
+    """:func:`pose_quality` of a pose already known to have no :func:`pose_problem` (it is not asked again)."""
     d = pose.cov9.diagonal().tolist()
     var_p, var_a = max(d[0:3]), max(d[6:9])
 
