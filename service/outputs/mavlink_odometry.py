@@ -85,7 +85,7 @@ def _flat9(rows: np.ndarray) -> np.ndarray:
 
 
 # The [δp, δθ] and the [δv, δθ] blocks of a flat 9 × 9, stacked: both covariance products in one.
-_BLOCKS_FLAT = np.concatenate([_flat9(np.r_[0:3, 6:9]), _flat9(np.r_[3:9])])
+_BLOCKS_FLAT = np.concatenate([_flat9(np.r_[0:3, 6:9]), _flat9(np.r_[3:9])]).reshape(2, 6, 6)
 # Out of the stacked (2, 6, 6) products: the pose's 21-value triangle, then the body velocity's 3 × 3 triangle.
 _TRIANGLES_FLAT = np.concatenate([_TRIU_FLAT, 36 + np.array([0, 1, 2, 7, 8, 14])])
 
@@ -93,29 +93,31 @@ _TRIANGLES_FLAT = np.concatenate([_TRIU_FLAT, 36 + np.array([0, 1, 2, 7, 8, 14])
 # J of both products, stacked (2, 6, 6): what does not depend on the pose, and where the rest goes.
 _J_CONSTANT = np.zeros((2, 6, 6))
 _J_CONSTANT[0, [0, 1, 2, 5], [0, 1, 2, 5]] = 1.0
-_J_VARIABLE = np.array([21, 22, 27, 28, 33, 34] + list(range(36, 54)))  # Euler rows 3-5, columns 3-4; then rows 0-2
+# The Euler rows 3-5, columns 3-4; then the velocity's rows 0-2, and again in its rows 3-5: those are not used (the
+# body rates are filled in after), but zeros there would turn an infinite variance into 0 × ∞ (a warning).
+_J_VARIABLE = np.array([21, 22, 27, 28, 33, 34] + list(range(36, 72)))
 
 
-def _covariance_products(pose: OutputPose, q: list[float], rot: Any) -> np.ndarray:
+def _covariance_products(pose: OutputPose, q: list[float], rot: Any, v: list[float]) -> np.ndarray:
     """``J C Jᵀ`` for the pose (0) and the body velocity (1), as one stacked (2, 6, 6) product.
 
     Pose: the estimator's covariance is over ``[δp (NED), δθ (world-frame rotation)]``; MAVLink's
     states are ``x, y, z, roll, pitch, yaw``, so the attitude block is mapped through the Euler
     Jacobian (first order; at level attitude it is the identity, and yaw's variance is exact).
     Velocity: body-frame velocity ``v_B = Rᵀ v`` depends on the world velocity error and on the
-    attitude error (``δv_B = Rᵀ δv + Rᵀ [v]× δθ``); J's rows 3-5 are zero there (the body rates, see
-    :func:`odometry_covariances`). J is built from plain floats: this runs for every pose sent.
+    attitude error (``δv_B = Rᵀ δv + Rᵀ [v]× δθ``); only rows 0-2 of that product count (the body rates
+    are apart, see :func:`odometry_covariances`). J is built from plain floats: this runs for every pose sent.
     """
     (e00, e01, _), (e10, e11, _), (e20, e21, _) = _euler_rows(*q)
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rot
-    vx, vy, vz = pose.v.tolist()
+    vx, vy, vz = v
+    # Rᵀ and Rᵀ [v]×, row by row (row i of Rᵀ is column i of R).
+    velocity = [r00, r10, r20, r10 * vz - r20 * vy, r20 * vx - r00 * vz, r00 * vy - r10 * vx,
+                r01, r11, r21, r11 * vz - r21 * vy, r21 * vx - r01 * vz, r01 * vy - r11 * vx,
+                r02, r12, r22, r12 * vz - r22 * vy, r22 * vx - r02 * vz, r02 * vy - r12 * vx]
     j = _J_CONSTANT.copy()
-    # The Euler block; then Rᵀ and Rᵀ [v]×, row by row (row i of Rᵀ is column i of R).
-    j.put(_J_VARIABLE, [e00, e01, e10, e11, e20, e21,
-                        r00, r10, r20, r10 * vz - r20 * vy, r20 * vx - r00 * vz, r00 * vy - r10 * vx,
-                        r01, r11, r21, r11 * vz - r21 * vy, r21 * vx - r01 * vz, r01 * vy - r11 * vx,
-                        r02, r12, r22, r12 * vz - r22 * vy, r22 * vx - r02 * vz, r02 * vy - r12 * vx])
-    return j @ pose.cov9.take(_BLOCKS_FLAT).reshape(2, 6, 6) @ j.transpose(0, 2, 1)
+    j.put(_J_VARIABLE, [e00, e01, e10, e11, e20, e21] + velocity + velocity)
+    return j @ pose.cov9.take(_BLOCKS_FLAT) @ j.transpose(0, 2, 1)
 
 
 def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -123,7 +125,7 @@ def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple
     and the body velocity's with the body rates, the bias-corrected gyro, uncorrelated with the
     velocity, with the gyro noise plus the bias variance."""
     q = pose.q.tolist()
-    products = _covariance_products(pose, q, rot_of(*q) if r is None else r.tolist())
+    products = _covariance_products(pose, q, rot_of(*q) if r is None else r.tolist(), pose.v.tolist())
     vel_cov = np.zeros((6, 6))
     vel_cov[0:3, 0:3] = products[1, 0:3, 0:3]
     vel_cov[3, 3], vel_cov[4, 4], vel_cov[5, 5] = pose.omega_var.tolist()
@@ -163,10 +165,11 @@ def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) ->
     q = pose.q.tolist()
     rot = rot_of(*q)
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rot
-    vx, vy, vz = pose.v.tolist()
+    v = pose.v.tolist()
+    vx, vy, vz = v
     x, y, z = pose.p.tolist()
     rollspeed, pitchspeed, yawspeed = pose.omega_b.tolist()
-    triangles = _covariance_products(pose, q, rot).take(_TRIANGLES_FLAT).tolist()
+    triangles = _covariance_products(pose, q, rot, v).take(_TRIANGLES_FLAT).tolist()
     v00, v01, v02, v11, v12, v22 = triangles[21:]
     w0, w1, w2 = pose.omega_var.tolist()
     fields.update(
