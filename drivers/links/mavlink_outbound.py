@@ -12,7 +12,8 @@ STATUSTEXT, TIMESYNC) carry on from it:
 - checksum: CRC-16/MCRF4XX over the header after the magic, the payload and the message's CRC extra;
 - signature (when signing outgoing): link id, the 48-bit signing timestamp, then the first 6 bytes of
   SHA-256 over the key and the whole frame so far; the link's timestamp then moves on by one;
-- after the frame is written: the sequence number moves on (mod 256), the sent totals count it.
+- after the frame is written: the sequence number moves on (mod 256), the sent totals count it
+  (a pymavlink send callback is not called: there is no message object to give it; none is set here).
 
 A test frames many messages both ways and holds the bytes identical.
 """
