@@ -33,6 +33,7 @@ from vtolpose.service.bench.camera import bench_camera, bench_camera_update, ben
 from vtolpose.service.bench.euroc import bench_euroc
 from vtolpose.service.bench.euroc_reference import bench_euroc_reference
 from vtolpose.service.bench.memory_paced import bench_memory_paced
+from vtolpose.service.bench.odometry_encoding import bench_odometry_encoding
 from vtolpose.service.bench.pose_encoding import bench_pose_encoding
 from vtolpose.service.bench.zenoh_queries import bench_zenoh_queries
 from vtolpose.service.bench.smoothing import (bench_smoothing_hour, bench_smoothing_landmarks, bench_smoothing_latency,
@@ -97,6 +98,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "features": bench_features,
     "replay-camera": bench_replay_camera,
     "camera": bench_camera,
+    "odometry-encoding": bench_odometry_encoding,
     "runtime-latency": bench_runtime_latency,
     "pose-encoding": bench_pose_encoding,
     "runtime-hour": bench_runtime_hour,

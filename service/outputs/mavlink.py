@@ -28,12 +28,14 @@ from typing import Any, Callable, Sequence
 
 from vtolpose.config.mavlink import EndpointSpec, mavlink_endpoints
 from vtolpose.drivers.links.mavlink_frames import Inbound
+from vtolpose.drivers.links.mavlink_outbound import send_v2
 from vtolpose.drivers.links.mavlink_signing import SigningKeyError, read_signing_key, signing_timestamp
 from vtolpose.drivers.links.mavlink_transport import open_transport
 from vtolpose.drivers.links.mavlink_wire import mavutil
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.service.outputs.mavlink_odometry import (
-    PROFILES, Profile, euler_jacobian, odometry_covariances, odometry_fields, upper_triangle,
+    ODOMETRY_CRC_EXTRA, ODOMETRY_ID, PROFILES, Profile, euler_jacobian, odometry_covariances, odometry_fields,
+    odometry_payload, upper_triangle,
 )
 from vtolpose.service.outputs.mavlink_status import StatusEvents, TextLimiter, statustext_chunks
 from vtolpose.service.runtime.status import FailureBook, stopped_within
@@ -126,14 +128,25 @@ class Endpoint:
 
     def send(self, msg: Any, counter: str) -> None:
         """Encode (sign) and send ``msg``; ``counter`` counts it when it reached at least one peer."""
+        if self._before_send():
+            self._tx.send(msg)
+            if self._reached:
+                self.stats[counter] += 1
+
+    def send_packed(self, msg_id: int, crc_extra: int, payload: bytes, counter: str) -> None:
+        """:meth:`send` for a payload already packed: framed here, bytes and link state as pymavlink's."""
+        if self._before_send():
+            send_v2(self._tx, msg_id, crc_extra, payload)
+            if self._reached:
+                self.stats[counter] += 1
+
+    def _before_send(self) -> bool:
         if self.transport is None:
-            return
+            return False
         if self._tx.signing.sign_outgoing:  # never behind the clock, even after a restart
             self._tx.signing.timestamp = max(self._tx.signing.timestamp, signing_timestamp())
         self._reached = 0
-        self._tx.send(msg)
-        if self._reached:
-            self.stats[counter] += 1
+        return True
 
     def read(self, on_message: Callable[["Endpoint", Any], None], budget_s: float = READ_BUDGET_S) -> bool:
         """Handle waiting messages for at most ``budget_s``; True when it stopped with data left."""
@@ -231,22 +244,26 @@ class MavlinkOutput:
 
     # ------------------------------------------------------------------------------ outgoing
     def publish(self, pose: OutputPose) -> bool:
-        """ODOMETRY to every endpoint whose schedule is due. True when at least one was sent."""
+        """ODOMETRY to every endpoint whose schedule is due. True when at least one was sent.
+
+        It runs for every IMU sample: each profile's payload is packed once, and framed per endpoint
+        without pymavlink's message objects (:meth:`Endpoint.send_packed`)."""
         self.clock.follow(pose.t_ns)
-        fields: dict[str, dict[str, Any]] = {}
+        payloads: dict[str, tuple[bytes, int]] = {}
         sent = False
         for endpoint in self.endpoints:
             if endpoint.transport is None or not endpoint.schedule.due(pose.t_ns):
                 continue
             try:
                 profile = endpoint.profile
-                if profile.name not in fields:
-                    fields[profile.name] = odometry_fields(pose, profile)
-                f = fields[profile.name]
-                endpoint.send(mav.MAVLink_odometry_message(**f), "odometry_sent")
+                if profile.name not in payloads:
+                    f = odometry_fields(pose, profile)
+                    payloads[profile.name] = odometry_payload(f), f["quality"]
+                payload, quality = payloads[profile.name]
+                endpoint.send_packed(ODOMETRY_ID, ODOMETRY_CRC_EXTRA, payload, "odometry_sent")
                 sent = True
                 if endpoint is self._primary:
-                    self._active = f["quality"] > 0
+                    self._active = quality > 0
             except Exception as exc:  # this endpoint only; the others still get their pose
                 endpoint.failures.record(f"MAVLink {endpoint.name} ODOMETRY", exc)
         return sent

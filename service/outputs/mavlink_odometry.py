@@ -19,18 +19,19 @@ What differs per autopilot (docs/mavlink.md has the sources):
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from vtolpose.drivers.links.mavlink_wire import mavutil
-from vtolpose.estimator.core.rotation import quat_to_rot, rot_of
+from vtolpose.estimator.core.rotation import rot_of
 from vtolpose.estimator.fusion import OutputPose
-from vtolpose.service.runtime.status import pose_problem, pose_quality
+from vtolpose.service.runtime.status import pose_problem, usable_pose_quality
 
-__all__ = ["PROFILES", "Profile", "euler_jacobian", "odometry_covariances", "odometry_fields", "odometry_quality",
-           "upper_triangle"]
+__all__ = ["ODOMETRY_CRC_EXTRA", "ODOMETRY_ID", "PROFILES", "Profile", "euler_jacobian", "odometry_covariances",
+           "odometry_fields", "odometry_payload", "odometry_quality", "upper_triangle"]
 
 mav = mavutil.mavlink
 _TRIU = np.triu_indices(6)  # row-major upper-right triangle: 21 indices
@@ -55,12 +56,11 @@ PROFILES = {
 
 def odometry_quality(pose: OutputPose) -> int:
     """-1 when the pose must not be used (:func:`pose_problem`), else 1-100 (the status's quality)."""
-    return -1 if pose_problem(pose) is not None else pose_quality(pose)
+    return -1 if pose_problem(pose) is not None else usable_pose_quality(pose)
 
 
-def _euler_rows(q: np.ndarray) -> tuple[tuple[float, float, float], ...]:
+def _euler_rows(w: float, x: float, y: float, z: float) -> tuple[tuple[float, float, float], ...]:
     """:func:`euler_jacobian`'s rows on plain floats."""
-    w, x, y, z = q.tolist()
     sp = min(max(2.0 * (w * y - z * x), -1.0), 1.0)
     cp = max(math.sqrt(1.0 - sp * sp), 1e-6)
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
@@ -76,50 +76,78 @@ def euler_jacobian(q: np.ndarray) -> np.ndarray:
     form. It is singular at ±90° pitch, which a helicopter's estimator never reports:
     cos(pitch) is floored.
     """
-    return np.array(_euler_rows(q))
+    return np.array(_euler_rows(*np.asarray(q, dtype=float).tolist()))
 
 
-_PTH_FLAT = (np.r_[0:3, 6:9][:, None] * 9 + np.r_[0:3, 6:9][None, :]).ravel()  # [δp, δθ] entries of a flat 9 × 9
+def _flat9(rows: np.ndarray) -> np.ndarray:
+    """Flat indices into a 9 × 9 of the ``rows`` × ``rows`` block."""
+    return (rows[:, None] * 9 + rows[None, :]).ravel()
 
 
-def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """ODOMETRY's two 6 × 6 covariances from the estimator's.
+# The [δp, δθ] and the [δv, δθ] blocks of a flat 9 × 9, stacked: both covariance products in one.
+_BLOCKS_FLAT = np.concatenate([_flat9(np.r_[0:3, 6:9]), _flat9(np.r_[3:9])]).reshape(2, 6, 6)
+# Out of the stacked (2, 6, 6) products: the pose's 21-value triangle, then the body velocity's 3 × 3 triangle.
+_TRIANGLES_FLAT = np.concatenate([_TRIU_FLAT, 36 + np.array([0, 1, 2, 7, 8, 14])])
+
+
+# J of both products, stacked (2, 6, 6): what does not depend on the pose, and where the rest goes.
+_J_CONSTANT = np.zeros((2, 6, 6))
+_J_CONSTANT[0, [0, 1, 2, 5], [0, 1, 2, 5]] = 1.0
+# The Euler rows 3-5, columns 3-4; then the velocity's rows 0-2, and again in its rows 3-5: those are not used (the
+# body rates are filled in after), but zeros there would turn an infinite variance into 0 × ∞ (a warning).
+_J_VARIABLE = np.array([21, 22, 27, 28, 33, 34] + list(range(36, 72)))
+
+
+def _covariance_products(pose: OutputPose, q: list[float], rot: Any, v: list[float]) -> np.ndarray:
+    """``J C Jᵀ`` for the pose (0) and the body velocity (1), as one stacked (2, 6, 6) product.
 
     Pose: the estimator's covariance is over ``[δp (NED), δθ (world-frame rotation)]``; MAVLink's
     states are ``x, y, z, roll, pitch, yaw``, so the attitude block is mapped through the Euler
     Jacobian (first order; at level attitude it is the identity, and yaw's variance is exact).
     Velocity: body-frame velocity ``v_B = Rᵀ v`` depends on the world velocity error and on the
-    attitude error (``δv_B = Rᵀ δv + Rᵀ [v]× δθ``); the body rates are the bias-corrected gyro,
-    uncorrelated with the velocity, with the gyro noise plus the bias variance.
-
-    Each is one product ``J C Jᵀ`` with J built from plain floats: this runs for every pose sent.
+    attitude error (``δv_B = Rᵀ δv + Rᵀ [v]× δθ``); only rows 0-2 of that product count (the body rates
+    are apart, see :func:`odometry_covariances`). J is built from plain floats: this runs for every pose sent.
     """
-    cov9 = pose.cov9
-    (e00, e01, _), (e10, e11, _), (e20, e21, _) = _euler_rows(pose.q)
-    to_euler = np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
-                         [0.0, 0.0, 0.0, e00, e01, 0.0], [0.0, 0.0, 0.0, e10, e11, 0.0], [0.0, 0.0, 0.0, e20, e21, 1.0]])
-    pose_cov = to_euler @ cov9.take(_PTH_FLAT).reshape(6, 6) @ to_euler.T
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = (rot_of(*pose.q.tolist()) if r is None else r.tolist())
-    vx, vy, vz = pose.v.tolist()
+    (e00, e01, _), (e10, e11, _), (e20, e21, _) = _euler_rows(*q)
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rot
+    vx, vy, vz = v
     # Rᵀ and Rᵀ [v]×, row by row (row i of Rᵀ is column i of R).
-    jv = np.array([[a, b, c, b * vz - c * vy, c * vx - a * vz, a * vy - b * vx]
-                   for a, b, c in ((r00, r10, r20), (r01, r11, r21), (r02, r12, r22))])
+    velocity = [r00, r10, r20, r10 * vz - r20 * vy, r20 * vx - r00 * vz, r00 * vy - r10 * vx,
+                r01, r11, r21, r11 * vz - r21 * vy, r21 * vx - r01 * vz, r01 * vy - r11 * vx,
+                r02, r12, r22, r12 * vz - r22 * vy, r22 * vx - r02 * vz, r02 * vy - r12 * vx]
+    j = _J_CONSTANT.copy()
+    j.put(_J_VARIABLE, [e00, e01, e10, e11, e20, e21] + velocity + velocity)
+    return j @ pose.cov9.take(_BLOCKS_FLAT) @ j.transpose(0, 2, 1)
+
+
+def odometry_covariances(pose: OutputPose, r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """ODOMETRY's two 6 × 6 covariances from the estimator's (:func:`_covariance_products`): the pose's,
+    and the body velocity's with the body rates, the bias-corrected gyro, uncorrelated with the
+    velocity, with the gyro noise plus the bias variance."""
+    q = pose.q.tolist()
+    products = _covariance_products(pose, q, rot_of(*q) if r is None else r.tolist(), pose.v.tolist())
     vel_cov = np.zeros((6, 6))
-    vel_cov[0:3, 0:3] = jv @ cov9[3:9, 3:9] @ jv.T
+    vel_cov[0:3, 0:3] = products[1, 0:3, 0:3]
     vel_cov[3, 3], vel_cov[4, 4], vel_cov[5, 5] = pose.omega_var.tolist()
-    return pose_cov, vel_cov
+    return products[0], vel_cov
 
 
-def upper_triangle(cov: np.ndarray) -> list[float]:
-    """The 21 values of the upper-right triangle, row-major; all NaN when any is not finite (unknown)."""
-    values = cov.take(_TRIU_FLAT).tolist()
+def _known(values: list[float]) -> list[float]:
+    """``values``, or all NaN (unknown) when any is not finite."""
     if not math.isfinite(sum(values)):  # a NaN or an infinity anywhere (or values so large they overflow)
         return list(NAN21) if not all(map(math.isfinite, values)) else values
     return values
 
 
+def upper_triangle(cov: np.ndarray) -> list[float]:
+    """The 21 values of the upper-right triangle, row-major; all NaN when any is not finite (unknown)."""
+    return _known(cov.take(_TRIU_FLAT).tolist())
+
+
 def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) -> dict[str, Any]:
-    """Keyword arguments of ``odometry_encode`` for ``pose`` as ``profile``'s autopilot reads them."""
+    """Keyword arguments of ``odometry_encode`` for ``pose`` as ``profile``'s autopilot reads them.
+
+    It runs for every pose sent, so it works on plain floats around one numpy product."""
     quality = odometry_quality(pose)
     fields: dict[str, Any] = dict(
         time_usec=pose.t_ns // 1000,
@@ -134,14 +162,34 @@ def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) ->
         fields.update(x=nan, y=nan, z=nan, q=[nan] * 4, vx=nan, vy=nan, vz=nan, rollspeed=nan, pitchspeed=nan,
                       yawspeed=nan, pose_covariance=list(NAN21), velocity_covariance=list(NAN21))
         return fields
-    r = quat_to_rot(pose.q)
-    pose_cov, vel_cov = odometry_covariances(pose, r)
-    vx, vy, vz = (r.T @ pose.v).tolist()
+    q = pose.q.tolist()
+    rot = rot_of(*q)
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rot
+    v = pose.v.tolist()
+    vx, vy, vz = v
     x, y, z = pose.p.tolist()
     rollspeed, pitchspeed, yawspeed = pose.omega_b.tolist()
+    triangles = _covariance_products(pose, q, rot, v).take(_TRIANGLES_FLAT).tolist()
+    v00, v01, v02, v11, v12, v22 = triangles[21:]
+    w0, w1, w2 = pose.omega_var.tolist()
     fields.update(
-        x=x, y=y, z=z, q=pose.q.tolist(), vx=vx, vy=vy, vz=vz, rollspeed=rollspeed, pitchspeed=pitchspeed, yawspeed=yawspeed,
-        pose_covariance=upper_triangle(pose_cov),
-        velocity_covariance=upper_triangle(vel_cov),
+        x=x, y=y, z=z, q=q, rollspeed=rollspeed, pitchspeed=pitchspeed, yawspeed=yawspeed,
+        vx=r00 * vx + r10 * vy + r20 * vz, vy=r01 * vx + r11 * vy + r21 * vz, vz=r02 * vx + r12 * vy + r22 * vz,  # Rᵀ v
+        pose_covariance=_known(triangles[:21]),
+        velocity_covariance=_known([v00, v01, v02, 0.0, 0.0, 0.0, v11, v12, 0.0, 0.0, 0.0, v22, 0.0, 0.0, 0.0,
+                                    w0, 0.0, 0.0, w1, 0.0, w2]),
     )
     return fields
+
+ODOMETRY_ID = mav.MAVLINK_MSG_ID_ODOMETRY
+ODOMETRY_CRC_EXTRA = mav.MAVLink_odometry_message.crc_extra  # 91: the checksum's seed from the message's definition
+# The wire order (fields by size, largest first; the MAVLink 2 extensions last), all little-endian.
+_ODOMETRY = struct.Struct("<Q3f4f6f21f21f4Bb")
+
+
+def odometry_payload(f: dict[str, Any]) -> bytes:
+    """ODOMETRY's full 233-byte payload from :func:`odometry_fields` (the frame cuts its trailing zeros),
+    byte for byte what pymavlink's ``MAVLink_odometry_message(**f)`` packs."""
+    return _ODOMETRY.pack(f["time_usec"], f["x"], f["y"], f["z"], *f["q"], f["vx"], f["vy"], f["vz"], f["rollspeed"],
+                          f["pitchspeed"], f["yawspeed"], *f["pose_covariance"], *f["velocity_covariance"], f["frame_id"],
+                          f["child_frame_id"], f["reset_counter"], f["estimator_type"], f["quality"])

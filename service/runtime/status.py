@@ -67,8 +67,12 @@ def pose_quality(pose: OutputPose, diagonal: list[float] | None = None) -> int:
     """0 = invalid (:func:`pose_problem`); else 1–100 from the largest position and attitude sigmas, never
     above the filter's health cap (a stale sensor, a recent reset: ``estimator.health``)."""
     d = pose.cov9.diagonal().tolist() if diagonal is None else diagonal
-    if pose_problem(pose, d) is not None:
-        return 0
+    return 0 if pose_problem(pose, d) is not None else usable_pose_quality(pose, d)
+
+
+def usable_pose_quality(pose: OutputPose, diagonal: list[float] | None = None) -> int:
+    """:func:`pose_quality` of a pose already known to have no :func:`pose_problem` (it is not asked again)."""
+    d = pose.cov9.diagonal().tolist() if diagonal is None else diagonal
     q = min(_score(math.sqrt(max(d[0:3])), _POS_SIGMA_GOOD_M, _POS_DECADES),
             _score(math.sqrt(max(d[6:9])), _ATT_SIGMA_GOOD_RAD, _ATT_DECADES))
     return min(max(1, int(round(100.0 * q))), pose.quality_cap)
