@@ -245,7 +245,13 @@ class NmeaGps:
             return
         lat = _degrees(msg.lat, msg.lat_dir, ("N", "S"), 90.0)
         lon = _degrees(msg.lon, msg.lon_dir, ("E", "W"), 180.0)
-        height = alt + (_number(msg.geo_sep) or 0.0)
+        # An empty geoid separation is 0 (receivers that give heights above the ellipsoid leave it out); one
+        # that is there but not a number (a NUL slipped in passes the XOR checksum) makes the line malformed.
+        geo_sep = 0.0 if msg.geo_sep in (None, "") else _number(msg.geo_sep)
+        if geo_sep is None:
+            self.counts["malformed"] += 1
+            return
+        height = alt + geo_sep
         if not isinstance(msg.gps_qual, int) or lat is None or lon is None or not abs(height) <= MAX_HEIGHT_M:
             self.counts["implausible"] += 1
             return
