@@ -83,3 +83,16 @@ def test_eta_waits_for_enough_work_then_follows_the_average_rate():
 def test_progress_is_silent_off_a_terminal(long_book, capfd):
     assert main(["-q", "replay", str(long_book)]) == 0
     assert "replay book" not in capfd.readouterr().err
+
+
+def test_the_first_draw_that_knows_the_total_is_never_skipped():
+    """'reading the data' first; the 0 % line right after it, however fast the data were read."""
+    now = [0.0]
+    out = io.StringIO()
+    progress = Progress(None, "x", stream=out, enabled=True, clock=lambda: now[0])
+    now[0] = 0.01
+    progress.total = 10.0
+    progress.update(0.0)
+    progress.update(0.5)  # within 0.1 s of the last draw: skipped
+    draws = [d for d in out.getvalue().split("\r") if d]
+    assert "reading the data" in draws[0] and len(draws) == 2 and PERCENT.search(draws[1]).group(1) == "0.0"

@@ -38,6 +38,7 @@ class Progress:
         self._clock = clock
         self._start = clock()
         self._last_draw = -math.inf
+        self._drawn_with_total = False
         self.done = 0.0
         if self.enabled:
             self._draw(0.0, "reading the data")
@@ -64,6 +65,7 @@ class Progress:
 
     def _draw(self, done: float, note: str = "") -> None:
         self._last_draw = self._clock()
+        self._drawn_with_total = self.total is not None
         self.stream.write("\r" + self.line(done, note) + "\033[K")
         self.stream.flush()
 
@@ -71,7 +73,9 @@ class Progress:
         self.done = done
         if not self.enabled:
             return
-        if self._clock() - self._last_draw < 0.1 and (self.total is None or done < self.total):
+        # At most ten draws a second, but the first one that knows the total (0 %) and the last always.
+        if (self._clock() - self._last_draw < 0.1 and (self.total is None or done < self.total)
+                and self._drawn_with_total == (self.total is not None)):
             return
         self._draw(done, note)
 
