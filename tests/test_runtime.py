@@ -166,3 +166,20 @@ def test_camera_work_yields_the_cpu_to_the_pose_path_in_paced_runs(flight):
     finally:
         cv2.setNumThreads(before)
     assert seen and all(threads == 2 for _, threads in seen)  # full-speed replays keep OpenCV's pool
+
+
+def test_the_pose_history_is_kept_for_outputs_only(flight):
+    """The history answers queries through an output; an offline replay without one keeps none
+    (and no output predictor), so the same fused trajectory costs less."""
+    items = samples(flight, 0.0, 8.0, frames=False)
+    fused = {}
+    for outputs in ([PoseList()], []):
+        est = Estimator(flight.calibration, filter_options(load_config(), flight.calibration.imu.noise))
+        seen = []
+        runtime = Runtime(est, RuntimeOptions(fusion=FusionOptions(delay_s=0.15), lockstep=True), outputs=outputs,
+                          on_fused=lambda pose, seen=seen: seen.append((pose.t_ns, *pose.p.tolist())))
+        run(runtime, items, 0.0)
+        assert runtime.keep_history is bool(outputs) and runtime.fusion.predict is bool(outputs)
+        assert (len(runtime.history) > 0) is bool(outputs)
+        fused[bool(outputs)] = seen
+    assert fused[True] == fused[False] and len(fused[True]) > 100

@@ -138,6 +138,7 @@ class Runtime:
         self.fusion = FusionCore(estimator, opts.fusion, on_fused=self._on_fused)
         self.history = PoseHistory(opts.history_s)
         self.history_lock = threading.Lock()  # queries read the history on Zenoh's threads
+        self.keep_history = True  # run() turns it off when there are no outputs to answer from it
         self.outputs = list(outputs)
         self.camera_processor = camera_processor
         self.trajectory = trajectory
@@ -259,19 +260,21 @@ class Runtime:
                 self._on_smoothed(smoothed)
 
     def _on_smoothed(self, poses: list[SmoothedPose]) -> None:
-        x = np.array([pose.x for pose in poses])
-        rows = np.zeros((len(poses), ROW))
-        rows[:, P], rows[:, Q], rows[:, V] = x[:, 0:3], x[:, 6:10], x[:, 3:6]
-        rows[:, COV] = np.array([pose.pose_cov for pose in poses]).reshape(len(poses), 36)
-        with self.history_lock:
-            self.history.add_smoothed(np.array([pose.t_ns for pose in poses], dtype=np.int64), rows)
+        if self.keep_history:
+            x = np.array([pose.x for pose in poses])
+            rows = np.zeros((len(poses), ROW))
+            rows[:, P], rows[:, Q], rows[:, V] = x[:, 0:3], x[:, 6:10], x[:, 3:6]
+            rows[:, COV] = np.array([pose.pose_cov for pose in poses]).reshape(len(poses), 36)
+            with self.history_lock:
+                self.history.add_smoothed(np.array([pose.t_ns for pose in poses], dtype=np.int64), rows)
         if self.smoothed_hook is not None:
             self.smoothed_hook(poses)
 
     def _on_fused(self, pose: OutputPose) -> None:
-        row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
-        with self.history_lock:
-            self.history.add_fused(pose.t_ns, row)
+        if self.keep_history:
+            row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
+            with self.history_lock:
+                self.history.add_fused(pose.t_ns, row)
         if self.trajectory is not None:
             try:
                 self.trajectory.write(pose)
@@ -409,8 +412,9 @@ class Runtime:
         if not self.options.lockstep or self.options.camera_workers > 1:
             cv2.setNumThreads(1)
         opened: list[PoseOutput] = []
-        # Without outputs nobody reads the present pose (an offline replay): no output predictor.
-        self.fusion.predict = bool(self.outputs)
+        # Without outputs nobody reads the present pose (an offline replay): no output predictor,
+        # and no history of poses for queries nobody can ask.
+        self.fusion.predict = self.keep_history = bool(self.outputs)
         try:
             for out in self.outputs:
                 try:
