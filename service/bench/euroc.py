@@ -200,13 +200,18 @@ def _angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
-def run_flight(flight: Flight, work: Path, variants: tuple[str, ...] = VARIANTS, smooth: bool = False) -> list[FlightScore]:
-    """Import ``flight`` into ``work`` as issue 12 prescribes, replay it with IMU and GPS per variant (and with
-    ``--smooth``), score it."""
+def imported_flight(flight: Flight, work: Path) -> Dataset:
+    """``flight`` imported into ``work`` as issue 12 prescribes (GPS from the truth at 10 Hz, 2 cm, seed 1)."""
     out = work / flight.name
     import_euroc(flight.source, out, gps_rate_hz=GPS_RATE_HZ, gps_sigma_m=GPS_SIGMA_M, seed=GPS_SEED,
                  overwrite=True, truth_file=flight.truth_file, camera=False)
-    dataset = Dataset.open(out)
+    return Dataset.open(out)
+
+
+def run_flight(flight: Flight, work: Path, variants: tuple[str, ...] = VARIANTS, smooth: bool = False) -> list[FlightScore]:
+    """Import ``flight`` into ``work`` (:func:`imported_flight`), replay it with IMU and GPS per variant (and
+    with ``--smooth``), score it."""
+    dataset = imported_flight(flight, work)
     scores = []
     for variant in variants:
         cfg = load_config(None, {"estimator": {"variant": variant}})

@@ -22,8 +22,7 @@ import numpy as np
 
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.files.euroc_import import import_euroc
-from vtolpose.service.bench.euroc import GPS_RATE_HZ, GPS_SEED, GPS_SIGMA_M, VARIANTS, flights_or_skip
+from vtolpose.service.bench.euroc import VARIANTS, flights_or_skip, imported_flight
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import replay
 
@@ -125,10 +124,7 @@ def bench_euroc_reference(echo: Callable[[str], None] = print) -> list[Row]:
     rows: list[Row] = []
     with tempfile.TemporaryDirectory() as tmp:
         for flight in flights:
-            out = Path(tmp) / flight.name
-            import_euroc(flight.source, out, gps_rate_hz=GPS_RATE_HZ, gps_sigma_m=GPS_SIGMA_M, seed=GPS_SEED,
-                         overwrite=True, truth_file=flight.truth_file, camera=False)
-            dataset = Dataset.open(out)
+            dataset = imported_flight(flight, Path(tmp))
             rates, cpu_rates = {}, {}
             for variant in VARIANTS:
                 cpu0 = time.process_time()
