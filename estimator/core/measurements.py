@@ -8,17 +8,39 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Iterator
 
 import numpy as np
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class ImuSample:
-    """One IMU reading in body FRD: angular rate [rad/s] and specific force [m/s^2]."""
+    """One IMU reading in body FRD: angular rate [rad/s] and specific force [m/s^2].
+
+    A value, never changed once made; not a frozen dataclass only because one of those costs three
+    times as much to construct, and one is made for every sample.
+    """
 
     t_ns: int
     gyro: np.ndarray
     accel: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class ImuBatch:
+    """Consecutive IMU readings handed over at once (a replay as fast as possible): the rows are
+    :class:`ImuSample` s in time order, ``t_ns`` (n,) int64, ``gyro`` and ``accel`` (n, 3)."""
+
+    t_ns: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def samples(self) -> Iterator[ImuSample]:
+        for t, gyro, accel in zip(self.t_ns.tolist(), self.gyro, self.accel):
+            yield ImuSample(t, gyro, accel)
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,6 +63,13 @@ class ImuRange:
         g2, a2 = gx * gx + gy * gy + gz * gz, ax * ax + ay * ay + az * az
         return (g2 > 3.0 * self.gyro**2 or a2 > 3.0 * self.accel**2) and math.isfinite(g2 + a2)
 
+    def exceeded_rows(self, gyro: np.ndarray, accel: np.ndarray) -> np.ndarray:
+        """:meth:`exceeded` for each row of (n, 3) readings, the same arithmetic on whole columns."""
+        g2 = gyro[:, 0] * gyro[:, 0] + gyro[:, 1] * gyro[:, 1] + gyro[:, 2] * gyro[:, 2]
+        a2 = accel[:, 0] * accel[:, 0] + accel[:, 1] * accel[:, 1] + accel[:, 2] * accel[:, 2]
+        with np.errstate(over="ignore", invalid="ignore"):
+            return ((g2 > 3.0 * self.gyro**2) | (a2 > 3.0 * self.accel**2)) & np.isfinite(g2 + a2)
+
 
 def readings_finite(gyro: np.ndarray, accel: np.ndarray) -> bool:
     """Every component of both readings finite (their squares' sum is finite exactly then).
@@ -51,6 +80,14 @@ def readings_finite(gyro: np.ndarray, accel: np.ndarray) -> bool:
     gx, gy, gz = gyro.tolist()
     ax, ay, az = accel.tolist()
     return math.isfinite(gx * gx + gy * gy + gz * gz + ax * ax + ay * ay + az * az)
+
+
+def rows_finite(gyro: np.ndarray, accel: np.ndarray) -> np.ndarray:
+    """:func:`readings_finite` for each row of (n, 3) readings (the same sum, in the same order)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = gyro[:, 0] * gyro[:, 0] + gyro[:, 1] * gyro[:, 1] + gyro[:, 2] * gyro[:, 2]
+        total = total + accel[:, 0] * accel[:, 0] + accel[:, 1] * accel[:, 1] + accel[:, 2] * accel[:, 2]
+        return np.isfinite(total)
 
 
 @dataclass(frozen=True, slots=True)

@@ -18,9 +18,11 @@ import numpy as np
 from vtolpose.estimator.core.rotation import rotvec_quat
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class ImuDelta:
-    """Raw (bias-uncorrected) increments over ``[t0_ns, t1_ns]``, in the body frame at ``t0``."""
+    """Raw (bias-uncorrected) increments over ``[t0_ns, t1_ns]``, in the body frame at ``t0``.
+
+    A value, never changed once made (not frozen: see :class:`~vtolpose.estimator.core.measurements.ImuSample`)."""
 
     t0_ns: int
     t1_ns: int

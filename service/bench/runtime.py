@@ -255,11 +255,12 @@ def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0, camer
         async def sampled() -> Any:
             next_t = t_first + int(60e9)  # from the first minute on: the filter is running by then
             async for item in source:
-                if item.t_ns >= next_t:
-                    sample(item.t_ns)
+                t_ns = item.t_ns if isinstance(item.t_ns, int) else int(item.t_ns[-1])  # a sample or an IMU batch
+                if t_ns >= next_t:
+                    sample(t_ns)
                     next_t += int(every_s * 1e9)
                 yield item
-            sample(item.t_ns)
+            sample(t_ns)
 
         logs = _LogCounter()
         logging.getLogger().addHandler(logs)

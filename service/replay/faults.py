@@ -28,7 +28,7 @@ from typing import Any, AsyncIterator, Iterable, Sequence
 
 import numpy as np
 
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuBatch, ImuSample
 
 __all__ = ["FAULT_KINDS", "Fault", "FaultError", "FaultInjector", "FaultyStream", "add_fault_options", "inject",
            "injector_from", "parse_fault", "parse_faults"]
@@ -276,10 +276,12 @@ class FaultyStream:
         return getattr(self.source, "last_arrival_ns", None)
 
     async def __aiter__(self) -> AsyncIterator[Sample]:
-        async for sample in self.source:
-            out = self.injector.apply(sample)
-            if out is not None:
-                yield out
+        async for item in self.source:
+            # Faults act on single samples: a batch of IMU samples (a full-speed replay) is taken apart.
+            for sample in item.samples() if isinstance(item, ImuBatch) else (item,):
+                out = self.injector.apply(sample)
+                if out is not None:
+                    yield out
 
 
 def inject(source: AsyncIterator[Sample], injector: FaultInjector) -> FaultyStream:

@@ -31,7 +31,7 @@ import numpy as np
 
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuRange, ImuSample
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuBatch, ImuRange, ImuSample
 from vtolpose.estimator.pose_history import COV, P, Q, ROW, V, PoseHistory
 from vtolpose.estimator.smoothing.fixed_lag import FixedLagSmoother, SmoothedPose
 from vtolpose.estimator.smoothing.recorder import StepRecorder
@@ -173,6 +173,8 @@ class Runtime:
                 self.failures.record("sample tap", exc)
         if isinstance(sample, ImuSample):
             self._on_imu(sample, arrived_ns)
+        elif isinstance(sample, ImuBatch):
+            self._on_imu_batch(sample, arrived_ns)
         elif isinstance(sample, GpsFix):
             if self._gps_offset_ns:
                 sample = replace(sample, t_ns=sample.t_ns + self._gps_offset_ns)
@@ -222,6 +224,35 @@ class Runtime:
             except Exception as exc:  # the history keeps its filtered poses; the pose path is untouched
                 self.failures.record("fixed-lag smoother (stopped)", exc)
                 self.smoother = None
+
+    def _on_imu_batch(self, batch: ImuBatch, arrived_ns: int | None) -> None:
+        """A replay's run of IMU samples: what :meth:`_on_imu` does for each, done once for all.
+
+        Only where no present pose is wanted (no outputs, probes or live smoother, as in an offline
+        replay) and no tap sees samples; otherwise each sample takes the live path, one by one.
+        """
+        if self.outputs or self.sample_taps or self.latency is not None or self.smoother is not None:
+            for sample in batch.samples():
+                self.handle(sample, arrived_ns)
+            return
+        n = len(batch)
+        if n == 0:
+            return
+        self.status.saw("imu", n)
+        if self._first_t is None:
+            self._first_t = int(batch.t_ns[0])
+        t_ns, gyro, accel = batch.t_ns, batch.gyro, batch.accel
+        imu_range = self.options.imu_range
+        if imu_range is not None:
+            out = imu_range.exceeded_rows(gyro, accel)
+            if out.any():
+                counts = self.est.counts["imu"]
+                refused = int(np.count_nonzero(out))
+                counts.received += refused
+                counts.reject("out_of_range", refused)
+                keep = ~out
+                t_ns, gyro, accel = t_ns[keep], gyro[keep], accel[keep]
+        self.fusion.add_imu_batch(t_ns, gyro, accel)
 
     # -------------------------------------------------------------------------- smoothing
     def enable_smoothing(self, lag_s: float, steps_per_sample: int = 4, max_window_s: float = 10.0,
@@ -328,8 +359,8 @@ class Runtime:
         lockstep = self.options.lockstep
         try:
             async for sample in source:
-                if lockstep and isinstance(sample, ImuSample) and self._camera_jobs:
-                    await self._before_imu(sample.t_ns)
+                if lockstep and self._camera_jobs and isinstance(sample, (ImuSample, ImuBatch)):
+                    await self._before_imu(sample.t_ns if isinstance(sample, ImuSample) else int(sample.t_ns[-1]))
                 try:
                     self.handle(sample, getattr(source, "last_arrival_ns", None) if self.latency is not None else None)
                 except Exception as exc:

@@ -9,6 +9,7 @@ time order, paced by a :class:`ReplayClock`; the runtime cannot tell the two apa
 from __future__ import annotations
 
 import asyncio
+from bisect import bisect_left, bisect_right
 import logging
 import threading
 import time
@@ -18,11 +19,11 @@ from typing import Any, AsyncIterator, Callable, Sequence, Union
 import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuBatch, ImuSample
 
 log = logging.getLogger(__name__)
 
-Sample = Union[ImuSample, GpsFix, CameraFrame]
+Sample = Union[ImuSample, ImuBatch, GpsFix, CameraFrame]
 
 
 class ReplayClock:
@@ -37,10 +38,12 @@ class ReplayClock:
         self._origin: tuple[int, float] | None = None
         self._n = 0
 
-    async def wait_until(self, t_ns: int) -> None:
-        self._n += 1
+    async def wait_until(self, t_ns: int, samples: int = 1) -> None:
+        """Wait for ``t_ns``; ``samples``: how many samples are handed out at it (a batch counts each)."""
+        n = self._n
+        self._n = n + samples
         if self.speed == 0.0:
-            if self._n % self.YIELD_EVERY == 0:
+            if self._n // self.YIELD_EVERY != n // self.YIELD_EVERY:
                 await asyncio.sleep(0)
             return
         now = time.perf_counter()
@@ -50,7 +53,7 @@ class ReplayClock:
         delay = wall0 + (t_ns - t0) * 1e-9 / self.speed - now
         if delay > 0:
             await asyncio.sleep(delay)
-        elif self._n % self.YIELD_EVERY == 0:
+        elif self._n // self.YIELD_EVERY != n // self.YIELD_EVERY:
             await asyncio.sleep(0)
 
 
@@ -129,7 +132,29 @@ class ReplaySource:
         t_start = imu_t[0] + self.start_after_ns
         ahead: dict[int, asyncio.Future] = {}
         progress = self.on_progress
-        for kind, i in zip(kinds.tolist(), indices.tolist()):
+        # As fast as possible, each run of IMU samples between two other samples goes out as one
+        # ImuBatch (at most YIELD_EVERY long): the same samples in the same order, handed over once.
+        runs = _imu_runs(kinds, ReplayClock.YIELD_EVERY) if self.clock.speed == 0.0 else None
+        kinds_l, indices_l = kinds.tolist(), indices.tolist()
+        j, n = 0, len(kinds_l)
+        while j < n:
+            kind, i = kinds_l[j], indices_l[j]
+            if runs is not None and kind == 0:
+                j_end = runs[j]
+                i_end = i + (j_end - j)  # IMU indices within a run are consecutive
+                j = j_end
+                i = max(i, bisect_left(imu_t, t_start, i, i_end))
+                stop = i_end if t_end is None else bisect_right(imu_t, t_end, i, i_end)
+                if stop > i:
+                    if progress is not None and (i + PROGRESS_EVERY - 1) // PROGRESS_EVERY * PROGRESS_EVERY < stop:
+                        progress((imu_t[stop - 1] - imu_t[0]) * 1e-9)
+                    await self.clock.wait_until(imu_t[stop - 1], stop - i)
+                    self.last_arrival_ns = time.perf_counter_ns()
+                    yield ImuBatch(imu.t_ns[i:stop], imu.gyro[i:stop], imu.accel[i:stop])
+                if stop < i_end:
+                    return  # past stop_after_s
+                continue
+            j += 1
             if (imu_t[i] if kind == 0 else int(gps.t_ns[i]) if kind == 1 else self.frames[i][0]) < t_start:
                 continue
             if kind == 0:
@@ -151,6 +176,15 @@ class ReplaySource:
                     continue
             self.last_arrival_ns = time.perf_counter_ns()
             yield sample
+
+
+def _imu_runs(kinds: np.ndarray, longest: int) -> list[int]:
+    """For each position of a merged order, where its run of IMU samples (kind 0) ends (exclusive),
+    cut every ``longest`` samples; only the value at a run's first position is read."""
+    n = len(kinds)
+    boundary = np.append(np.flatnonzero(kinds != 0), n)  # the next non-IMU position (or the end) ends a run
+    run_end = boundary[np.searchsorted(boundary, np.arange(n), side="left")]
+    return np.minimum(run_end, np.arange(n) + longest).tolist()
 
 
 class ThreadedSource:

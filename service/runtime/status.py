@@ -167,12 +167,12 @@ class StatusTracker:
         self._last_wall = self.clock()
         self._last_cpu = time.process_time()
 
-    def saw(self, sensor: str) -> None:
+    def saw(self, sensor: str, n: int = 1) -> None:
         s = self.sensors.get(sensor)
         if s is None:
             s = self.sensors[sensor] = _Sensor()
-        s.total += 1
-        s.since_report += 1
+        s.total += n
+        s.since_report += n
         s.last_arrival = self.clock()
 
     def count(self, event: str, n: int = 1) -> None:
