@@ -198,3 +198,48 @@ def test_fast_propagate_equals_reference_functions(variant, isotropic):
         assert np.allclose(state.cov[:n, :n], F @ before.cov[:n, :n] @ F.T + Q, atol=1e-10)
         assert np.allclose(state.cov[:n, n:], F @ before.cov[:n, n:], atol=1e-10)
         assert np.array_equal(state.cov[n:, n:], before.cov[n:, n:])
+
+
+@pytest.mark.parametrize("variant", ["thesis", "biases"])
+def test_compiled_step_is_bit_for_bit_the_interpreted_one(variant):
+    """The compiled step (numba) must do the interpreted step's operations in the same order: the filter's
+    numbers do not depend on which runs. Also at a zero rotation (the small-angle branches)."""
+    from vtolpose.estimator.inertial import propagation_kernel as kernel
+
+    n = StateLayout(variant).robot_dim
+    local = np.random.default_rng(7)
+    for k in range(20):
+        q = quat_from_euler(*local.uniform(-3.0, 3.0, 3))
+        p, v, b_g, b_a = (local.normal(size=3) * s for s in (10.0, 2.0, 0.01, 0.1))
+        dt = float(local.uniform(0.002, 0.05))
+        dtheta = np.zeros(3) if k == 0 else local.normal(size=3) * dt
+        dvel = local.normal(size=3) * dt + np.array([0.0, 0.0, -9.8 * dt])
+        A = local.normal(size=(n, n))
+        cov, Q = A @ A.T, np.diag(local.uniform(1e-9, 1e-6, n))
+        results = []
+        for step in (kernel.step, kernel.step.py_func):
+            F, out = np.eye(n), np.empty(kernel.OUT_LEN)
+            grown = step(p, v, q, b_g, b_a, dtheta, dvel, dt, 9.81, F, cov, Q, variant == "biases", out)
+            results.append((grown, F, out))
+        for compiled, interpreted in zip(*results):
+            assert np.array_equal(compiled, interpreted)
+
+
+def test_the_compiled_step_is_not_compiled_again_during_a_replay(tmp_path):
+    """One machine-code version of the step serves every call of a replay with camera, landmarks and both
+    state layouts (the heading bank's): another would be compiled mid-flight, a second-long stall."""
+    from vtolpose.config import load_config
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.drivers.simulator import simulate_flight
+    from vtolpose.drivers.simulator.export import write_flight
+    from vtolpose.drivers.simulator.render import default_camera
+    from vtolpose.estimator.inertial import propagation_kernel as kernel
+    from vtolpose.service.replay.session import replay
+
+    write_flight(simulate_flight("book", 8.0, 1), tmp_path / "book", camera=default_camera())
+    dataset = Dataset.open(tmp_path / "book")
+    for variant in ("thesis", "biases"):
+        cfg = load_config(None, {"estimator": {"variant": variant, "heading": {"source": "gps"}}, "features": {"detector": "orb"}})
+        result = replay(dataset, cfg, ["imu", "camera", "gps"])
+        assert result.estimator.state is not None and result.estimator.state.n_landmarks > 0
+    assert len(kernel.step.signatures) == 1, kernel.step.signatures

@@ -16,6 +16,7 @@ size, not O(n²). :func:`error_transition` is tested against central differences
 from __future__ import annotations
 
 import math
+from types import ModuleType
 
 import numpy as np
 
@@ -23,6 +24,8 @@ from vtolpose.estimator.core.calibration import ImuNoise
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
 from vtolpose.estimator.core.rotation import rot_of as _rot, rotvec_quat
 from vtolpose.estimator.core.state import FilterState, StateLayout
+
+OUT_LEN = 13  # what the compiled step writes: p, v, q, a_W
 
 
 def _skew(x: float, y: float, z: float) -> np.ndarray:
@@ -151,9 +154,9 @@ def noise_dt_polynomial(noise: ImuNoise, layout: StateLayout, extra: float = 0.0
 class ImuPropagator:
     """Advances a :class:`FilterState` by one IMU delta.
 
-    The per-step hot path: rotation quantities are computed once with scalar arithmetic and
-    written into a preallocated transition matrix with one indexed assignment; the blocks that
-    depend only on ``dt`` (and the process noise) are rewritten only when ``dt`` changes.
+    The per-step hot path: one call of the compiled step (``propagation_kernel``), which writes the
+    state-dependent entries of a preallocated transition matrix; the process noise is kept while
+    ``dt`` and the extra accelerometer noise stay the same.
     """
 
     def __init__(self, noise: ImuNoise, gravity: float) -> None:
@@ -162,11 +165,9 @@ class ImuPropagator:
         self._g = float(gravity)
         self._isotropic = is_isotropic(noise)
         self._F: np.ndarray | None = None
-        self._eye3 = np.eye(3)
         # Per layout (the heading bank's members carry biases while the filter may not, and they
-        # alternate): [F, flat view of F, the dt its constant blocks hold]; and Q's polynomial terms
-        # with the last (dt, extra², Q).
-        self._transitions: dict[str, list] = {}
+        # alternate): F; and Q's polynomial terms with the last (dt, extra², Q).
+        self._transitions: dict[str, np.ndarray] = {}
         self._q_terms: dict[str, tuple] = {}
         self._q_last: dict[str, tuple[float, float, np.ndarray]] = {}
 
@@ -197,96 +198,44 @@ class ImuPropagator:
         self._q_last[key] = (dt, e2, Q)
         return Q
 
-    def _transition(self, layout: StateLayout, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """The preallocated F of ``layout`` with its dt-only blocks written for ``dt``, and its flat view."""
-        held = self._transitions.get(layout.variant)
-        if held is None:
-            F = np.eye(layout.robot_dim)
-            held = self._transitions[layout.variant] = [F, F.reshape(-1), math.nan]
-        F = held[0]
-        if dt != held[2]:
-            F[0:3, 3:6] = self._eye3 * dt
-            held[2] = dt
+    def _transition(self, layout: StateLayout) -> np.ndarray:
+        """The preallocated F of ``layout``: identity and zeros, its other entries written by every step."""
+        F = self._transitions.get(layout.variant)
+        if F is None:
+            F = self._transitions[layout.variant] = np.eye(layout.robot_dim)
         self._F = F
-        return F, held[1]
+        return F
 
     def propagate(self, state: FilterState, delta: ImuDelta, extra_horizontal_accel: float = 0.0) -> np.ndarray:
-        """Propagate nominal state and covariance over ``delta``; returns ``a_W``."""
+        """Propagate nominal state and covariance over ``delta``; returns ``a_W``.
+
+        The arithmetic is :func:`~vtolpose.estimator.inertial.propagation_kernel.step`, compiled; only
+        the robot rows and columns of the covariance change (the map's cross terms through F).
+        """
         lay = state.layout
         n = lay.robot_dim
-        dt = delta.dt
-        Q = self._noise(state.q, dt, lay, extra_horizontal_accel)
-        w, x, y, z = state.q.tolist()
-        bgx, bgy, bgz = state.b_g.tolist()
-        tx, ty, tz = delta.dtheta.tolist()
-        px, py, pz = tx - bgx * dt, ty - bgy * dt, tz - bgz * dt
-        vx, vy, vz = delta.dvel.tolist()
-        # Δv corrected for the slower rotation, then the mean specific force minus b_a.
-        h = 0.5 * dt
-        cx, cy, cz = bgy * vz - bgz * vy, bgz * vx - bgx * vz, bgx * vy - bgy * vx
-        bax, bay, baz = state.b_a.tolist()
-        fx, fy, fz = (vx - h * cx) / dt - bax, (vy - h * cy) / dt - bay, (vz - h * cz) / dt - baz
-        r = _rot(w, x, y, z)
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = r
-        ax = r00 * fx + r01 * fy + r02 * fz
-        ay = r10 * fx + r11 * fy + r12 * fz
-        sz = r20 * fx + r21 * fy + r22 * fz  # the specific force's z, before gravity
-        az = sz + self._g
-        h2 = 0.5 * dt * dt
-        p0x, p0y, p0z = state.p.tolist()
-        v0x, v0y, v0z = state.v.tolist()
-        state.p = np.array([p0x + v0x * dt + h2 * ax, p0y + v0y * dt + h2 * ay, p0z + v0z * dt + h2 * az])
-        state.v = np.array([v0x + ax * dt, v0y + ay * dt, v0z + az * dt])
-        dw, dx, dy, dz = rotvec_quat(px, py, pz)
-        nw = w * dw - x * dx - y * dy - z * dz
-        nx = w * dx + x * dw + y * dz - z * dy
-        ny = w * dy - x * dz + y * dw + z * dx
-        nz = w * dz + x * dy - y * dx + z * dw
-        norm = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        nw, nx, ny, nz = nw * norm, nx * norm, ny * norm, nz * norm
-        state.q = np.array([nw, nx, ny, nz])
-
-        F, F_flat = self._transition(lay, dt)
-        # −[R f]× scaled by ½dt² (position) and dt (velocity), in the attitude columns.
-        values = [sz * h2, -ay * h2, -sz * h2, ax * h2, ay * h2, -ax * h2,
-                  sz * dt, -ay * dt, -sz * dt, ax * dt, ay * dt, -ax * dt]
-        if lay.estimates_biases:
-            # ∂a/∂b_g = ½ R [Δv]×, the attitude's −dt R(q') Jr(φ), the accelerometer bias's −R.
-            hx, hy, hz = 0.5 * vx, 0.5 * vy, 0.5 * vz
-            d = ((r01 * hz - r02 * hy, r02 * hx - r00 * hz, r00 * hy - r01 * hx),
-                 (r11 * hz - r12 * hy, r12 * hx - r10 * hz, r10 * hy - r11 * hx),
-                 (r21 * hz - r22 * hy, r22 * hx - r20 * hz, r20 * hy - r21 * hx))
-            rn, jr = _rot(nw, nx, ny, nz), _jr(px, py, pz)
-            m = -dt
-            values += [e * h2 for row in d for e in row]
-            values += [e * dt for row in d for e in row]
-            values += [(a[0] * jr[0][j] + a[1] * jr[1][j] + a[2] * jr[2][j]) * m for a in rn for j in range(3)]
-            values += [e * -h2 for row in r for e in row]
-            values += [e * m for row in r for e in row]
-        F_flat[_transition_index(n, lay.estimates_biases)] = values
+        Q = self._noise(state.q, delta.dt, lay, extra_horizontal_accel)
+        F = self._transition(lay)
+        out = np.empty(OUT_LEN)
         cov = state.cov
+        # The step is compiled for C-ordered arrays; anything else would compile it again, mid-flight.
+        robot = cov if cov.shape[0] == n and cov.flags.c_contiguous else np.ascontiguousarray(cov[:n, :n])
+        grown = _kernel().step(state.p, state.v, state.q, state.b_g, state.b_a, delta.dtheta, delta.dvel, delta.dt,
+                               self._g, F, robot, Q, lay.estimates_biases, out)
+        state.p, state.v, state.q = out[0:3], out[3:6], out[6:10]
         if cov.shape[0] == n:
-            state.cov = F @ cov @ F.T + Q
+            state.cov = grown
         else:
-            cov[:n, :n] = F @ cov[:n, :n] @ F.T + Q
+            cov[:n, :n] = grown
             cross = F @ cov[:n, n:]
             cov[:n, n:] = cross
             cov[n:, :n] = cross.T
-        return np.array([ax, ay, az])
+        return out[10:13]
 
 
-_INDEX_CACHE: dict[tuple[int, bool], np.ndarray] = {}
+def _kernel() -> ModuleType:
+    """The compiled step's module, imported on first use (importing numba takes ~0.4 s; the runtime
+    loads it before the first sample, see ``propagation_kernel.warm_up``)."""
+    from vtolpose.estimator.inertial import propagation_kernel
 
-
-def _transition_index(n: int, biases: bool) -> np.ndarray:
-    """Flat indices of F's state-dependent entries, in the order :meth:`ImuPropagator.propagate` lists them."""
-    key = (n, biases)
-    index = _INDEX_CACHE.get(key)
-    if index is None:
-        skew = [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)]  # nonzero entries of a 3 × 3 skew matrix
-        cells = [(r, 6 + c) for r, c in skew] + [(3 + r, 6 + c) for r, c in skew]
-        if biases:
-            for row0, col0 in ((0, 9), (3, 9), (6, 9), (0, 12), (3, 12)):
-                cells += [(row0 + i, col0 + j) for i in range(3) for j in range(3)]
-        index = _INDEX_CACHE[key] = np.array([r * n + c for r, c in cells], dtype=np.intp)
-    return index
+    return propagation_kernel
