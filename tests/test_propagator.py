@@ -223,6 +223,11 @@ def test_compiled_step_is_bit_for_bit_the_interpreted_one(variant):
             results.append((grown, F, out))
         for compiled, interpreted in zip(*results):
             assert np.array_equal(compiled, interpreted)
+        terms = local.normal(size=(6, n, n))
+        for extra2 in (0.0, float(local.uniform(0.01, 4.0))):
+            c = [terms[i] + extra2 * terms[i + 3] for i in range(3)] if extra2 else list(terms[:3])
+            numpy_q = (c[0] + (c[1] + c[2] * dt) * dt) * dt  # the expression the interpreted filter used
+            assert np.array_equal(kernel.noise_from_terms(terms, extra2, dt), numpy_q)
 
 
 def test_the_compiled_step_is_not_compiled_again_during_a_replay(tmp_path):

@@ -111,10 +111,26 @@ def step(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.n
     return F @ cov @ F.T + Q
 
 
+@numba.njit(cache=True, nogil=True)
+def noise_from_terms(terms: np.ndarray, extra2: float, dt: float) -> np.ndarray:
+    """Q = (c1 + (c2 + c3 dt) dt) dt with c_k = base_k + extra² Δ_k (``terms`` stacks base_1..3 then Δ_1..3):
+    the isotropic process noise of ``propagator``, element by element in the same order."""
+    n = terms.shape[1]
+    Q = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            c1, c2, c3 = terms[0, i, j], terms[1, i, j], terms[2, i, j]
+            if extra2 != 0.0:
+                c1, c2, c3 = c1 + extra2 * terms[3, i, j], c2 + extra2 * terms[4, i, j], c3 + extra2 * terms[5, i, j]
+            Q[i, j] = (c1 + (c2 + c3 * dt) * dt) * dt
+    return Q
+
+
 def warm_up() -> None:
-    """Compile the step, or load it from the cache, now rather than on the first IMU step (which
-    would then take a second): each layout's step once, on the argument types the filter passes."""
+    """Compile the kernels, or load them from the cache, now rather than on the first IMU step (which
+    would then take a second): each once per layout, on the argument types the filter passes."""
     for n in (9, 15):
         v3 = np.zeros(3)
         step(v3, v3, np.array([1.0, 0.0, 0.0, 0.0]), v3, v3, v3, v3, 0.01, 9.8, np.eye(n), np.eye(n), np.eye(n),
              n == 15, np.empty(OUT_LEN))
+        noise_from_terms(np.zeros((6, n, n)), 0.25, 0.01)

@@ -168,7 +168,7 @@ class ImuPropagator:
         # Per layout (the heading bank's members carry biases while the filter may not, and they
         # alternate): F; and Q's polynomial terms with the last (dt, extra², Q).
         self._transitions: dict[str, np.ndarray] = {}
-        self._q_terms: dict[str, tuple] = {}
+        self._q_terms: dict[str, np.ndarray] = {}  # (6, n, n): the polynomial's base terms, then their change per extra²
         self._q_last: dict[str, tuple[float, float, np.ndarray]] = {}
 
     @property
@@ -187,14 +187,12 @@ class ImuPropagator:
         terms = self._q_terms.get(key)
         if terms is None:
             base, unit = (noise_dt_polynomial(self.noise, layout, x) for x in (0.0, 1.0))
-            terms = self._q_terms[key] = (base, tuple(u - b for u, b in zip(unit, base)))
+            terms = self._q_terms[key] = np.stack([*base, *(u - b for u, b in zip(unit, base))])
         e2 = extra * extra
         last = self._q_last.get(key)
         if last is not None and last[0] == dt and last[1] == e2:  # a steady IMU rate: the same Q again
             return last[2]
-        base, per_extra2 = terms
-        c1, c2, c3 = (b + e2 * d for b, d in zip(base, per_extra2)) if e2 else base
-        Q = (c1 + (c2 + c3 * dt) * dt) * dt
+        Q = _kernel().noise_from_terms(terms, e2, dt)  # (c1 + (c2 + c3 dt) dt) dt, c = base + extra² Δ
         self._q_last[key] = (dt, e2, Q)
         return Q
 
