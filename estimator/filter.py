@@ -26,6 +26,7 @@ import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -38,7 +39,7 @@ from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonito
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
-from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts, readings_finite
+from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts, readings_finite, rows_finite
 from vtolpose.estimator.inertial.heading_bank import (
     UNKNOWN_HEADING_VAR, YAW, HeadingBank, HeadingBankOptions, with_bias_states,
 )
@@ -217,6 +218,56 @@ class Estimator:
             chunk = self._stillness.add(t_ns, gyro, accel, self.propagator.gravity[2], math.sqrt(vx * vx + vy * vy + vz * vz))
             if chunk is not None:
                 self._apply_still(chunk)
+        return True
+
+    def process_imu_run(self, t_ns: list[int], t_arr: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
+                        after_step: Callable[[int], None]) -> bool:
+        """:meth:`process_imu` for each row of a run of samples, ``after_step(k)`` after each sample ``k`` that
+        ended a filter step. What does not depend on the state (the steps' deltas, the rest detector's sums)
+        is worked out for the whole run at once; the state sees the same operations in the same order.
+
+        Only for a running filter with a known heading and a plain run (every sample finite, later than
+        the one before, no gap to widen for): False, with nothing done, otherwise (the caller then goes
+        sample by sample).
+        """
+        state, last_t = self.state, self._last_imu_t
+        n = len(t_ns)
+        max_gap_ns = self.options.max_imu_gap_s * 1e9
+        if (state is None or not self.heading_aligned or self._lost_before_next_s or last_t is None or n == 0
+                or not t_ns[0] > last_t or t_ns[0] - last_t > max_gap_ns):
+            return False
+        if n > 1:
+            steps = np.diff(t_arr)
+            if not (steps.min() > 0 and steps.max() <= max_gap_ns):
+                return False
+        if not bool(np.all(rows_finite(gyro, accel))):
+            return False
+        counts = self.counts["imu"]
+        counts.received += n
+        counts.used += n
+        self._gap.end()
+        deltas = dict(self._downsampler.add_run(t_arr, gyro, accel))  # at most one step ends at a sample
+        chunks = {k: (duration, stats) for k, duration, stats in self._stillness.add_run(t_arr, gyro, accel)} \
+            if self.options.still.enabled else {}
+        # Each sample's work in process_imu's order; the first sample is always offered to after_step, for
+        # the state may have moved before it (a measurement's partial step), as sample by sample.
+        for k in sorted(deltas.keys() | chunks.keys() | {0}):
+            self._last_imu_t, self._gyro = t_ns[k], gyro[k]
+            delta = deltas.get(k)
+            if delta is not None:
+                self._propagate(delta)
+                if self.health.check_due(t_ns[k]):
+                    self._check_state()
+            chunk = chunks.get(k)
+            if chunk is not None:
+                vx, vy, vz = self.state.v.tolist()
+                still = self._stillness.judge(*chunk, self.propagator.gravity[2], math.sqrt(vx * vx + vy * vy + vz * vz))
+                if still is not None:
+                    self._apply_still(still)
+            if delta is not None or k == 0:
+                after_step(k)
+        self._last_imu_t = t_ns[-1]
+        self._gyro = gyro[n - 1]
         return True
 
     def _propagate(self, delta: ImuDelta) -> None:

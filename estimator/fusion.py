@@ -290,27 +290,10 @@ class FusionCore:
             if t_imu is not None and (t_meas is None or t_imu <= t_meas):
                 if t_imu > horizon:
                     return
-                t, gyro, accel, finite = queue.popleft()
-                self._fused_until = t
-                if self._discontinuities:
-                    lost_s = self._discontinuities.pop(t, None)
-                    if lost_s is not None:
-                        est.imu_discontinuity(lost_s)
-                ok = est.process_imu(t, gyro, accel)
-                if finite:
-                    self._recent.append((t, gyro, accel))
-                state = est.state
-                recent = self._recent
-                if state is None:  # not started: nothing to predict from, keep only the latest reading
-                    while len(recent) > 1:
-                        recent.popleft()
+                if not self.predict and not self._discontinuities and len(queue) > 1 and est.state is not None:
+                    self._fuse_run(min(horizon, t_meas) if t_meas is not None else horizon)
                     continue
-                while len(recent) > 1 and recent[1][0] <= state.t_ns:
-                    recent.popleft()
-                if ok and (self._last_reported_t is None or state.t_ns > self._last_reported_t):
-                    self._last_reported_t = state.t_ns
-                    if self.on_fused is not None:
-                        self.on_fused(self._fused_pose(gyro))
+                self._fuse_one_imu()
             else:
                 if t_meas > horizon:
                     return
@@ -319,6 +302,60 @@ class FusionCore:
                 apply(est)
                 self.counts[kind].used += 1
                 self._measured = True
+
+    def _fuse_one_imu(self) -> None:
+        """The oldest buffered IMU sample into the estimator; the fused pose if it advanced the state."""
+        est = self.est
+        t, gyro, accel, finite = self._queue.popleft()
+        self._fused_until = t
+        if self._discontinuities:
+            lost_s = self._discontinuities.pop(t, None)
+            if lost_s is not None:
+                est.imu_discontinuity(lost_s)
+        ok = est.process_imu(t, gyro, accel)
+        if finite:
+            self._recent.append((t, gyro, accel))
+        state = est.state
+        recent = self._recent
+        if state is None:  # not started: nothing to predict from, keep only the latest reading
+            while len(recent) > 1:
+                recent.popleft()
+            return
+        while len(recent) > 1 and recent[1][0] <= state.t_ns:
+            recent.popleft()
+        if ok and (self._last_reported_t is None or state.t_ns > self._last_reported_t):
+            self._last_reported_t = state.t_ns
+            if self.on_fused is not None:
+                self.on_fused(self._fused_pose(gyro))
+
+    def _fuse_run(self, until: int) -> None:
+        """The IMU samples up to ``until`` (the next measurement or the horizon) as one run for
+        :meth:`Estimator.process_imu_run`, with the fused pose after each step as sample by sample;
+        sample by sample (the loop above) if the estimator declines the run."""
+        queue, est = self._queue, self.est
+        run = []
+        while queue and queue[0][0] <= until:
+            run.append(queue.popleft())
+        times = [item[0] for item in run]
+        gyro = np.array([item[1] for item in run])
+        accel = np.array([item[2] for item in run])
+
+        def after_step(k: int) -> None:
+            t_state = est.state.t_ns
+            if self._last_reported_t is None or t_state > self._last_reported_t:
+                self._last_reported_t = t_state
+                if self.on_fused is not None:
+                    self.on_fused(self._fused_pose(gyro[k]))
+
+        if all(item[3] for item in run) and est.process_imu_run(times, np.array(times, np.int64), gyro, accel, after_step):
+            self._fused_until = times[-1]
+            self._recent.clear()
+            self._recent.append((times[-1], run[-1][1], run[-1][2]))
+            return
+        queue.extendleft(reversed(run))  # declined: the same samples, one at a time
+        while run:
+            run.pop()
+            self._fuse_one_imu()
 
     # ------------------------------------------------------------------------ prediction
     def _signature(self) -> tuple:

@@ -92,6 +92,44 @@ def test_delayed_fusion_gives_exactly_the_in_order_result(flight, reference):
     assert core.est.counts_report() == est.counts_report()
 
 
+@pytest.mark.parametrize("variant", ["thesis", "biases"])
+def test_runs_of_samples_fuse_exactly_as_one_at_a_time(flight, variant):
+    """Without a prediction to keep, the samples the horizon passes go to the estimator as runs
+    (Estimator.process_imu_run: the steps' deltas and the rest detector's sums worked out for the whole
+    run); trajectory, covariance and counts are bit for bit those of the sample-by-sample loop."""
+    cfg = load_config(None, {"estimator": {"variant": variant}})
+    make = lambda: Estimator(flight.calibration, filter_options(cfg, flight.calibration.imu.noise))  # noqa: E731
+    events = sorted([(s.t_ns, 0, s) for s in imu_samples(flight)] + [(f.t_ns, 1, f) for f in gps_fixes(flight)],
+                    key=lambda e: (e[0], e[1]))
+    est, reference, last = make(), [], None
+    for _, kind, s in events:
+        if kind == 0:
+            if est.process_imu(s.t_ns, s.gyro, s.accel) and est.state is not None and (last is None or est.state.t_ns > last):
+                last = est.state.t_ns
+                reference.append((last, est.state.p.copy(), est.state.q.copy()))
+        else:
+            est.process_gps(s)
+    fused, accepted = [], []
+    core = FusionCore(make(), FusionOptions(delay_s=DELAY, predict=False),
+                      on_fused=lambda pose: fused.append((pose.t_ns, pose.p.copy(), pose.q.copy())))
+    run = core.est.process_imu_run
+    core.est.process_imu_run = lambda *args: accepted.append(run(*args)) or accepted[-1]
+    fixes, k = gps_fixes(flight), 0
+    for s in imu_samples(flight):
+        while k < len(fixes) and fixes[k].t_ns <= s.t_ns:
+            core.add_measurement(fixes[k].t_ns, lambda e, f=fixes[k]: e.process_gps(f), "gps")
+            k += 1
+        core.add_imu(s, fuse=False)
+        if s.t_ns % 40_000_000 < 8_000_000:  # the horizon advanced now and then: runs of a few samples
+            core.advance()
+    core.flush()
+    assert sum(accepted) > 100 and len(fused) > 1000
+    assert est.counts["still"].used > 0  # the rest detector's chunks were judged inside runs too
+    assert_same_trajectory(fused, reference)
+    assert np.array_equal(core.est.state.cov, est.state.cov)
+    assert core.est.counts_report() == est.counts_report()
+
+
 def test_late_measurements_are_fused_at_their_own_time(flight, reference):
     """Fixes arriving 100 ms late, within the 150 ms horizon, change nothing at all."""
     core, fused = through_core(flight, gps_late_s=0.1)

@@ -100,6 +100,27 @@ class ImuDownsampler:
             return None
         return self.flush()
 
+    def add_run(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> list[tuple[int, ImuDelta]]:
+        """:meth:`add` for each row of a run of samples (strictly later, in time order), in one compiled
+        call (``sample_kernel.downsample_run``): the completed deltas, each with its last sample's index."""
+        last, acc_t = self._last, np.zeros(3, np.int64)
+        acc = np.zeros(14)
+        if last is not None:
+            acc[0:3], acc[3:6] = last[3], last[4]
+            acc_t[0], acc_t[2] = last[0], 1
+        if self._t0 is not None:
+            acc_t[1] = self._t0
+            acc_t[2] |= 2
+        acc[6:10], acc[10:13], acc[13] = self._q, self._dv, self._dt
+        ends, times, dts, deltas = _sample_kernel().downsample_run(t_ns, gyro, accel, acc, acc_t, self.min_dt)
+        k = len(t_ns) - 1
+        self._last = (int(t_ns[k]), gyro[k], accel[k], acc[0:3].tolist(), acc[3:6].tolist())
+        self._t0 = int(acc_t[1]) if acc_t[2] & 2 else None
+        values = acc[6:14].tolist()
+        self._q, self._dv, self._dt = tuple(values[0:4]), tuple(values[4:7]), values[7]
+        return [(end, ImuDelta(t0, t1, dt, deltas[j, 0:3], deltas[j, 3:6]))
+                for j, (end, (t0, t1), dt) in enumerate(zip(ends.tolist(), times.tolist(), dts.tolist()))]
+
     def flush(self) -> ImuDelta | None:
         """The partial delta accumulated so far (e.g. up to a measurement's time), if any."""
         if self._t0 is None or self._dt <= 0.0:
@@ -118,3 +139,9 @@ class ImuDownsampler:
         self._last = (t_ns, gyro, accel, g, a)
         half = rotvec_quat(*(0.5 * dt * gyro).tolist())
         return ImuDelta(t_last, t_ns, dt, gyro * dt, np.array(_rotate(half, *(dt * accel).tolist())))
+
+
+def _sample_kernel():  # noqa: ANN202 — a module, imported on first use (numba's import costs ~0.4 s)
+    from vtolpose.estimator.inertial import sample_kernel
+
+    return sample_kernel

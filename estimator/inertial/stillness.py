@@ -93,6 +93,36 @@ class StillnessDetector:
         self._reset(t_ns)
         return chunk
 
+    def add_run(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> list[tuple[int, float, np.ndarray]]:
+        """:meth:`add`'s accumulation for each row of a run, in one compiled call (``sample_kernel``): the
+        chunks that ended, as (index of their last sample, duration, statistics) for :meth:`judge`, which
+        the caller calls for each in turn with the filter's speed at that sample."""
+        sums, counts = np.zeros(18), np.zeros(6, np.int64)
+        if self._t0 is not None:
+            sums[0:3], sums[3:6], sums[6:9], sums[9:12] = self._g_sum, self._g_sq, self._a_sum, self._a_sq
+            sums[12:15], sums[15:18] = self._block_g, self._block_a
+            counts[:] = (self._t0, self._block_t0, self._samples, self._n, self._block_n, 1)
+        from vtolpose.estimator.inertial import sample_kernel  # numba on first use, as the propagator's
+
+        ends, durations, stats = sample_kernel.stillness_run(t_ns, gyro, accel, sums, counts, self.options.average_s,
+                                                             self.options.chunk_s)
+        if counts[5]:
+            self._t0, self._block_t0, self._samples, self._n, self._block_n = (int(c) for c in counts[:5])
+            self._g_sum, self._g_sq, self._a_sum, self._a_sq = sums[0:3], sums[3:6], sums[6:9], sums[9:12]
+            values = sums[12:18].tolist()
+            self._block_g, self._block_a = tuple(values[0:3]), tuple(values[3:6])
+        return list(zip(ends.tolist(), durations.tolist(), stats))
+
+    def judge(self, duration: float, stats: np.ndarray, gravity: float, speed: float) -> StillChunk | None:
+        """What :meth:`add` returns at a chunk's end, for a chunk :meth:`add_run` reported."""
+        current = (self._n, self._samples, self._g_sum, self._g_sq, self._a_sum, self._a_sq)
+        self._g_sum, self._g_sq, self._a_sum, self._a_sq = stats[0:3], stats[3:6], stats[6:9], stats[9:12]
+        self._samples, self._n = int(stats[12]), int(stats[13])
+        try:
+            return self._evaluate(duration, gravity, speed)
+        finally:
+            self._n, self._samples, self._g_sum, self._g_sq, self._a_sum, self._a_sq = current
+
     def _evaluate(self, duration: float, gravity: float, speed: float) -> StillChunk | None:
         opts = self.options
         n = self._n

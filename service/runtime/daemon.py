@@ -22,7 +22,7 @@ from vtolpose.estimator.core.measurements import ImuRange
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import FusionOptions, OutputPose
 from vtolpose.estimator.core import update_kernel
-from vtolpose.estimator.inertial import propagation_kernel
+from vtolpose.estimator.inertial import propagation_kernel, sample_kernel
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
 from vtolpose.service.text import describe
@@ -80,6 +80,7 @@ def build_runtime(
     estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
     propagation_kernel.warm_up()  # compiled (or loaded from their caches) now, not on the first IMU step or fix
     update_kernel.warm_up()
+    sample_kernel.warm_up()
     options = RuntimeOptions(
         fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"],
         camera_workers=replay_camera_workers(cfg) if lockstep else cfg["fusion.camera_workers"],

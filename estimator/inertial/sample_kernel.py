@@ -1,0 +1,152 @@
+"""Per-sample IMU bookkeeping over a run of samples, compiled to machine code.
+
+Between two measurements a replay hands the filter dozens of IMU samples. What each sample does
+that does not depend on the filter state, accumulating the delta angle and velocity of the next
+step (``imu_delta.ImuDownsampler``) and the block and chunk sums of the rest detector
+(``stillness.StillnessDetector``), runs here for the whole run in one call, with each sample's
+operations in the same order as the per-sample code: the deltas and statistics are bit for bit
+the same (tests hold them together). The estimator then acts on what came out (a step to
+propagate, a chunk to judge with the filter's speed) in sample order.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+
+@numba.njit(cache=True, nogil=True)
+def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    angle = math.sqrt(x * x + y * y + z * z)
+    s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
+    return math.cos(0.5 * angle), s * x, s * y, s * z
+
+
+@numba.njit(cache=True, nogil=True)
+def _qmul(aw: float, ax: float, ay: float, az: float,
+          bw: float, bx: float, by: float, bz: float) -> tuple[float, float, float, float]:
+    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+
+@numba.njit(cache=True, nogil=True)
+def downsample_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, acc: np.ndarray, acc_t: np.ndarray,
+                   min_dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`ImuDownsampler.add` for every sample of a run, the accumulator carried in and out.
+
+    ``acc`` (float, 14): the previous sample's gyro (3) and accel (3), the rotation so far (4), Δv (3),
+    the time so far; ``acc_t`` (int, 3): the previous sample's time, the step's start, and flags
+    (bit 0: a previous sample, bit 1: a step started). Returns, per completed step, the index of the
+    sample that ended it, (t0, t1), dt, and [Δθ, Δv] (6).
+    """
+    n = t.shape[0]
+    ends = np.empty(n, np.int64)
+    times = np.empty((n, 2), np.int64)
+    dts = np.empty(n)
+    deltas = np.empty((n, 6))
+    m = 0
+    for k in range(n):
+        tk = t[k]
+        gx, gy, gz = gyro[k, 0], gyro[k, 1], gyro[k, 2]
+        ax, ay, az = accel[k, 0], accel[k, 1], accel[k, 2]
+        had_last = acc_t[2] & 1
+        t_prev = acc_t[0]
+        g0x, g0y, g0z, a0x, a0y, a0z = acc[0], acc[1], acc[2], acc[3], acc[4], acc[5]
+        acc[0], acc[1], acc[2], acc[3], acc[4], acc[5] = gx, gy, gz, ax, ay, az
+        acc_t[0] = tk
+        acc_t[2] |= 1
+        if not had_last:
+            continue
+        if not acc_t[2] & 2:
+            acc_t[1] = t_prev
+            acc_t[2] |= 2
+        dt = (tk - t_prev) * 1e-9
+        h = 0.5 * dt
+        wx, wy, wz = h * (g0x + gx), h * (g0y + gy), h * (g0z + gz)
+        fx, fy, fz = h * (a0x + ax), h * (a0y + ay), h * (a0z + az)
+        qw, qx, qy, qz = acc[6], acc[7], acc[8], acc[9]
+        hw, hx, hy, hz = _rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz)
+        hw, hx, hy, hz = _qmul(qw, qx, qy, qz, hw, hx, hy, hz)
+        cx, cy, cz = hy * fz - hz * fy, hz * fx - hx * fz, hx * fy - hy * fx
+        acc[10] = acc[10] + (fx + 2.0 * (hw * cx + hy * cz - hz * cy))
+        acc[11] = acc[11] + (fy + 2.0 * (hw * cy + hz * cx - hx * cz))
+        acc[12] = acc[12] + (fz + 2.0 * (hw * cz + hx * cy - hy * cx))
+        dw, dx, dy, dz = _rotvec_quat(wx, wy, wz)
+        acc[6], acc[7], acc[8], acc[9] = _qmul(qw, qx, qy, qz, dw, dx, dy, dz)
+        acc[13] += dt
+        if acc[13] < min_dt or acc[13] <= 0.0:
+            continue
+        # The step is complete (ImuDownsampler.flush): its rotation vector and Δv, then a fresh start.
+        w, x, y, z = acc[6], acc[7], acc[8], acc[9]
+        norm = math.sqrt(x * x + y * y + z * z)
+        scale = 2.0 * math.atan2(norm, w) / norm if norm > 1e-12 else 2.0
+        ends[m] = k
+        times[m, 0], times[m, 1] = acc_t[1], tk
+        dts[m] = acc[13]
+        deltas[m, 0], deltas[m, 1], deltas[m, 2] = scale * x, scale * y, scale * z
+        deltas[m, 3], deltas[m, 4], deltas[m, 5] = acc[10], acc[11], acc[12]
+        m += 1
+        acc[6], acc[7], acc[8], acc[9] = 1.0, 0.0, 0.0, 0.0
+        acc[10], acc[11], acc[12], acc[13] = 0.0, 0.0, 0.0, 0.0
+        acc_t[2] &= ~2
+    return ends[:m], times[:m], dts[:m], deltas[:m]
+
+
+@numba.njit(cache=True, nogil=True)
+def stillness_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, sums: np.ndarray, counts: np.ndarray,
+                  average_s: float, chunk_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`StillnessDetector.add`'s accumulation for every sample of a run, its state carried in and out.
+
+    ``sums`` (float, 18): g_sum, g_sq, a_sum, a_sq (of block means), then the open block's gyro and
+    accel sums; ``counts`` (int, 6): chunk start, block start, samples, block means, samples in the
+    block, and 1 once a chunk is open. Returns, per chunk that ended, the index of its last sample,
+    its duration, and its statistics before the reset ([g_sum, g_sq, a_sum, a_sq], samples, means).
+    """
+    n = t.shape[0]
+    ends = np.empty(n, np.int64)
+    stats = np.empty((n, 14))
+    durations = np.empty(n)
+    m = 0
+    for k in range(n):
+        tk = t[k]
+        if counts[5] == 0:  # _reset(t): a chunk and a block start here
+            counts[0], counts[1], counts[2], counts[3], counts[4], counts[5] = tk, tk, 0, 0, 0, 1
+            sums[:] = 0.0
+        counts[2] += 1
+        counts[4] += 1
+        sums[12], sums[13], sums[14] = sums[12] + gyro[k, 0], sums[13] + gyro[k, 1], sums[14] + gyro[k, 2]
+        sums[15], sums[16], sums[17] = sums[15] + accel[k, 0], sums[16] + accel[k, 1], sums[17] + accel[k, 2]
+        if (tk - counts[1]) * 1e-9 >= average_s:
+            block_n = counts[4]
+            counts[3] += 1
+            for i in range(3):
+                g = sums[12 + i] / block_n
+                a = sums[15 + i] / block_n
+                sums[i] += g
+                sums[3 + i] += g * g
+                sums[6 + i] += a
+                sums[9 + i] += a * a
+            counts[1], counts[4] = tk, 0
+            sums[12:18] = 0.0
+        duration = (tk - counts[0]) * 1e-9
+        if duration < chunk_s:
+            continue
+        ends[m] = k
+        durations[m] = duration
+        stats[m, 0:12] = sums[0:12]
+        stats[m, 12], stats[m, 13] = counts[2], counts[3]
+        m += 1
+        counts[0], counts[1], counts[2], counts[3], counts[4] = tk, tk, 0, 0, 0
+        sums[:] = 0.0
+    return ends[:m], durations[:m], stats[:m]
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) for the argument types the estimator passes."""
+    t = np.arange(4, dtype=np.int64) * 5_000_000
+    rows = np.zeros((4, 3))
+    downsample_run(t, rows, rows, np.zeros(14), np.zeros(3, np.int64), 0.009)
+    stillness_run(t, rows, rows, np.zeros(18), np.zeros(6, np.int64), 0.1, 1.0)
