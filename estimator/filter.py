@@ -39,7 +39,7 @@ from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonito
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
-from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts, readings_finite, rows_finite
+from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts, readings_finite
 from vtolpose.estimator.inertial.heading_bank import (
     UNKNOWN_HEADING_VAR, YAW, HeadingBank, HeadingBankOptions, with_bias_states,
 )
@@ -50,6 +50,7 @@ from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.smoothing.recorder import FilterRecorder
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
+from vtolpose.estimator.inertial.sample_kernel import plain_run
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
 _POSE = np.r_[0:3, 6:9]  # [δp, δθ] within [δp, δv, δθ]
@@ -230,17 +231,9 @@ class Estimator:
         the one before, no gap to widen for): False, with nothing done, otherwise (the caller then goes
         sample by sample).
         """
-        state, last_t = self.state, self._last_imu_t
         n = len(t_ns)
-        max_gap_ns = self.options.max_imu_gap_s * 1e9
-        if (state is None or not self.heading_aligned or self._lost_before_next_s or last_t is None or n == 0
-                or not t_ns[0] > last_t or t_ns[0] - last_t > max_gap_ns):
-            return False
-        if n > 1:
-            steps = np.diff(t_arr)
-            if not (steps.min() > 0 and steps.max() <= max_gap_ns):
-                return False
-        if not bool(np.all(rows_finite(gyro, accel))):
+        if (self.state is None or not self.heading_aligned or self._lost_before_next_s or self._last_imu_t is None
+                or n == 0 or not plain_run(t_arr, gyro, accel, self._last_imu_t, self.options.max_imu_gap_s)):
             return False
         counts = self.counts["imu"]
         counts.received += n

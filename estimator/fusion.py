@@ -216,12 +216,13 @@ class FusionCore:
             self.advance()
         return True
 
-    def add_imu_batch(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+    def add_imu_batch(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
+                      finite: np.ndarray | None = None) -> None:
         """Samples in time order (rows), exactly as :meth:`add_imu` with ``fuse`` for each in turn.
 
         With no prediction to keep, nothing between two samples reads the state, so the checks run on
         the whole batch and the horizon is advanced once, past the last sample: the estimator sees the
-        same calls in the same order. A batch that needs the per-sample rules (a prediction, a clock
+        same calls in the same order. ``finite``: each row's ``readings_finite``, if already known. A batch that needs the per-sample rules (a prediction, a clock
         step back, a buffer about to overflow) goes through :meth:`add_imu` one sample at a time.
         """
         n = len(t_ns)
@@ -237,7 +238,8 @@ class FusionCore:
         counts = self.counts["imu"]
         counts.received += n
         counts.used += n
-        self._queue.extend(zip(times, gyro, accel, rows_finite(gyro, accel).tolist()))
+        finite = rows_finite(gyro, accel) if finite is None else finite  # the caller's, if it screened the rows
+        self._queue.extend(zip(times, gyro, accel, finite.tolist()))
         self._newest_t = times[-1]
         self.advance()
 

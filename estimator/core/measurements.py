@@ -64,11 +64,8 @@ class ImuRange:
         return (g2 > 3.0 * self.gyro**2 or a2 > 3.0 * self.accel**2) and math.isfinite(g2 + a2)
 
     def exceeded_rows(self, gyro: np.ndarray, accel: np.ndarray) -> np.ndarray:
-        """:meth:`exceeded` for each row of (n, 3) readings, the same arithmetic on whole columns."""
-        g2 = gyro[:, 0] * gyro[:, 0] + gyro[:, 1] * gyro[:, 1] + gyro[:, 2] * gyro[:, 2]
-        a2 = accel[:, 0] * accel[:, 0] + accel[:, 1] * accel[:, 1] + accel[:, 2] * accel[:, 2]
-        with np.errstate(over="ignore", invalid="ignore"):
-            return ((g2 > 3.0 * self.gyro**2) | (a2 > 3.0 * self.accel**2)) & np.isfinite(g2 + a2)
+        """:meth:`exceeded` for each row of (n, 3) readings, the same arithmetic (compiled, one call)."""
+        return screened(gyro, accel, self)[0]
 
 
 def readings_finite(gyro: np.ndarray, accel: np.ndarray) -> bool:
@@ -83,11 +80,18 @@ def readings_finite(gyro: np.ndarray, accel: np.ndarray) -> bool:
 
 
 def rows_finite(gyro: np.ndarray, accel: np.ndarray) -> np.ndarray:
-    """:func:`readings_finite` for each row of (n, 3) readings (the same sum, in the same order)."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        total = gyro[:, 0] * gyro[:, 0] + gyro[:, 1] * gyro[:, 1] + gyro[:, 2] * gyro[:, 2]
-        total = total + accel[:, 0] * accel[:, 0] + accel[:, 1] * accel[:, 1] + accel[:, 2] * accel[:, 2]
-        return np.isfinite(total)
+    """:func:`readings_finite` for each row of (n, 3) readings, the same arithmetic (compiled, one call)."""
+    return screened(gyro, accel, None)[1]
+
+
+def screened(gyro: np.ndarray, accel: np.ndarray, limits: ImuRange | None) -> tuple[np.ndarray, np.ndarray]:
+    """(beyond ``limits``, finite) for each row of (n, 3) readings, in one compiled pass
+    (``inertial.sample_kernel.screen_rows``; numba is imported on first use)."""
+    from vtolpose.estimator.inertial.sample_kernel import screen_rows
+
+    if limits is None:
+        return screen_rows(gyro, accel, math.inf, math.inf)
+    return screen_rows(gyro, accel, 3.0 * limits.gyro**2, 3.0 * limits.accel**2)
 
 
 @dataclass(frozen=True, slots=True)

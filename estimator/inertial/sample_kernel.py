@@ -144,9 +144,44 @@ def stillness_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, sums: np.n
     return ends[:m], durations[:m], stats[:m]
 
 
+@numba.njit(cache=True, nogil=True)
+def screen_rows(gyro: np.ndarray, accel: np.ndarray, gyro2_max: float, accel2_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per row: beyond the IMU's range (``ImuRange.exceeded``: a squared norm above ``gyro2_max`` or
+    ``accel2_max``, both infinite for no range) and finite (``readings_finite``), with their arithmetic."""
+    n = gyro.shape[0]
+    exceeded = np.zeros(n, np.bool_)
+    finite = np.empty(n, np.bool_)
+    for k in range(n):
+        gx, gy, gz = gyro[k, 0], gyro[k, 1], gyro[k, 2]
+        ax, ay, az = accel[k, 0], accel[k, 1], accel[k, 2]
+        g2, a2 = gx * gx + gy * gy + gz * gz, ax * ax + ay * ay + az * az
+        finite[k] = math.isfinite(gx * gx + gy * gy + gz * gz + ax * ax + ay * ay + az * az)
+        exceeded[k] = (g2 > gyro2_max or a2 > accel2_max) and math.isfinite(g2 + a2)
+    return exceeded, finite
+
+
+@numba.njit(cache=True, nogil=True)
+def plain_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, last_t: int, max_gap_s: float) -> bool:
+    """Every sample finite (``readings_finite``), each later than the one before (the first than ``last_t``)
+    by no more than ``max_gap_s`` (compared as the estimator's gap check does): a run it takes whole."""
+    previous = last_t
+    for k in range(t.shape[0]):
+        step = t[k] - previous
+        if step <= 0 or step * 1e-9 > max_gap_s:
+            return False
+        previous = t[k]
+        gx, gy, gz = gyro[k, 0], gyro[k, 1], gyro[k, 2]
+        ax, ay, az = accel[k, 0], accel[k, 1], accel[k, 2]
+        if not math.isfinite(gx * gx + gy * gy + gz * gz + ax * ax + ay * ay + az * az):
+            return False
+    return True
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) for the argument types the estimator passes."""
     t = np.arange(4, dtype=np.int64) * 5_000_000
     rows = np.zeros((4, 3))
     downsample_run(t, rows, rows, np.zeros(14), np.zeros(3, np.int64), 0.009)
     stillness_run(t, rows, rows, np.zeros(18), np.zeros(6, np.int64), 0.1, 1.0)
+    screen_rows(rows, rows, 2700.0, 76800.0)
+    plain_run(t, rows, rows, -1, 0.1)

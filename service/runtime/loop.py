@@ -31,7 +31,7 @@ import numpy as np
 
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuBatch, ImuRange, ImuSample
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuBatch, ImuRange, ImuSample, screened
 from vtolpose.estimator.pose_history import COV, P, Q, ROW, V, PoseHistory
 from vtolpose.estimator.smoothing.fixed_lag import FixedLagSmoother, SmoothedPose
 from vtolpose.estimator.smoothing.recorder import StepRecorder
@@ -242,17 +242,15 @@ class Runtime:
         if self._first_t is None:
             self._first_t = int(batch.t_ns[0])
         t_ns, gyro, accel = batch.t_ns, batch.gyro, batch.accel
-        imu_range = self.options.imu_range
-        if imu_range is not None:
-            out = imu_range.exceeded_rows(gyro, accel)
-            if out.any():
-                counts = self.est.counts["imu"]
-                refused = int(np.count_nonzero(out))
-                counts.received += refused
-                counts.reject("out_of_range", refused)
-                keep = ~out
-                t_ns, gyro, accel = t_ns[keep], gyro[keep], accel[keep]
-        self.fusion.add_imu_batch(t_ns, gyro, accel)
+        out, finite = screened(gyro, accel, self.options.imu_range)  # one pass: range and finiteness
+        if out.any():
+            counts = self.est.counts["imu"]
+            refused = int(np.count_nonzero(out))
+            counts.received += refused
+            counts.reject("out_of_range", refused)
+            keep = ~out
+            t_ns, gyro, accel, finite = t_ns[keep], gyro[keep], accel[keep], finite[keep]
+        self.fusion.add_imu_batch(t_ns, gyro, accel, finite)
 
     # -------------------------------------------------------------------------- smoothing
     def enable_smoothing(self, lag_s: float, steps_per_sample: int = 4, max_window_s: float = 10.0,
