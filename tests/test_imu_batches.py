@@ -144,3 +144,18 @@ def test_the_runtime_fuses_a_batch_exactly_as_its_samples(flight, max_imu_buffer
     imu_counts = counts_single[0]["imu"]["rejected"]
     assert imu_counts.get("non_finite") == 1 and imu_counts.get("out_of_range") == 1
     assert counts_single[1]["imu"]["rejected"].get("time_not_increasing") == 3
+
+
+def test_rows_are_screened_as_single_samples_are():
+    """The compiled screen of a batch says for every row what the per-sample checks say: huge finite
+    readings whose squares overflow count as non-finite, the range is on the vector's length."""
+    limits = ImuRange(30.0, 160.0)
+    edge = 30.0  # each axis at the range: the length is √3 × it, the limit itself (not beyond)
+    rows = [([0.1, 0.2, 0.3], [0.0, 0.0, -9.8]), ([1e200, 0.0, 0.0], [0.0, 0.0, -9.8]), ([np.nan, 0.0, 0.0], [0.0] * 3),
+            ([0.0, 0.0, 0.0], [np.inf, 0.0, 0.0]), ([edge, edge, edge], [0.0, 0.0, 0.0]),
+            ([edge, edge, edge + 1e-3], [0.0] * 3), ([0.0] * 3, [300.0, 0.0, 0.0]), ([60.0, 0.0, 0.0], [0.0] * 3)]
+    gyro, accel = np.array([g for g, _ in rows]), np.array([a for _, a in rows])
+    from vtolpose.estimator.core.measurements import readings_finite, rows_finite
+    assert rows_finite(gyro, accel).tolist() == [readings_finite(g, a) for g, a in zip(gyro, accel)]
+    assert limits.exceeded_rows(gyro, accel).tolist() == [limits.exceeded(g, a) for g, a in zip(gyro, accel)]
+    assert limits.exceeded_rows(gyro, accel).tolist() == [False, False, False, False, False, True, True, True]
