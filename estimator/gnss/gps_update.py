@@ -40,15 +40,19 @@ class GpsModel:
 
     def __init__(self, lever_arm_b: np.ndarray) -> None:
         self.lever_arm_b = np.asarray(lever_arm_b, dtype=float).reshape(3)
+        self._position_block = np.hstack([np.eye(3), np.zeros((3, 6))])  # H's constant part
 
-    def predict(self, state: FilterState) -> np.ndarray:
-        return state.p + state.R @ self.lever_arm_b
+    def arm(self, state: FilterState) -> np.ndarray:
+        """The lever arm in the world frame, ``R l`` (what both the prediction and the Jacobian use)."""
+        return state.R @ self.lever_arm_b
 
-    def jacobian(self, state: FilterState) -> np.ndarray:
+    def predict(self, state: FilterState, arm: np.ndarray | None = None) -> np.ndarray:
+        return state.p + (self.arm(state) if arm is None else arm)
+
+    def jacobian(self, state: FilterState, arm: np.ndarray | None = None) -> np.ndarray:
         """∂y/∂[δp, δv, δθ] with the world-frame attitude error ``R_true = Exp(δθ) R``."""
-        H = np.zeros((3, 9))
-        H[:, 0:3] = np.eye(3)
-        H[:, 6:9] = -skew(state.R @ self.lever_arm_b)
+        H = self._position_block.copy()
+        H[:, 6:9] = -skew(self.arm(state) if arm is None else arm)
         return H
 
 
@@ -66,15 +70,17 @@ class GpsUpdater:
         return np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
 
     def update(self, state: FilterState, fix: GpsFix, held: np.ndarray | None = None) -> UpdateOutcome:
-        return ekf_update(
-            state, GPS_COLS, self.model.jacobian(state), self.residual(state, fix), self.noise(fix), self.gate, held
-        )
+        arm = self.model.arm(state)
+        residual = np.asarray(fix.p_ned, dtype=float) - self.model.predict(state, arm)
+        return ekf_update(state, GPS_COLS, self.model.jacobian(state, arm), residual, self.noise(fix), self.gate, held)
 
     def update_heading_unknown(self, state: FilterState, fix: GpsFix, held_horizontal: np.ndarray) -> UpdateOutcome:
         """While the filter's frame has an arbitrary yaw: gated on all three axes, then the height fused
         into everything (its relation to tilt and biases does not depend on the heading) and the
         horizontal position into what ``held_horizontal`` leaves free (there it does)."""
-        H, residual, R = self.model.jacobian(state), self.residual(state, fix), self.noise(fix)
+        arm = self.model.arm(state)
+        H, R = self.model.jacobian(state, arm), self.noise(fix)
+        residual = np.asarray(fix.p_ned, dtype=float) - self.model.predict(state, arm)
         nis = normalized_innovation(innovation_covariance(state, GPS_COLS, H, R), residual)
         if nis is None or not np.all(np.isfinite(residual)):
             return UpdateOutcome(False, float("nan"), 3, "singular innovation covariance" if nis is None else "non-finite residual")
