@@ -60,6 +60,13 @@ def replay_camera_workers(cfg: dict[str, Any]) -> int:
     return cfg["replay.camera_workers"] or max(1, min(os.cpu_count() or 1, 16))
 
 
+def load_compiled_kernels() -> None:
+    """The estimator's compiled kernels (numba), compiled or loaded from their caches: ~0.1 s once per
+    process, a few seconds the first time on a machine. Done before the first sample is handled."""
+    for kernels in (propagation_kernel, update_kernel, sample_kernel):
+        kernels.warm_up()
+
+
 def build_runtime(
     cfg: dict[str, Any],
     calibration: Calibration,
@@ -78,9 +85,7 @@ def build_runtime(
     """
     calibration = calibration_with_overrides(cfg, calibration)
     estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
-    propagation_kernel.warm_up()  # compiled (or loaded from their caches) now, not on the first IMU step or fix
-    update_kernel.warm_up()
-    sample_kernel.warm_up()
+    load_compiled_kernels()  # now, not on the first IMU step or fix
     options = RuntimeOptions(
         fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"],
         camera_workers=replay_camera_workers(cfg) if lockstep else cfg["fusion.camera_workers"],
