@@ -15,7 +15,7 @@ from vtolpose.estimator.core.measurements import GpsFix, ImuBatch, ImuRange, Imu
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import FusionOptions
 from vtolpose.service.runtime.loop import Runtime, RuntimeOptions
-from vtolpose.service.runtime.sources import ReplayClock, ReplaySource, _imu_runs
+from vtolpose.service.runtime.sources import ReplayClock, ReplaySource, _segments
 from vtolpose.service.runtime.wiring import filter_options
 
 from runtime_helpers import flight_samples
@@ -33,12 +33,13 @@ def dataset(flight, tmp_path_factory) -> Dataset:
     return Dataset.open(root)
 
 
-def test_runs_end_at_the_next_other_sample_or_the_length_limit():
+def test_segments_are_imu_runs_cut_at_the_length_limit_and_single_other_samples():
     kinds = np.array([0, 0, 0, 1, 0, 0, 2, 2, 0], np.int8)
-    runs = _imu_runs(kinds, 2)
-    assert [runs[j] for j in (0, 2, 4, 8)] == [2, 3, 6, 9]
-    assert _imu_runs(np.zeros(5, np.int8), 256)[0] == 5  # an IMU-only stream is one run
-    assert _imu_runs(np.array([1, 0, 0], np.int8), 256)[1] == 3
+    indices = np.array([0, 1, 2, 0, 3, 4, 0, 1, 5])
+    assert list(_segments(kinds, indices, 2)) == [(0, 0, 2), (0, 2, 1), (1, 0, 1), (0, 3, 2), (2, 0, 1), (2, 1, 1),
+                                                  (0, 5, 1)]
+    assert list(_segments(np.zeros(5, np.int8), np.arange(5), 256)) == [(0, 0, 5)]  # an IMU-only stream
+    assert list(_segments(np.array([1, 0, 0], np.int8), np.array([0, 0, 1]), 1)) == [(1, 0, 1), (0, 0, 1), (0, 1, 1)]
 
 
 def collect(source) -> list:
