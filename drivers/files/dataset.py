@@ -112,14 +112,23 @@ class Dataset:
         return image
 
     def imu_raw(self) -> ImuSeries:
-        """IMU samples in the sensor's own axes, as recorded."""
-        t, v = self._read(IMU_CSV, 6, IMU_HEADER)
-        return ImuSeries(t, v[:, :3], v[:, 3:])
+        """IMU samples in the sensor's own axes, as recorded (the same arrays on every call: not to be changed)."""
+        series = self._parsed.get("imu series")
+        if series is None:
+            t, v = self._read(IMU_CSV, 6, IMU_HEADER)
+            # Columns of their own (contiguous, as the compiled kernels take them); the table is not kept.
+            series = self._parsed["imu series"] = ImuSeries(t, np.ascontiguousarray(v[:, :3]), np.ascontiguousarray(v[:, 3:]))
+            del self._parsed[IMU_CSV]
+        return series
 
     def imu(self, R_BI: np.ndarray | None = None) -> ImuSeries:
-        """IMU samples rotated into body FRD with the dataset's ``R_BI`` (or the one given)."""
+        """IMU samples rotated into body FRD with the dataset's ``R_BI`` (or the one given). An IMU mounted
+        in body axes needs no rotation: its arrays are the recorded ones, not a copy (an hour at 200 Hz
+        is 35 MB)."""
         raw = self.imu_raw()
         r = self.calibration.imu.R_BI if R_BI is None else np.asarray(R_BI, dtype=float)
+        if np.array_equal(r, np.eye(3)):
+            return raw
         return ImuSeries(raw.t_ns, raw.gyro @ r.T, raw.accel @ r.T)
 
     def gps(self) -> GpsSeries | None:
