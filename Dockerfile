@@ -28,8 +28,9 @@ COPY estimator ./estimator
 COPY drivers ./drivers
 COPY service ./service
 RUN pip install --no-cache-dir . && rm -rf /opt/vtolpose/build
-# The compiled filter step, compiled here and cached beside it: the service does not compile at start.
-RUN python -c "from vtolpose.estimator.inertial import propagation_kernel as k; k.warm_up()"
+# The estimator's compiled kernels (numba), compiled here and cached beside them: the service does
+# not compile at its start.
+RUN python -c "from vtolpose.service.runtime.daemon import load_compiled_kernels; load_compiled_kernels()"
 
 # Not root: serial ports (dialout) and cameras (video); on hosts whose device groups have other
 # ids, pass them with --group-add as above.
