@@ -28,14 +28,15 @@ COPY estimator ./estimator
 COPY drivers ./drivers
 COPY service ./service
 RUN pip install --no-cache-dir . && rm -rf /opt/vtolpose/build
-# The estimator's compiled kernels (numba), compiled here and cached beside them: the service does
-# not compile at its start.
+# The estimator's compiled kernels (numba), compiled here into a cache the service's user owns (numba
+# uses a cache only where it may write): the service does not compile at its start.
+ENV NUMBA_CACHE_DIR=/var/cache/vtolpose-numba
 RUN python -c "from vtolpose.service.runtime.daemon import load_compiled_kernels; load_compiled_kernels()"
 
 # Not root: serial ports (dialout) and cameras (video); on hosts whose device groups have other
 # ids, pass them with --group-add as above.
 RUN useradd --system --create-home --groups dialout,video vtolpose \
-    && mkdir -p /data && chown vtolpose /data
+    && mkdir -p /data && chown vtolpose /data && chown -R vtolpose "$NUMBA_CACHE_DIR"
 USER vtolpose
 WORKDIR /data
 ENV PYTHONUNBUFFERED=1
