@@ -49,8 +49,8 @@ from vtolpose.estimator.inertial.startup import state_from_static, velocity_from
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.smoothing.recorder import FilterRecorder
-from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 from vtolpose.estimator.inertial.sample_kernel import plain_run
+from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
 _POSE = np.r_[0:3, 6:9]  # [δp, δθ] within [δp, δv, δθ]

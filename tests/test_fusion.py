@@ -28,8 +28,8 @@ def reference(flight):
     return in_order(flight)
 
 
-def new_estimator(flight) -> Estimator:
-    cfg = load_config()
+def new_estimator(flight, cfg=None) -> Estimator:
+    cfg = cfg or load_config()
     return Estimator(flight.calibration, filter_options(cfg, flight.calibration.imu.noise))
 
 
@@ -43,9 +43,9 @@ def gps_fixes(flight) -> list[GpsFix]:
     return [GpsFix(int(t), p, float(h), float(v)) for t, p, h, v in zip(g.t_ns, g.p_ned, g.sigma_h, g.sigma_v)]
 
 
-def in_order(flight):
+def in_order(flight, cfg=None):
     """The plain offline loop: every sample in time order (IMU first at equal times), state recorded when it advanced."""
-    est = new_estimator(flight)
+    est = new_estimator(flight, cfg)
     events = sorted([(s.t_ns, 0, s) for s in imu_samples(flight)] + [(f.t_ns, 1, f) for f in gps_fixes(flight)],
                     key=lambda e: (e[0], e[1]))
     out, last = [], None
@@ -98,19 +98,9 @@ def test_runs_of_samples_fuse_exactly_as_one_at_a_time(flight, variant):
     (Estimator.process_imu_run: the steps' deltas and the rest detector's sums worked out for the whole
     run); trajectory, covariance and counts are bit for bit those of the sample-by-sample loop."""
     cfg = load_config(None, {"estimator": {"variant": variant}})
-    make = lambda: Estimator(flight.calibration, filter_options(cfg, flight.calibration.imu.noise))  # noqa: E731
-    events = sorted([(s.t_ns, 0, s) for s in imu_samples(flight)] + [(f.t_ns, 1, f) for f in gps_fixes(flight)],
-                    key=lambda e: (e[0], e[1]))
-    est, reference, last = make(), [], None
-    for _, kind, s in events:
-        if kind == 0:
-            if est.process_imu(s.t_ns, s.gyro, s.accel) and est.state is not None and (last is None or est.state.t_ns > last):
-                last = est.state.t_ns
-                reference.append((last, est.state.p.copy(), est.state.q.copy()))
-        else:
-            est.process_gps(s)
+    est, reference = in_order(flight, cfg)
     fused, accepted = [], []
-    core = FusionCore(make(), FusionOptions(delay_s=DELAY, predict=False),
+    core = FusionCore(new_estimator(flight, cfg), FusionOptions(delay_s=DELAY, predict=False),
                       on_fused=lambda pose: fused.append((pose.t_ns, pose.p.copy(), pose.q.copy())))
     run = core.est.process_imu_run
     core.est.process_imu_run = lambda *args: accepted.append(run(*args)) or accepted[-1]

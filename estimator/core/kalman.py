@@ -11,11 +11,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
-from types import ModuleType
 
 import numpy as np
 from scipy.special import chdtri  # χ² quantiles; scipy.stats would add half a second to every start
 
+from vtolpose.estimator.core import update_kernel
 from vtolpose.estimator.core.state import FilterState
 
 
@@ -161,7 +161,7 @@ def _compiled_update(state: FilterState, cols: slice, H: np.ndarray, residual: n
                      gate: float | None, held: np.ndarray | None) -> UpdateOutcome:
     """:func:`ekf_update` for one to three rows on a column range, in one compiled call (``update_kernel``);
     the arrays made C-ordered and float so that one machine-code version serves every caller."""
-    kernel = _update_kernel()
+    kernel = update_kernel
     start, stop, _ = cols.indices(state.cov.shape[0])
     code, nis, dx = kernel.small_update(
         state.cov, start, stop, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(residual, dtype=float),
@@ -174,10 +174,3 @@ def _compiled_update(state: FilterState, cols: slice, H: np.ndarray, residual: n
     if state.observer is not None:
         state.observer.updated(state)
     return UpdateOutcome(True, float(nis), m)
-
-
-def _update_kernel() -> ModuleType:
-    """The compiled small update, imported on first use (numba's import costs ~0.4 s)."""
-    from vtolpose.estimator.core import update_kernel
-
-    return update_kernel

@@ -86,7 +86,7 @@ def rows_finite(gyro: np.ndarray, accel: np.ndarray) -> np.ndarray:
 
 def screened(gyro: np.ndarray, accel: np.ndarray, limits: ImuRange | None) -> tuple[np.ndarray, np.ndarray]:
     """(beyond ``limits``, finite) for each row of (n, 3) readings, in one compiled pass
-    (``inertial.sample_kernel.screen_rows``; numba is imported on first use)."""
+    (``inertial.sample_kernel.screen_rows``, imported here: the samples' module stays below the others)."""
     from vtolpose.estimator.inertial.sample_kernel import screen_rows
 
     if limits is None:

@@ -5,8 +5,8 @@ These updates run ten to a hundred times per second and in numpy each is some tw
 tiny arrays whose Python wrappers cost more than their arithmetic. Compiled with numba the same
 operations run in one call, in the same order (the matrix products through the same BLAS
 routines), so the filter's numbers do not change; ``kalman.ekf_update`` stays the one entry point
-and its numpy path the reference (a test compares the two bit for bit). Imported by ``kalman``
-on first use, like ``inertial.propagation_kernel``.
+and its numpy path the reference (a test compares the two bit for bit). Cached and loaded as
+``inertial.propagation_kernel``.
 """
 
 from __future__ import annotations

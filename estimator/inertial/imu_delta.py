@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vtolpose.estimator.core.rotation import rotvec_quat
+from vtolpose.estimator.inertial import sample_kernel
 
 
 @dataclass(slots=True)
@@ -112,7 +113,7 @@ class ImuDownsampler:
             acc_t[1] = self._t0
             acc_t[2] |= 2
         acc[6:10], acc[10:13], acc[13] = self._q, self._dv, self._dt
-        ends, times, dts, deltas = _sample_kernel().downsample_run(t_ns, gyro, accel, acc, acc_t, self.min_dt)
+        ends, times, dts, deltas = sample_kernel.downsample_run(t_ns, gyro, accel, acc, acc_t, self.min_dt)
         k = len(t_ns) - 1
         self._last = (int(t_ns[k]), gyro[k], accel[k], acc[0:3].tolist(), acc[3:6].tolist())
         self._t0 = int(acc_t[1]) if acc_t[2] & 2 else None
@@ -139,9 +140,3 @@ class ImuDownsampler:
         self._last = (t_ns, gyro, accel, g, a)
         half = rotvec_quat(*(0.5 * dt * gyro).tolist())
         return ImuDelta(t_last, t_ns, dt, gyro * dt, np.array(_rotate(half, *(dt * accel).tolist())))
-
-
-def _sample_kernel():  # noqa: ANN202 — a module, imported on first use (numba's import costs ~0.4 s)
-    from vtolpose.estimator.inertial import sample_kernel
-
-    return sample_kernel

@@ -7,8 +7,9 @@ the same order: the results are bit for bit those of the interpreted step (``ste
 test holds the two together, and ``propagator.error_transition`` and
 ``propagator.integrate_nominal`` stay the references).
 
-Compiled once per machine and cached next to this file (or in numba's user cache where that is
-not writable). Importing numba costs ~0.4 s, so ``propagator`` imports this module on first use.
+Compiled once per machine and cached next to this file (or where ``NUMBA_CACHE_DIR`` says); a
+process loads the cached code on first use, which the runtime does before its first sample
+(``service.runtime.daemon.load_compiled_kernels``).
 """
 
 from __future__ import annotations

@@ -16,16 +16,16 @@ size, not O(n²). :func:`error_transition` is tested against central differences
 from __future__ import annotations
 
 import math
-from types import ModuleType
 
 import numpy as np
 
 from vtolpose.estimator.core.calibration import ImuNoise
+from vtolpose.estimator.inertial import propagation_kernel
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
 from vtolpose.estimator.core.rotation import rot_of as _rot, rotvec_quat
 from vtolpose.estimator.core.state import FilterState, StateLayout
 
-OUT_LEN = 13  # what the compiled step writes: p, v, q, a_W
+OUT_LEN = propagation_kernel.OUT_LEN  # what the compiled step writes: p, v, q, a_W
 
 
 def _skew(x: float, y: float, z: float) -> np.ndarray:
@@ -192,7 +192,7 @@ class ImuPropagator:
         last = self._q_last.get(key)
         if last is not None and last[0] == dt and last[1] == e2:  # a steady IMU rate: the same Q again
             return last[2]
-        Q = _kernel().noise_from_terms(terms, e2, dt)  # (c1 + (c2 + c3 dt) dt) dt, c = base + extra² Δ
+        Q = propagation_kernel.noise_from_terms(terms, e2, dt)  # (c1 + (c2 + c3 dt) dt) dt, c = base + extra² Δ
         self._q_last[key] = (dt, e2, Q)
         return Q
 
@@ -218,7 +218,7 @@ class ImuPropagator:
         cov = state.cov
         # The step is compiled for C-ordered arrays; anything else would compile it again, mid-flight.
         robot = cov if cov.shape[0] == n and cov.flags.c_contiguous else np.ascontiguousarray(cov[:n, :n])
-        grown = _kernel().step(state.p, state.v, state.q, state.b_g, state.b_a, delta.dtheta, delta.dvel, delta.dt,
+        grown = propagation_kernel.step(state.p, state.v, state.q, state.b_g, state.b_a, delta.dtheta, delta.dvel, delta.dt,
                                self._g, F, robot, Q, lay.estimates_biases, out)
         state.p, state.v, state.q = out[0:3], out[3:6], out[6:10]
         if cov.shape[0] == n:
@@ -229,11 +229,3 @@ class ImuPropagator:
             cov[:n, n:] = cross
             cov[n:, :n] = cross.T
         return out[10:13]
-
-
-def _kernel() -> ModuleType:
-    """The compiled step's module, imported on first use (importing numba takes ~0.4 s; the runtime
-    loads it before the first sample, see ``propagation_kernel.warm_up``)."""
-    from vtolpose.estimator.inertial import propagation_kernel
-
-    return propagation_kernel

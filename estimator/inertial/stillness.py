@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vtolpose.estimator.inertial import sample_kernel
+
 
 @dataclass(slots=True)
 class StillnessOptions:
@@ -102,8 +104,6 @@ class StillnessDetector:
             sums[0:3], sums[3:6], sums[6:9], sums[9:12] = self._g_sum, self._g_sq, self._a_sum, self._a_sq
             sums[12:15], sums[15:18] = self._block_g, self._block_a
             counts[:] = (self._t0, self._block_t0, self._samples, self._n, self._block_n, 1)
-        from vtolpose.estimator.inertial import sample_kernel  # numba on first use, as the propagator's
-
         ends, durations, stats = sample_kernel.stillness_run(t_ns, gyro, accel, sums, counts, self.options.average_s,
                                                              self.options.chunk_s)
         if counts[5]:
