@@ -221,6 +221,11 @@ class Estimator:
                 self._apply_still(chunk)
         return True
 
+    @property
+    def takes_runs(self) -> bool:
+        """Whether :meth:`process_imu_run` would take a plain run now (a running filter with a known heading)."""
+        return self.state is not None and self.heading_aligned and not self._lost_before_next_s and self._last_imu_t is not None
+
     def process_imu_run(self, t_ns: list[int], t_arr: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
                         after_step: Callable[[int], None]) -> bool:
         """:meth:`process_imu` for each row of a run of samples, ``after_step(k)`` after each sample ``k`` that
@@ -232,8 +237,7 @@ class Estimator:
         sample by sample).
         """
         n = len(t_ns)
-        if (self.state is None or not self.heading_aligned or self._lost_before_next_s or self._last_imu_t is None
-                or n == 0 or not plain_run(t_arr, gyro, accel, self._last_imu_t, self.options.max_imu_gap_s)):
+        if not self.takes_runs or n == 0 or not plain_run(t_arr, gyro, accel, self._last_imu_t, self.options.max_imu_gap_s):
             return False
         counts = self.counts["imu"]
         counts.received += n

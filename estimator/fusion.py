@@ -292,7 +292,7 @@ class FusionCore:
             if t_imu is not None and (t_meas is None or t_imu <= t_meas):
                 if t_imu > horizon:
                     return
-                if not self.predict and not self._discontinuities and len(queue) > 1 and est.state is not None:
+                if not self.predict and not self._discontinuities and len(queue) > 1 and est.takes_runs:
                     self._fuse_run(min(horizon, t_meas) if t_meas is not None else horizon)
                     continue
                 self._fuse_one_imu()
