@@ -229,7 +229,7 @@ class Estimator:
     def process_imu_run(self, t_ns: list[int], t_arr: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
                         after_step: Callable[[int], None]) -> bool:
         """:meth:`process_imu` for each row of a run of samples, ``after_step(k)`` after each sample ``k`` that
-        ended a filter step. What does not depend on the state (the steps' deltas, the rest detector's sums)
+        ended a filter step, and after the first. What does not depend on the state (the steps' deltas, the rest detector's sums)
         is worked out for the whole run at once; the state sees the same operations in the same order.
 
         Only for a running filter with a known heading and a plain run (every sample finite, later than
