@@ -49,7 +49,7 @@ from vtolpose.estimator.inertial.startup import state_from_static, velocity_from
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.smoothing.recorder import FilterRecorder
-from vtolpose.estimator.inertial.sample_kernel import plain_run
+from vtolpose.estimator.inertial.sample_kernel import level_run, plain_run
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
@@ -223,8 +223,8 @@ class Estimator:
 
     @property
     def takes_runs(self) -> bool:
-        """Whether :meth:`process_imu_run` would take a plain run now (a running filter with a known heading)."""
-        return self.state is not None and self.heading_aligned and not self._lost_before_next_s and self._last_imu_t is not None
+        """Whether :meth:`process_imu_run` would take a plain run now (a running filter, no lost time to widen for)."""
+        return self.state is not None and not self._lost_before_next_s and self._last_imu_t is not None
 
     def process_imu_run(self, t_ns: list[int], t_arr: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
                         after_step: Callable[[int], None]) -> bool:
@@ -232,9 +232,10 @@ class Estimator:
         ended a filter step, and after the first. What does not depend on the state (the steps' deltas, the rest detector's sums)
         is worked out for the whole run at once; the state sees the same operations in the same order.
 
-        Only for a running filter with a known heading and a plain run (every sample finite, later than
+        Only for a running filter (:attr:`takes_runs`) and a plain run (every sample finite, later than
         the one before, no gap to widen for): False, with nothing done, otherwise (the caller then goes
-        sample by sample).
+        sample by sample). While the heading is unknown the levelling's sums are worked out for the run
+        too, and each interval's update made at its last sample.
         """
         n = len(t_ns)
         if not self.takes_runs or n == 0 or not plain_run(t_arr, gyro, accel, self._last_imu_t, self.options.max_imu_gap_s):
@@ -246,15 +247,19 @@ class Estimator:
         deltas = dict(self._downsampler.add_run(t_arr, gyro, accel))  # at most one step ends at a sample
         chunks = {k: (duration, stats) for k, duration, stats in self._stillness.add_run(t_arr, gyro, accel)} \
             if self.options.still.enabled else {}
+        levels = self._level_run(t_arr, accel) if not self.heading_aligned else {}
         # Each sample's work in process_imu's order; the first sample is always offered to after_step, for
         # the state may have moved before it (a measurement's partial step), as sample by sample.
-        for k in sorted(deltas.keys() | chunks.keys() | {0}):
+        for k in sorted(deltas.keys() | chunks.keys() | levels.keys() | {0}):
             self._last_imu_t, self._gyro = t_ns[k], gyro[k]
             delta = deltas.get(k)
             if delta is not None:
                 self._propagate(delta)
                 if self.health.check_due(t_ns[k]):
                     self._check_state()
+            f_mean = levels.get(k)
+            if f_mean is not None:
+                self._apply_level(f_mean)
             chunk = chunks.get(k)
             if chunk is not None:
                 vx, vy, vz = self.state.v.tolist()
@@ -800,6 +805,17 @@ class Estimator:
             return
         f_mean = self._level_sum / self._level_n
         self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, t_ns
+        self._apply_level(f_mean)
+
+    def _level_run(self, t_arr: np.ndarray, accel: np.ndarray) -> dict[int, np.ndarray]:
+        """:meth:`_level`'s sums for a run (compiled): each ended interval's mean, by its last sample's index."""
+        sums, state = np.array(self._level_sum, dtype=float), np.array([self._level_n, self._level_t0], np.int64)
+        ends, means = level_run(t_arr, accel, sums, state, self.options.level_interval_s)
+        self._level_sum, self._level_n, self._level_t0 = sums, int(state[0]), int(state[1])
+        return dict(zip(ends.tolist(), means))
+
+    def _apply_level(self, f_mean: np.ndarray) -> None:
+        """One levelling update from an interval's mean specific force."""
         counts = self.counts["level"]
         counts.received += 1
         # Only roll, pitch and the gyro bias may move: the heading is invisible to gravity, and

@@ -92,12 +92,14 @@ def test_delayed_fusion_gives_exactly_the_in_order_result(flight, reference):
     assert core.est.counts_report() == est.counts_report()
 
 
-@pytest.mark.parametrize("variant", ["thesis", "biases"])
-def test_runs_of_samples_fuse_exactly_as_one_at_a_time(flight, variant):
+@pytest.mark.parametrize("variant, heading", [("thesis", "dataset"), ("biases", "dataset"), ("biases", "gps"),
+                                              ("thesis", "gps")])
+def test_runs_of_samples_fuse_exactly_as_one_at_a_time(flight, variant, heading):
     """Without a prediction to keep, the samples the horizon passes go to the estimator as runs
-    (Estimator.process_imu_run: the steps' deltas and the rest detector's sums worked out for the whole
-    run); trajectory, covariance and counts are bit for bit those of the sample-by-sample loop."""
-    cfg = load_config(None, {"estimator": {"variant": variant}})
+    (Estimator.process_imu_run: the steps' deltas, the rest detector's and the levelling's sums worked
+    out for the whole run); trajectory, covariance and counts are bit for bit those of the sample-by-sample
+    loop, also while the heading is searched for (heading hypotheses, levelling)."""
+    cfg = load_config(None, {"estimator": {"variant": variant, "heading": {"source": heading}}})
     est, reference = in_order(flight, cfg)
     fused, accepted = [], []
     core = FusionCore(new_estimator(flight, cfg), FusionOptions(delay_s=DELAY, predict=False),
@@ -115,6 +117,8 @@ def test_runs_of_samples_fuse_exactly_as_one_at_a_time(flight, variant):
     core.flush()
     assert sum(accepted) > 100 and len(fused) > 1000
     assert est.counts["still"].used > 0  # the rest detector's chunks were judged inside runs too
+    if heading == "gps":  # the heading was searched for, and levelled meanwhile
+        assert est.counts["level"].used > 10 and est.heading_aligned
     assert_same_trajectory(fused, reference)
     assert np.array_equal(core.est.state.cov, est.state.cov)
     assert core.est.counts_report() == est.counts_report()

@@ -251,7 +251,7 @@ def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
     def compiled() -> list[set]:
         return [set(f.signatures) for f in (kernel.step, kernel.noise_from_terms, update_kernel.small_update,
                                              sample_kernel.downsample_run, sample_kernel.stillness_run,
-                                             sample_kernel.screen_rows, sample_kernel.plain_run)]
+                                             sample_kernel.screen_rows, sample_kernel.plain_run, sample_kernel.level_run)]
     for module in (kernel, update_kernel, sample_kernel):
         module.warm_up()
     before = compiled()

@@ -145,6 +145,29 @@ def stillness_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, sums: np.n
 
 
 @numba.njit(cache=True, nogil=True)
+def level_run(t: np.ndarray, accel: np.ndarray, sums: np.ndarray, state: np.ndarray,
+              interval_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The levelling's accumulation (``Estimator._level``) for every sample of a run, carried in and out:
+    ``sums`` (3) the specific force summed so far, ``state`` (int, 2) how many samples and since when.
+    Returns, per interval that ended, the index of its last sample and its mean specific force."""
+    n = t.shape[0]
+    ends = np.empty(n, np.int64)
+    means = np.empty((n, 3))
+    m = 0
+    for k in range(n):
+        sums[0], sums[1], sums[2] = sums[0] + accel[k, 0], sums[1] + accel[k, 1], sums[2] + accel[k, 2]
+        state[0] += 1
+        if (t[k] - state[1]) * 1e-9 < interval_s:
+            continue
+        ends[m] = k
+        means[m, 0], means[m, 1], means[m, 2] = sums[0] / state[0], sums[1] / state[0], sums[2] / state[0]
+        m += 1
+        sums[:] = 0.0
+        state[0], state[1] = 0, t[k]
+    return ends[:m], means[:m]
+
+
+@numba.njit(cache=True, nogil=True)
 def screen_rows(gyro: np.ndarray, accel: np.ndarray, gyro2_max: float, accel2_max: float) -> tuple[np.ndarray, np.ndarray]:
     """Per row: beyond the IMU's range (``ImuRange.exceeded``: a squared norm above ``gyro2_max`` or
     ``accel2_max``, both infinite for no range) and finite (``readings_finite``), with their arithmetic."""
@@ -184,4 +207,5 @@ def warm_up() -> None:
     downsample_run(t, rows, rows, np.zeros(14), np.zeros(3, np.int64), 0.009)
     stillness_run(t, rows, rows, np.zeros(18), np.zeros(6, np.int64), 0.1, 1.0)
     screen_rows(rows, rows, 2700.0, 76800.0)
+    level_run(t, rows, np.zeros(3), np.zeros(2, np.int64), 0.5)
     plain_run(t, rows, rows, -1, 0.1)
