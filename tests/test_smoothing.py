@@ -439,3 +439,29 @@ def test_a_segment_closes_with_its_own_heading_flag(book):
     recorder.finish(state, heading_known=True)
     assert [(s.segment, s.ends_segment, s.heading_known) for s in steps] == [
         (0, False, False), (0, True, False), (1, False, True), (1, True, True)]
+
+
+@pytest.mark.parametrize("n", [9, 15])
+def test_the_compiled_backward_recursion_is_bit_for_bit_the_numpy_one(n):
+    """The backward pass runs rts_kernel.recursion (numba); rts.recursion is its numpy reference: the same
+    corrections and covariances to the last bit, restarts (steps without a transition) included."""
+    from vtolpose.estimator.smoothing import rts_kernel
+
+    rng = np.random.default_rng(n)
+    k_total = 40
+    C = rng.normal(size=(k_total, n, n)) * 0.3
+    A = rng.normal(size=(k_total, n, n))
+    D = A @ np.swapaxes(A, 1, 2) * 1e-3
+    P = A @ np.swapaxes(A, 1, 2) * 1e-2
+    u = rng.normal(size=(k_total, n)) * 1e-2
+    transition = rng.random(k_total) < 0.85
+    transition[-1] = False  # the newest step starts the recursion
+    e0, Ps0 = np.zeros(n), np.zeros((n, n))
+    compiled = rts_kernel.recursion(C, D, u, P, transition, e0, Ps0)
+    reference = recursion(C, D, u, P, transition, None, None)
+    for a, b in zip(compiled, reference):
+        assert np.array_equal(a, b)
+    carried = rng.normal(size=n), P[0]  # a later chunk's estimate carried in
+    transition[-1] = True
+    for a, b in zip(rts_kernel.recursion(C, D, u, P, transition, *carried), recursion(C, D, u, P, transition, *carried)):
+        assert np.array_equal(a, b)

@@ -29,6 +29,7 @@ import numpy as np
 from vtolpose.estimator.core.rotation import quat_conj, quat_exp, quat_log, quat_mul
 from vtolpose.estimator.inertial.heading_bank import UNKNOWN_HEADING_VAR
 from vtolpose.estimator.smoothing.steps import NOMINAL, ChunkBuilder, Step, StepChunk
+from vtolpose.estimator.smoothing import rts_kernel
 
 POSE_IX = np.r_[0:3, 6:9]  # [δp, δθ] in every robot layout
 POSE_YAW = 5  # the heading in the [δp, δθ] pose covariance
@@ -171,7 +172,10 @@ class BackwardPass:
         if np.any(broken):
             raise ValueError(f"step at t_ns={int(t_all[np.argmax(broken)])} has no successor in its segment: "
                              "steps out of order")
-        e_out, P_out, e, Ps = recursion(C, D, u, chunk.P, transition, self._e, self._Ps)
+        n_zero = np.zeros(n)
+        e_out, P_out, e, Ps = rts_kernel.recursion(  # compiled: bit for bit recursion() below
+            C, D, u, np.ascontiguousarray(chunk.P), np.ascontiguousarray(transition),
+            n_zero if self._e is None else self._e, np.zeros((n, n)) if self._Ps is None else self._Ps)
         # Where a segment's end and the next segment's start share a time, keep the later one.
         newest = np.iinfo(np.int64).max if self._last_t is None else self._last_t
         later = np.minimum(np.append(np.minimum.accumulate(t_all[::-1])[::-1][1:], newest), newest)

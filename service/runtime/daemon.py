@@ -23,6 +23,7 @@ from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import FusionOptions, OutputPose
 from vtolpose.estimator.core import update_kernel
 from vtolpose.estimator.inertial import propagation_kernel, sample_kernel
+from vtolpose.estimator.smoothing import rts_kernel
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
 from vtolpose.service.text import describe
@@ -63,7 +64,7 @@ def replay_camera_workers(cfg: dict[str, Any]) -> int:
 def load_compiled_kernels() -> None:
     """The estimator's compiled kernels (numba), compiled or loaded from their caches: ~0.1 s once per
     process, a few seconds the first time on a machine. Done before the first sample is handled."""
-    for kernels in (propagation_kernel, update_kernel, sample_kernel):
+    for kernels in (propagation_kernel, update_kernel, sample_kernel, rts_kernel):
         kernels.warm_up()
 
 
