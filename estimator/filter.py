@@ -226,7 +226,7 @@ class Estimator:
         """Whether :meth:`process_imu_run` would take a plain run now (a running filter, no lost time to widen for)."""
         return self.state is not None and not self._lost_before_next_s and self._last_imu_t is not None
 
-    def process_imu_run(self, t_ns: list[int], t_arr: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
+    def process_imu_run(self, t_arr: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
                         after_step: Callable[[int], None]) -> bool:
         """:meth:`process_imu` for each row of a run of samples, ``after_step(k)`` after each sample ``k`` that
         ended a filter step, and after the first. What does not depend on the state (the steps' deltas, the rest detector's sums)
@@ -237,9 +237,10 @@ class Estimator:
         sample by sample). While the heading is unknown the levelling's sums are worked out for the run
         too, and each interval's update made at its last sample.
         """
-        n = len(t_ns)
+        n = len(t_arr)
         if not self.takes_runs or n == 0 or not plain_run(t_arr, gyro, accel, self._last_imu_t, self.options.max_imu_gap_s):
             return False
+        t_ns = t_arr.tolist()
         counts = self.counts["imu"]
         counts.received += n
         counts.used += n

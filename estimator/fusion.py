@@ -349,7 +349,7 @@ class FusionCore:
                 if self.on_fused is not None:
                     self.on_fused(self._fused_pose(gyro[k]))
 
-        if all(item[3] for item in run) and est.process_imu_run(times, np.array(times, np.int64), gyro, accel, after_step):
+        if est.process_imu_run(np.array(times, np.int64), gyro, accel, after_step):  # it checks finiteness itself
             self._fused_until = times[-1]
             self._recent.clear()
             self._recent.append((times[-1], run[-1][1], run[-1][2]))

@@ -156,7 +156,7 @@ def test_rows_are_screened_as_single_samples_are():
             ([0.0, 0.0, 0.0], [np.inf, 0.0, 0.0]), ([edge, edge, edge], [0.0, 0.0, 0.0]),
             ([edge, edge, edge + 1e-3], [0.0] * 3), ([0.0] * 3, [300.0, 0.0, 0.0]), ([60.0, 0.0, 0.0], [0.0] * 3)]
     gyro, accel = np.array([g for g, _ in rows]), np.array([a for _, a in rows])
-    from vtolpose.estimator.core.measurements import readings_finite, rows_finite
+    from vtolpose.estimator.core.measurements import readings_finite, rows_finite, screened
     assert rows_finite(gyro, accel).tolist() == [readings_finite(g, a) for g, a in zip(gyro, accel)]
-    assert limits.exceeded_rows(gyro, accel).tolist() == [limits.exceeded(g, a) for g, a in zip(gyro, accel)]
-    assert limits.exceeded_rows(gyro, accel).tolist() == [False, False, False, False, False, True, True, True]
+    assert screened(gyro, accel, limits)[0].tolist() == [limits.exceeded(g, a) for g, a in zip(gyro, accel)]
+    assert screened(gyro, accel, limits)[0].tolist() == [False, False, False, False, False, True, True, True]

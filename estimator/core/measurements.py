@@ -63,10 +63,6 @@ class ImuRange:
         g2, a2 = gx * gx + gy * gy + gz * gz, ax * ax + ay * ay + az * az
         return (g2 > 3.0 * self.gyro**2 or a2 > 3.0 * self.accel**2) and math.isfinite(g2 + a2)
 
-    def exceeded_rows(self, gyro: np.ndarray, accel: np.ndarray) -> np.ndarray:
-        """:meth:`exceeded` for each row of (n, 3) readings, the same arithmetic (compiled, one call)."""
-        return screened(gyro, accel, self)[0]
-
 
 def readings_finite(gyro: np.ndarray, accel: np.ndarray) -> bool:
     """Every component of both readings finite (their squares' sum is finite exactly then).
@@ -85,7 +81,8 @@ def rows_finite(gyro: np.ndarray, accel: np.ndarray) -> np.ndarray:
 
 
 def screened(gyro: np.ndarray, accel: np.ndarray, limits: ImuRange | None) -> tuple[np.ndarray, np.ndarray]:
-    """(beyond ``limits``, finite) for each row of (n, 3) readings, in one compiled pass
+    """(:meth:`ImuRange.exceeded`, :func:`readings_finite`) for each row of (n, 3) readings, with their
+    arithmetic, in one compiled pass
     (``inertial.sample_kernel.screen_rows``, imported here: the samples' module stays below the others)."""
     from vtolpose.estimator.inertial.sample_kernel import screen_rows
 
