@@ -11,8 +11,8 @@ from __future__ import annotations
 from typing import Protocol
 
 import numpy as np
-from scipy.special import chdtri
 
+from vtolpose.estimator.core.chi2 import upper_quantile
 from vtolpose.estimator.core.rotation import quat_conj, quat_log, quat_mul, quat_slerp, quat_to_rot, rotation_angle, skew
 
 
@@ -152,8 +152,7 @@ def chi2_band(dof: int, prob: float = 0.95, n_samples: int = 1) -> tuple[float, 
     """
     tail = 0.5 * (1.0 - prob)
     k = dof * n_samples
-    # chdtri(k, s) is the χ² quantile whose upper tail is s (what chi2.ppf(1 − s, k) computes).
-    return float(chdtri(k, 1.0 - tail) / n_samples), float(chdtri(k, tail) / n_samples)
+    return upper_quantile(k, 1.0 - tail) / n_samples, upper_quantile(k, tail) / n_samples
 
 
 def nees_summary(values: np.ndarray, dof: int, prob: float = 0.95) -> dict:

@@ -101,3 +101,13 @@ def test_the_mapper_client_imports_without_opencv_or_the_estimator():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO.parent)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
+
+
+def test_the_command_line_and_a_runtime_without_camera_do_not_load_opencv() -> None:
+    # OpenCV costs a process ~16 MB and up to a second to import: only camera work may load it.
+    code = ("import sys; from vtolpose.service.cli import build_parser; build_parser(); "
+            "import vtolpose.service.runtime.daemon, vtolpose.service.replay.session, vtolpose.service.bench.runner; "
+            "print('cv2' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO.parent)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "False"

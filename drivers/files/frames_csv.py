@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from vtolpose.drivers.files.csvio import parse_time_ns
@@ -121,6 +120,8 @@ def load_grey(path: Path, max_pixels: int = MAX_FRAME_PIXELS) -> np.ndarray | No
 
     Colour images are converted to grey; 16-bit images keep their top 8 bits.
     """
+    import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
     problem = _refusal(path, max_pixels)
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if problem is None else None
     if image is None:
@@ -141,6 +142,8 @@ def write_frame_index(csv_path: Path, t_ns: list[int]) -> None:
 
 
 def write_png(path: Path, image: np.ndarray) -> None:
+    import cv2
+
     ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise OSError(f"{path}: could not encode the image as PNG")

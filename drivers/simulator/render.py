@@ -18,7 +18,6 @@ import math
 from dataclasses import dataclass
 from typing import Iterator
 
-import cv2
 import numpy as np
 
 from vtolpose.drivers.simulator.flight import STREAM_CAMERA, SimulatedFlight, _rng, sample_times_ns
@@ -95,6 +94,8 @@ class FrameRenderer:
 
     def radiance(self, c_w: np.ndarray, R_WC: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Noise-free brightness in [0, 1] seen from camera pose (c_w, R_WC), and the ground point at the centre."""
+        import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
         n, e, d, footprint = self._cast(c_w, R_WC)
         full = [cv2.remap(g, self._up_x, self._up_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for g in (n, e, d)]
         mid = (len(self._gv) // 2, len(self._gu) // 2)
@@ -119,6 +120,8 @@ class FrameRenderer:
 
     def frames(self, seed: int) -> Iterator[tuple[int, np.ndarray]]:
         """``(t_ns, uint8 image)`` for every frame time of the flight, in order."""
+        import cv2
+
         opts = self.options
         rng = _rng(seed, STREAM_CAMERA)
         flight = self.flight

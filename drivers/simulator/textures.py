@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 from typing import Protocol
 
-import cv2
 import numpy as np
 
 
@@ -26,6 +25,8 @@ class Appearance(Protocol):
 @lru_cache(maxsize=8)
 def photo(name: str) -> np.ndarray:
     """A scikit-image sample photograph, grey float32, mean 0, std 1."""
+    import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
     try:
         from skimage import data
     except ImportError:  # pragma: no cover - depends on the installation
@@ -53,6 +54,8 @@ class TextureLayer:
     aspect: float = 1.0
 
     def __post_init__(self) -> None:
+        import cv2
+
         levels = [photo(self.name)]
         while min(levels[-1].shape) >= 16:
             h, w = levels[-1].shape
@@ -71,6 +74,8 @@ class TextureLayer:
         return out
 
     def _at(self, n: np.ndarray, e: np.ndarray, level: int) -> np.ndarray:
+        import cv2
+
         c, s = math.cos(self.angle_rad), math.sin(self.angle_rad)
         shrink = 2.0**level
         scale = 1.0 / (self.texel_m * shrink)
@@ -135,6 +140,8 @@ class LandfillAppearance:
         return ((sz - dn * sx - de * sy) / np.sqrt(1.0 + dn * dn + de * de)).astype(np.float32)
 
     def radiance(self, n: np.ndarray, e: np.ndarray, down: np.ndarray, footprint_m: float) -> np.ndarray:
+        import cv2
+
         mix = _mask(n, e, (13.0, 17.0, 29.0))
         coarse = mix * self.coarse[0].sample(n, e, footprint_m) + (1.0 - mix) * self.coarse[1].sample(n, e, footprint_m)
         fine = self.fine.sample(n, e, footprint_m)

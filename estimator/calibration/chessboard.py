@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from vtolpose.estimator.core.calibration import CameraCalibration
@@ -48,6 +47,8 @@ class Board:
 
 def find_corners(image: np.ndarray, board: Board) -> np.ndarray | None:
     """Inner corners (N, 2) refined to sub-pixel accuracy, or None if the board is not found whole."""
+    import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     found, corners = cv2.findChessboardCorners(grey, board.pattern, flags=flags)
@@ -98,6 +99,8 @@ def calibrate_views(
     against the image plane, and views so alike that the focal length or principal point is
     uncertain by more than ``max_relative_sigma`` of its value.
     """
+    import cv2
+
     if len(views) < min_views:
         raise ChessboardError(
             f"the chessboard ({board.cols}x{board.rows} inner corners) was found in {len(views)} view(s); at least "

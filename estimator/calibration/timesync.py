@@ -14,7 +14,6 @@ import math
 from dataclasses import dataclass
 from typing import Iterable
 
-import cv2
 import numpy as np
 
 from vtolpose.estimator.core.calibration import CameraCalibration
@@ -83,6 +82,8 @@ def _plane_rotation(x0, x1, camera: CameraCalibration, options: TrackOptions, no
     tracks do not lie on one plane. Of the decompositions, the one whose normal is nearest the
     previous pair's (or, first, the one facing the camera most) is taken: a ground or a table
     turns slowly in the camera's view."""
+    import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
     H, mask = cv2.findHomography(x0, x1, cv2.RANSAC, 1.0 / camera.fx)
     if H is None or mask is None or int(mask.sum()) < options.min_tracks:
         return None
@@ -104,6 +105,8 @@ def _pair_rotation(p0, p1, camera: CameraCalibration, options: TrackOptions, nor
     """Rotation taking frame-1 camera axes to frame-0 axes from tracked pixels p0 → p1, and the
     scene plane's normal. A homography covers both a pure rotation (any scene) and a planar scene
     (ground, table); a scene with depth and parallax falls back to the essential matrix."""
+    import cv2
+
     K, dist = camera.K, camera.distortion
     x0 = cv2.undistortPoints(p0.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
     x1 = cv2.undistortPoints(p1.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
@@ -122,6 +125,8 @@ def frame_rotations(
 ) -> FrameRotations:
     """Relative rotations of consecutive frames ``(t_ns, grey uint8 image)`` (KLT tracks with a
     forward–backward check). Pairs with too few tracks are skipped and counted."""
+    import cv2
+
     t0s, t1s, rotvecs, tracks = [], [], [], []
     skipped = frames_seen = 0
     previous = normal = None

@@ -13,16 +13,16 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.special import chdtri  # χ² quantiles; scipy.stats would add half a second to every start
 
 from vtolpose.estimator.core import update_kernel
+from vtolpose.estimator.core.chi2 import upper_quantile
 from vtolpose.estimator.core.state import FilterState
 
 
 @lru_cache(maxsize=64)
 def chi2_gate(dof: int, probability: float = 0.95) -> float:
     """Upper χ² quantile: innovations with NIS above it are outliers at this confidence."""
-    return float(chdtri(dof, 1.0 - probability))
+    return upper_quantile(dof, 1.0 - probability)
 
 
 @dataclass(frozen=True, slots=True)

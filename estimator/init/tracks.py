@@ -15,7 +15,6 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from vtolpose.estimator.vision.association import AssociationOptions
@@ -130,6 +129,8 @@ class FeatureTracker:
         """Matches consistent with one essential matrix (all of them when too few to test)."""
         if len(x0) < 8:
             return np.ones(len(x0), dtype=bool)
+        import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
         threshold = self.options.epipolar_px / max(self.camera.fx, self.camera.fy)
         E, mask = cv2.findEssentialMat(x0.astype(np.float64), x1.astype(np.float64), np.eye(3), method=cv2.RANSAC,
                                        prob=0.999, threshold=threshold)

@@ -21,11 +21,14 @@ from __future__ import annotations
 import hashlib
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 
 from vtolpose.estimator.vision.frame_quality import FrameQualityOptions, frame_problem
+
+if TYPE_CHECKING:
+    import cv2
 
 DETECTORS = ("sift", "orb", "akaze")
 
@@ -46,8 +49,11 @@ class FeatureOptions:
             raise ValueError(f"max_features must be at least 1, got {self.max_features}")
         if not 0.25 <= self.sift_image_scale <= 1.0:
             raise ValueError(f"sift_image_scale must be in [0.25, 1], got {self.sift_image_scale}")
-        if self.detector == "akaze" and not hasattr(cv2, "AKAZE_create"):
-            raise ValueError(f"detector 'akaze' is not in this OpenCV build ({cv2.__version__}); use sift or orb")
+        if self.detector == "akaze":
+            import cv2
+
+            if not hasattr(cv2, "AKAZE_create"):
+                raise ValueError(f"detector 'akaze' is not in this OpenCV build ({cv2.__version__}); use sift or orb")
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,6 +81,8 @@ class FrameFeatures:
 
 
 def _detector(options: FeatureOptions) -> cv2.Feature2D:
+    import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
     if options.detector == "sift":
         return cv2.SIFT_create(nfeatures=options.max_features, contrastThreshold=options.sift_contrast_threshold)
     if options.detector == "orb":
@@ -84,6 +92,8 @@ def _detector(options: FeatureOptions) -> cv2.Feature2D:
 
 def _detect(image: np.ndarray, options: FeatureOptions) -> tuple[tuple, np.ndarray | None, np.ndarray | None]:
     """Keypoints and descriptors, and the (x, y) factor from the image the detector saw to the frame."""
+    import cv2
+
     scale = options.sift_image_scale
     if options.detector != "sift" or scale == 1.0:
         return (*_detector(options).detectAndCompute(image, None), None)

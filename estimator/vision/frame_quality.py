@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 PROBLEMS = ("wrong_size", "black", "saturated", "textureless", "unreadable")
@@ -26,6 +25,8 @@ class FrameQualityOptions:
 
 def frame_problem(image: np.ndarray, expected_shape: tuple[int, int] | None, options: FrameQualityOptions) -> str | None:
     """The reason to reject ``image`` (one of :data:`PROBLEMS`), or None for a usable frame."""
+    import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
     if image.ndim != 2 or image.dtype != np.uint8 or min(image.shape) < 8:
         return "wrong_size"
     if expected_shape is not None and tuple(image.shape) != tuple(expected_shape):

@@ -13,7 +13,6 @@ import time
 import timeit
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from vtolpose.config import load_config
@@ -107,6 +106,8 @@ def bench_features() -> list[Row]:
     SIFT is measured as configured (``features.sift_image_scale`` 0.5) and with the thesis' full
     doubled pyramid (1.0), so the ratio between them is measured in the same run.
     """
+    import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     rows: list[Row] = []
@@ -158,6 +159,8 @@ def bench_replay_camera(scenario: str = "book", duration_s: float = 120.0) -> li
     factors are wall clock (the note gives the process's CPU time too: on a shared machine
     the wall clock measures the neighbours as well).
     """
+    import cv2
+
     load_compiled_kernels()  # once per process, before the first replay (not in its time)
     rows: list[Row] = []
     threads = cv2.getNumThreads()

@@ -25,7 +25,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from vtolpose.config import load_config
@@ -114,6 +113,8 @@ class _Paced:
 
 def _test_image(seed: int = 0) -> np.ndarray:
     """A 656 × 494 textured grey image: SIFT finds about 800 features in it, like an aerial frame."""
+    import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
     rng = np.random.default_rng(seed)
     return cv2.GaussianBlur((rng.random((494, 656)) * 255).astype(np.uint8), (0, 0), 2.0)
 
@@ -129,6 +130,8 @@ def bench_runtime_latency(duration_s: float = 15.0) -> list[Row]:
 
 
 def latency_run(duration_s: float, priority: int | None, label: str, overrides: dict | None = None) -> list[Row]:
+    import cv2
+
     zenoh_port, mav_port = free_port(), free_port(socket.SOCK_DGRAM)
     with tempfile.TemporaryDirectory() as tmp:
         write_flight(simulate_flight("landfill", duration_s + 15.0, 1), Path(tmp) / "d")

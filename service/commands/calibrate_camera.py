@@ -6,7 +6,6 @@ import argparse
 import logging
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
@@ -75,6 +74,8 @@ def image_paths(items: list[str]) -> list[Path]:
 
 def detect(paths: list[Path], board: Board) -> tuple[list[tuple[str, np.ndarray]], list[str], tuple[int, int]]:
     """Corners of every view where the whole board is found; the names where it is not; the image size."""
+    import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
     views, missing, size = [], [], None
     for path in paths:
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)

@@ -11,7 +11,6 @@ from vtolpose.drivers.files.tum import write_tum
 from vtolpose.service.commands.common import add_config_options, parse_sensors, write_json
 from vtolpose.service.commands.run import add_runtime_options, add_start_option, config_for
 from vtolpose.service.replay.faults import add_fault_options, parse_faults
-from vtolpose.service.replay.overlay import OverlayWriter
 from vtolpose.service.replay.progress import Progress
 from vtolpose.service.replay.session import missing_sensor, replay
 from vtolpose.service.replay.smoothing import replay_smoothed
@@ -96,7 +95,11 @@ def run(args: argparse.Namespace) -> int:
 
     if (args.filtered_out or args.cov) and not args.smooth:
         raise ValueError("--filtered-out and --cov come with --smooth (without it, --out is the filtered trajectory)")
-    overlay = OverlayWriter(args.overlay) if args.overlay else None
+    overlay = None
+    if args.overlay:
+        from vtolpose.service.replay.overlay import OverlayWriter  # OpenCV, loaded only to draw
+
+        overlay = OverlayWriter(args.overlay)
     run_args = dict(on_progress=on_progress if progress.enabled else None, on_frame=overlay, faults=faults,
                     fault_seed=args.fault_seed, start_at_s=args.start_at)
     if args.smooth:

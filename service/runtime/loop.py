@@ -26,7 +26,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any, AsyncIterator, Callable, Protocol, Sequence
 
-import cv2
 import numpy as np
 
 from vtolpose.estimator.filter import Estimator
@@ -436,10 +435,14 @@ class Runtime:
         # normal priority beside the loop; one thread per camera worker keeps it in the niced workers
         # (SIFT ~40 % slower per frame, well inside a frame period). Full-speed replays with several
         # workers (one per core) extract whole frames in parallel, each on one thread; with one
-        # worker they keep the pool.
-        opencv_threads = cv2.getNumThreads()
-        if not self.options.lockstep or self.options.camera_workers > 1:
-            cv2.setNumThreads(1)
+        # worker they keep the pool. Without a camera OpenCV is not even loaded.
+        opencv_threads = None
+        if self.camera_processor is not None:
+            import cv2
+
+            opencv_threads = cv2.getNumThreads()
+            if not self.options.lockstep or self.options.camera_workers > 1:
+                cv2.setNumThreads(1)
         opened: list[PoseOutput] = []
         # Without outputs nobody reads the present pose (an offline replay): no output predictor,
         # and no history of poses for queries nobody can ask.
@@ -484,7 +487,10 @@ class Runtime:
                 except Exception as exc:  # closing one link must not keep the others open
                     log.error("closing %s: %s", type(out).__name__, exc)
             self._executor.shutdown(wait=True, cancel_futures=True)
-            cv2.setNumThreads(opencv_threads)
+            if opencv_threads is not None:
+                import cv2
+
+                cv2.setNumThreads(opencv_threads)
             gc.unfreeze()
             if self.options.realtime_priority is not None:
                 set_thread_priority(None)
