@@ -36,7 +36,7 @@ from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
 from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonitor, HealthOptions
-from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
+from vtolpose.estimator.inertial.imu_delta import DeltaRun, ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts, readings_finite
@@ -245,17 +245,27 @@ class Estimator:
         counts.received += n
         counts.used += n
         self._gap.end()
-        deltas = dict(self._downsampler.add_run(t_arr, gyro, accel))  # at most one step ends at a sample
+        steps = self._downsampler.add_run(t_arr, gyro, accel)
+        step_at = {k: j for j, k in enumerate(steps.ends)}  # at most one step ends at a sample
         chunks = {k: (duration, stats) for k, duration, stats in self._stillness.add_run(t_arr, gyro, accel)} \
             if self.options.still.enabled else {}
         levels = self._level_run(t_arr, accel) if not self.heading_aligned else {}
         # Each sample's work in process_imu's order; the first sample is always offered to after_step, for
         # the state may have moved before it (a measurement's partial step), as sample by sample.
-        for k in sorted(deltas.keys() | chunks.keys() | levels.keys() | {0}):
+        order = sorted(step_at.keys() | chunks.keys() | levels.keys() | {0})
+        i = 0
+        while i < len(order):
+            k = order[i]
+            j = step_at.get(k)
+            if j is not None and k not in chunks and k not in levels:
+                taken = self._compiled_steps(order, i, step_at, chunks, levels, steps, t_ns, gyro, after_step)
+                if taken:
+                    i += taken
+                    continue
+            i += 1
             self._last_imu_t, self._gyro = t_ns[k], gyro[k]
-            delta = deltas.get(k)
-            if delta is not None:
-                self._propagate(delta)
+            if j is not None:
+                self._propagate(steps.delta(j))
                 if self.health.check_due(t_ns[k]):
                     self._check_state()
             f_mean = levels.get(k)
@@ -267,11 +277,47 @@ class Estimator:
                 still = self._stillness.judge(*chunk, self.propagator.gravity[2], math.sqrt(vx * vx + vy * vy + vz * vz))
                 if still is not None:
                     self._apply_still(still)
-            if delta is not None or k == 0:
+            if j is not None or k == 0:
                 after_step(k)
         self._last_imu_t = t_ns[-1]
         self._gyro = gyro[n - 1]
         return True
+
+    def _compiled_steps(self, order: list[int], i: int, step_at: dict[int, int], chunks: dict, levels: dict,
+                        steps: DeltaRun, t_ns: list[int], gyro: np.ndarray, after_step: Callable[[int], None]) -> int:
+        """The steps from ``order[i]`` on that need nothing but propagation (no rest chunk or levelling at their
+        sample, no periodic check before the last), in one compiled call (``propagator.propagate_steps``),
+        then each step's bookkeeping and ``after_step`` in turn, the state as :meth:`_propagate` leaves it.
+        Returns how many were taken: none while the heading is searched for, a visual start or a recorder
+        watches the steps, or where the propagator has no compiled sequence (a map, non-isotropic noise)."""
+        if not self.heading_aligned or self.recorder is not None or self._visual_start_pending():
+            return 0
+        end = i
+        while end < len(order):
+            k = order[end]
+            if k not in step_at or k in chunks or k in levels:
+                break
+            end += 1
+            if self.health.check_would_be_due(t_ns[k]):
+                break  # the check may rebuild the state: the next steps start from what it leaves
+        j0, j1 = step_at[order[i]], step_at[order[end - 1]] + 1
+        state = self.state
+        computed = self.propagator.propagate_steps(state, steps.deltas[j0:j1], steps.dts[j0:j1], self._horizontal_accel,
+                                                   self.options.init.average_s)
+        if computed is None:
+            return 0
+        states, covs, means = computed
+        ends = steps.times[j0:j1, 1].tolist()
+        for x in range(end - i):
+            k = order[i + x]
+            self._last_imu_t, self._gyro = t_ns[k], gyro[k]
+            row = states[x]
+            state.p, state.v, state.q, state.cov, state.t_ns = row[0:3], row[3:6], row[6:10], covs[x], ends[x]
+            self._horizontal_accel = means[x]
+            if self.health.check_due(t_ns[k]):
+                self._check_state()
+            after_step(k)
+        return end - i
 
     def _propagate(self, delta: ImuDelta) -> None:
         extra = 0.0

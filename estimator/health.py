@@ -307,6 +307,10 @@ class HealthMonitor:
         return gap_s > self.options.imu_gap_reset_s
 
     # --------------------------------------------------------------------------- checks
+    def check_would_be_due(self, t_ns: int) -> bool:
+        """Whether :meth:`check_due` would say yes at ``t_ns`` (without taking the check)."""
+        return self._next_check_ns is None or t_ns >= self._next_check_ns
+
     def check_due(self, t_ns: int) -> bool:
         if self._next_check_ns is None or t_ns >= self._next_check_ns:
             self._next_check_ns = t_ns + self._period_ns

@@ -230,6 +230,35 @@ def test_compiled_step_is_bit_for_bit_the_interpreted_one(variant):
             assert np.array_equal(kernel.noise_from_terms(terms, extra2, dt), numpy_q)
 
 
+@pytest.mark.parametrize("variant", ["thesis", "biases"])
+def test_a_compiled_sequence_of_steps_is_bit_for_bit_the_steps_one_by_one(variant):
+    """propagate_steps: the states, covariances and running horizontal acceleration after each step are those
+    of propagate called step by step (the estimator's loop), whatever dt each step has."""
+    layout = StateLayout(variant)
+    local = np.random.default_rng(11)
+    state = FilterState(layout)
+    state.p, state.v, state.q = local.normal(size=3), local.normal(size=3), quat_from_euler(0.3, -0.2, 1.9)
+    state.b_g, state.b_a = local.normal(size=3) * 0.01, local.normal(size=3) * 0.1
+    A = local.normal(size=(layout.robot_dim,) * 2)
+    state.cov = A @ A.T
+    dts = np.array([0.01, 0.01, 0.0095, 0.0105, 0.01, 0.02])
+    deltas = np.hstack([local.normal(size=(6, 3)) * dts[:, None],
+                        (local.normal(size=(6, 3)) + [0.0, 0.0, -9.8]) * dts[:, None]])
+    horizontal, average_s = np.array([0.2, -0.1]), 0.5
+    prop = ImuPropagator(ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4), 9.81)
+    states, covs, means = prop.propagate_steps(state, deltas, dts, horizontal, average_s)
+    hx, hy = horizontal.tolist()
+    for j, dt in enumerate(dts.tolist()):
+        a_w = prop.propagate(state, ImuDelta(0, 1, dt, deltas[j, 0:3], deltas[j, 3:6]))
+        keep = average_s / (average_s + dt)
+        hx, hy = keep * hx + (1.0 - keep) * a_w[0], keep * hy + (1.0 - keep) * a_w[1]
+        assert np.array_equal(states[j], np.concatenate([state.p, state.v, state.q]))
+        assert np.array_equal(covs[j], state.cov)
+        assert means[j].tolist() == [hx, hy]
+    state.landmarks, state.cov = np.zeros((1, 6)), np.eye(layout.robot_dim + 6)
+    assert prop.propagate_steps(state, deltas, dts, horizontal, average_s) is None  # a map: step by step
+
+
 def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
     """One machine-code version of the step (and of the small update) serves every call of a replay with
     camera, landmarks, the heading bank's other layout, GPS, levelling and rest: another would be compiled
@@ -249,7 +278,7 @@ def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
     from vtolpose.estimator.inertial import sample_kernel
 
     def compiled() -> list[set]:
-        return [set(f.signatures) for f in (kernel.step, kernel.noise_from_terms, update_kernel.small_update,
+        return [set(f.signatures) for f in (kernel.step, kernel.noise_from_terms, kernel.step_run, update_kernel.small_update,
                                              sample_kernel.downsample_run, sample_kernel.stillness_run,
                                              sample_kernel.screen_rows, sample_kernel.plain_run, sample_kernel.level_run)]
     for module in (kernel, update_kernel, sample_kernel):
@@ -259,4 +288,5 @@ def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
         cfg = load_config(None, {"estimator": {"variant": variant, "heading": {"source": "gps"}}, "features": {"detector": "orb"}})
         result = replay(dataset, cfg, ["imu", "camera", "gps"])
         assert result.estimator.state is not None and result.estimator.state.n_landmarks > 0
+        replay(dataset, cfg, ["imu", "gps"])  # runs of IMU samples: the compiled sequences of steps
     assert compiled() == before

@@ -32,6 +32,21 @@ class ImuDelta:
     dvel: np.ndarray  # ∫ ΔR(τ) f(τ) dτ, specific force rotated into the start frame [m/s]
 
 
+@dataclass(slots=True)
+class DeltaRun:
+    """The steps a run of samples completed (:meth:`ImuDownsampler.add_run`), as arrays: row ``j`` is the
+    step that sample ``ends[j]`` of the run ended."""
+
+    ends: list[int]
+    times: np.ndarray  # (m, 2): t0, t1 [ns]
+    dts: np.ndarray  # (m,) [s]
+    deltas: np.ndarray  # (m, 6): Δθ, Δv
+
+    def delta(self, j: int) -> ImuDelta:
+        return ImuDelta(int(self.times[j, 0]), int(self.times[j, 1]), float(self.dts[j]), self.deltas[j, 0:3],
+                        self.deltas[j, 3:6])
+
+
 def _qmul(a: tuple, b: tuple) -> tuple[float, float, float, float]:
     aw, ax, ay, az = a
     bw, bx, by, bz = b
@@ -101,7 +116,7 @@ class ImuDownsampler:
             return None
         return self.flush()
 
-    def add_run(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> list[tuple[int, ImuDelta]]:
+    def add_run(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> DeltaRun:
         """:meth:`add` for each row of a run of samples (strictly later, in time order), in one compiled
         call (``sample_kernel.downsample_run``): the completed deltas, each with its last sample's index."""
         last, acc_t = self._last, np.zeros(3, np.int64)
@@ -119,8 +134,7 @@ class ImuDownsampler:
         self._t0 = int(acc_t[1]) if acc_t[2] & 2 else None
         values = acc[6:14].tolist()
         self._q, self._dv, self._dt = tuple(values[0:4]), tuple(values[4:7]), values[7]
-        return [(end, ImuDelta(t0, t1, dt, deltas[j, 0:3], deltas[j, 3:6]))
-                for j, (end, (t0, t1), dt) in enumerate(zip(ends.tolist(), times.tolist(), dts.tolist()))]
+        return DeltaRun(ends.tolist(), times, dts, deltas)
 
     def flush(self) -> ImuDelta | None:
         """The partial delta accumulated so far (e.g. up to a measurement's time), if any."""

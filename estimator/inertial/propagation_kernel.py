@@ -127,6 +127,36 @@ def noise_from_terms(terms: np.ndarray, extra2: float, dt: float) -> np.ndarray:
     return Q
 
 
+@numba.njit(cache=True, nogil=True)
+def step_run(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, deltas: np.ndarray,
+             dts: np.ndarray, gravity: float, F: np.ndarray, cov: np.ndarray, terms: np.ndarray, biases: bool,
+             horizontal: np.ndarray, average_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`step` for each of a sequence of deltas (rows of [Δθ, Δv]), with the isotropic noise of each
+    ``dt`` (:func:`noise_from_terms`, no extra noise) and the filter's running mean of the horizontal
+    acceleration, from ``horizontal`` on: what the interpreted loop of steps does, in the same order.
+
+    Returns, after each step, p, v, q (rows of 10), the robot covariance, and that mean (rows of 2).
+    """
+    m = dts.shape[0]
+    n = cov.shape[0]
+    states = np.empty((m, 10))
+    covs = np.empty((m, n, n))
+    means = np.empty((m, 2))
+    out = np.empty(OUT_LEN)
+    hx, hy = horizontal[0], horizontal[1]
+    for j in range(m):
+        dt = dts[j]
+        Q = noise_from_terms(terms, 0.0, dt)
+        cov = step(p, v, q, b_g, b_a, deltas[j, 0:3], deltas[j, 3:6], dt, gravity, F, cov, Q, biases, out)
+        covs[j] = cov
+        states[j] = out[0:10]
+        p, v, q = states[j, 0:3], states[j, 3:6], states[j, 6:10]
+        keep = average_s / (average_s + dt)
+        hx, hy = keep * hx + (1.0 - keep) * out[10], keep * hy + (1.0 - keep) * out[11]
+        means[j, 0], means[j, 1] = hx, hy
+    return states, covs, means
+
+
 def warm_up() -> None:
     """Compile the kernels, or load them from the cache, now rather than on the first IMU step (which
     would then take a second): each once per layout, on the argument types the filter passes."""
@@ -135,3 +165,5 @@ def warm_up() -> None:
         step(v3, v3, np.array([1.0, 0.0, 0.0, 0.0]), v3, v3, v3, v3, 0.01, 9.8, np.eye(n), np.eye(n), np.eye(n),
              n == 15, np.empty(OUT_LEN))
         noise_from_terms(np.zeros((6, n, n)), 0.25, 0.01)
+        step_run(v3, v3, np.array([1.0, 0.0, 0.0, 0.0]), v3, v3, np.zeros((2, 6)), np.full(2, 0.01), 9.8, np.eye(n),
+                 np.eye(n), np.zeros((6, n, n)), n == 15, np.zeros(2), 0.5)

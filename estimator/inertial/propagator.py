@@ -184,10 +184,7 @@ class ImuPropagator:
         # extra² (it adds to the horizontal accelerometer variance): Q = Q(0) + extra² (Q(1) − Q(0)),
         # so a heading still unknown (extra changing every step) costs no refit.
         key = layout.variant
-        terms = self._q_terms.get(key)
-        if terms is None:
-            base, unit = (noise_dt_polynomial(self.noise, layout, x) for x in (0.0, 1.0))
-            terms = self._q_terms[key] = np.stack([*base, *(u - b for u, b in zip(unit, base))])
+        terms = self._noise_terms(layout)
         e2 = extra * extra
         last = self._q_last.get(key)
         if last is not None and last[0] == dt and last[1] == e2:  # a steady IMU rate: the same Q again
@@ -196,6 +193,14 @@ class ImuPropagator:
         self._q_last[key] = (dt, e2, Q)
         return Q
 
+    def _noise_terms(self, layout: StateLayout) -> np.ndarray:
+        """Isotropic Q's polynomial terms for ``layout``: (6, n, n), the base terms, then their change per extra²."""
+        terms = self._q_terms.get(layout.variant)
+        if terms is None:
+            base, unit = (noise_dt_polynomial(self.noise, layout, x) for x in (0.0, 1.0))
+            terms = self._q_terms[layout.variant] = np.stack([*base, *(u - b for u, b in zip(unit, base))])
+        return terms
+
     def _transition(self, layout: StateLayout) -> np.ndarray:
         """The preallocated F of ``layout``: identity and zeros, its other entries written by every step."""
         F = self._transitions.get(layout.variant)
@@ -203,6 +208,20 @@ class ImuPropagator:
             F = self._transitions[layout.variant] = np.eye(layout.robot_dim)
         self._F = F
         return F
+
+    def propagate_steps(self, state: FilterState, deltas: np.ndarray, dts: np.ndarray, horizontal: np.ndarray,
+                        average_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """:meth:`propagate` (no extra noise) over a sequence of deltas ([Δθ, Δv] rows) in one compiled call,
+        ``state`` itself left as it was: p, v, q (rows of 10) and the covariance after each step, and the
+        running mean of the horizontal acceleration from ``horizontal`` on (``average_s``, as the filter keeps
+        it). None where only :meth:`propagate` applies: noise that is not isotropic, or a map in the state."""
+        lay = state.layout
+        cov = state.cov
+        if not self._isotropic or cov.shape[0] != lay.robot_dim or not cov.flags.c_contiguous:
+            return None
+        return propagation_kernel.step_run(state.p, state.v, state.q, state.b_g, state.b_a, deltas, dts, self._g,
+                                           self._transition(lay), cov, self._noise_terms(lay), lay.estimates_biases,
+                                           horizontal, average_s)
 
     def propagate(self, state: FilterState, delta: ImuDelta, extra_horizontal_accel: float = 0.0) -> np.ndarray:
         """Propagate nominal state and covariance over ``delta``; returns ``a_W``.
