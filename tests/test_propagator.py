@@ -259,6 +259,39 @@ def test_a_compiled_sequence_of_steps_is_bit_for_bit_the_steps_one_by_one(varian
     assert prop.propagate_steps(state, deltas, dts, horizontal, average_s) is None  # a map: step by step
 
 
+@pytest.mark.parametrize("variant", ["thesis", "biases"])
+def test_states_propagated_together_are_bit_for_bit_each_propagated_alone(variant):
+    """propagate_all (the heading hypotheses, one compiled call) equals propagate on each state; a state with a
+    map, or of another layout, sends them all step by step."""
+    layout = StateLayout(variant)
+    local = np.random.default_rng(5)
+    states = []
+    for k in range(8):
+        state = FilterState(layout)
+        state.p, state.v, state.q = local.normal(size=3), local.normal(size=3), quat_from_euler(0.1, -0.2, k * 0.8)
+        state.b_g, state.b_a = local.normal(size=3) * 0.01, local.normal(size=3) * 0.1
+        A = local.normal(size=(layout.robot_dim,) * 2)
+        state.cov = A @ A.T
+        states.append(state)
+    alone = [s.copy() for s in states]
+    prop = ImuPropagator(ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4), 9.81)
+    for dt in (0.01, 0.012):
+        delta = ImuDelta(0, 1, dt, local.normal(size=3) * dt, (local.normal(size=3) + [0.0, 0.0, -9.8]) * dt)
+        assert prop.propagate_all(states, delta)
+        for state in alone:
+            prop.propagate(state, delta)
+        for together, single in zip(states, alone):
+            for name in ("p", "v", "q", "cov"):
+                assert np.array_equal(getattr(together, name), getattr(single, name)), name
+    other = FilterState(StateLayout("thesis" if variant == "biases" else "biases"))
+    mapped = states[0].copy()
+    mapped.landmarks, mapped.cov = np.zeros((1, 6)), np.eye(layout.robot_dim + 6)
+    for odd in (other, mapped):
+        before = [s.p.copy() for s in states]
+        assert not prop.propagate_all(states + [odd], delta)
+        assert all(np.array_equal(s.p, p) for s, p in zip(states, before))  # nothing done
+
+
 def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
     """One machine-code version of the step (and of the small update) serves every call of a replay with
     camera, landmarks, the heading bank's other layout, GPS, levelling and rest: another would be compiled
@@ -278,7 +311,8 @@ def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
     from vtolpose.estimator.inertial import sample_kernel
 
     def compiled() -> list[set]:
-        return [set(f.signatures) for f in (kernel.step, kernel.noise_from_terms, kernel.step_run, update_kernel.small_update,
+        return [set(f.signatures) for f in (kernel.step, kernel.noise_from_terms, kernel.step_run, kernel.step_all,
+                                             update_kernel.small_update,
                                              sample_kernel.downsample_run, sample_kernel.stillness_run,
                                              sample_kernel.screen_rows, sample_kernel.plain_run, sample_kernel.level_run)]
     for module in (kernel, update_kernel, sample_kernel):

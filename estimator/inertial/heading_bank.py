@@ -124,8 +124,10 @@ class HeadingBank:
         return np.exp(self.log_weights)
 
     def propagate(self, delta: ImuDelta) -> None:
+        if not self.propagator.propagate_all(self.members, delta):
+            for member in self.members:
+                self.propagator.propagate(member, delta)
         for member in self.members:
-            self.propagator.propagate(member, delta)
             member.t_ns = delta.t1_ns
 
     def update(self, fix: GpsFix) -> None:
@@ -165,18 +167,18 @@ class HeadingBank:
     def placed(self) -> FilterState | None:
         """The best hypothesis once the mixture's sigma is below ``place_sigma_deg``, its heading variance the
         mixture's about *its* heading (the others' weight still counts against it)."""
-        _, sigma = self.heading()
-        if sigma > math.radians(self.options.place_sigma_deg):
+        headings, weights, variances = self._headings(), self.weights, self._variances()
+        _, var = circular_spread(headings, weights, variances)
+        if math.sqrt(var) > math.radians(self.options.place_sigma_deg):
             return None
         k = int(np.argmax(self.log_weights))
-        headings = self._headings()
         offset = np.angle(np.exp(1j * (headings - headings[k])))
         state = self.members[k].copy()
-        state.cov[YAW, YAW] = max(state.cov[YAW, YAW], float(self.weights @ (self._variances() + offset**2)))
+        state.cov[YAW, YAW] = max(state.cov[YAW, YAW], float(weights @ (variances + offset**2)))
         return state
 
     def _headings(self) -> np.ndarray:
-        return np.array([yaw_of(m.q) for m in self.members])
+        return yaw_of(np.array([m.q for m in self.members]))
 
     def _variances(self) -> np.ndarray:
         return np.array([m.cov[YAW, YAW] for m in self.members])

@@ -157,6 +157,23 @@ def step_run(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: 
     return states, covs, means
 
 
+@numba.njit(cache=True, nogil=True)
+def step_all(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, dtheta: np.ndarray,
+             dvel: np.ndarray, dt: float, gravity: float, F: np.ndarray, covs: np.ndarray, Q: np.ndarray,
+             biases: bool) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`step` over one delta for each of several states (rows of ``p``, ``v``, ``q``, ``b_g``, ``b_a``;
+    covariances stacked in ``covs``) with the same Q: the heading hypotheses. Returns p, v, q (rows of 10)
+    and the covariance of each; ``F`` is left as the last state's."""
+    h = p.shape[0]
+    states = np.empty((h, 10))
+    grown = np.empty_like(covs)
+    out = np.empty(OUT_LEN)
+    for k in range(h):
+        grown[k] = step(p[k], v[k], q[k], b_g[k], b_a[k], dtheta, dvel, dt, gravity, F, covs[k], Q, biases, out)
+        states[k] = out[0:10]
+    return states, grown
+
+
 def warm_up() -> None:
     """Compile the kernels, or load them from the cache, now rather than on the first IMU step (which
     would then take a second): each once per layout, on the argument types the filter passes."""
@@ -165,5 +182,8 @@ def warm_up() -> None:
         step(v3, v3, np.array([1.0, 0.0, 0.0, 0.0]), v3, v3, v3, v3, 0.01, 9.8, np.eye(n), np.eye(n), np.eye(n),
              n == 15, np.empty(OUT_LEN))
         noise_from_terms(np.zeros((6, n, n)), 0.25, 0.01)
+        rows = np.zeros((2, 3))
+        step_all(rows, rows, np.array([[1.0, 0.0, 0.0, 0.0]] * 2), rows, rows, v3, v3, 0.01, 9.8, np.eye(n),
+                 np.zeros((2, n, n)), np.eye(n), n == 15)
         step_run(v3, v3, np.array([1.0, 0.0, 0.0, 0.0]), v3, v3, np.zeros((2, 6)), np.full(2, 0.01), 9.8, np.eye(n),
                  np.eye(n), np.zeros((6, n, n)), n == 15, np.zeros(2), 0.5)

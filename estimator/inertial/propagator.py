@@ -223,6 +223,23 @@ class ImuPropagator:
                                            self._transition(lay), cov, self._noise_terms(lay), lay.estimates_biases,
                                            horizontal, average_s)
 
+    def propagate_all(self, states: list[FilterState], delta: ImuDelta) -> bool:
+        """:meth:`propagate` (no extra noise) of each of ``states`` over the same delta, in one compiled call.
+        False, with nothing done, where only :meth:`propagate` applies: noise that is not isotropic (its Q
+        depends on each attitude), a map in a state, or states of different layouts."""
+        layout = states[0].layout
+        n = layout.robot_dim
+        if not self._isotropic or any(s.layout != layout or s.cov.shape[0] != n for s in states):
+            return False
+        Q = self._noise(states[0].q, delta.dt, layout, 0.0)
+        p, v, q, b_g, b_a = (np.array([getattr(s, name) for s in states]) for name in ("p", "v", "q", "b_g", "b_a"))
+        nominal, covs = propagation_kernel.step_all(p, v, q, b_g, b_a, delta.dtheta, delta.dvel, delta.dt, self._g,
+                                                    self._transition(layout), np.array([s.cov for s in states]), Q,
+                                                    layout.estimates_biases)
+        for state, row, cov in zip(states, nominal, covs):
+            state.p, state.v, state.q, state.cov = row[0:3], row[3:6], row[6:10], cov
+        return True
+
     def propagate(self, state: FilterState, delta: ImuDelta, extra_horizontal_accel: float = 0.0) -> np.ndarray:
         """Propagate nominal state and covariance over ``delta``; returns ``a_W``.
 
