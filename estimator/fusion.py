@@ -36,6 +36,9 @@ from vtolpose.estimator.core.rotation import rotvec_quat, skew
 from vtolpose.estimator.core.state import StateLayout
 
 _RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (numerical drift only)
+# A run's fixed cost (its compiled passes over the samples) is that of a few samples one by one: shorter
+# stretches, such as the one sample a horizon moved by, go one sample at a time (the results are the same).
+MIN_RUN = 4
 _ROBOT9 = StateLayout("thesis")  # p, v, θ: the blocks the predictor's covariance covers
 _POSE_FLAT = (np.r_[0:3, 6:9][:, None] * 9 + np.r_[0:3, 6:9][None, :]).ravel()  # [δp, δθ] entries of a flat 9 × 9
 
@@ -292,8 +295,10 @@ class FusionCore:
             if t_imu is not None and (t_meas is None or t_imu <= t_meas):
                 if t_imu > horizon:
                     return
-                if not self.predict and not self._discontinuities and len(queue) > 1 and est.takes_runs:
-                    self._fuse_run(min(horizon, t_meas) if t_meas is not None else horizon)
+                until = min(horizon, t_meas) if t_meas is not None else horizon
+                if (not self.predict and not self._discontinuities and len(queue) >= MIN_RUN
+                        and queue[MIN_RUN - 1][0] <= until and est.takes_runs):
+                    self._fuse_run(until)
                     continue
                 self._fuse_one_imu()
             else:

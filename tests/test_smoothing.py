@@ -465,3 +465,31 @@ def test_the_compiled_backward_recursion_is_bit_for_bit_the_numpy_one(n):
     transition[-1] = True
     for a, b in zip(rts_kernel.recursion(C, D, u, P, transition, *carried), recursion(C, D, u, P, transition, *carried)):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("n", [9, 15])
+def test_the_compiled_gains_are_the_numpy_ones(n):
+    """rts_kernel.gains does rts.gains' operations for each step with a transition (zeros elsewhere). Only
+    the LAPACK solve comes from another build (scipy's), so they agree to the round-off the conditioning
+    allows (here up to ~1e7, as a filter's prediction after a small Q: ~1e-8 relative), not to the bit;
+    the variances span ten orders of magnitude, as a filter's do."""
+    from vtolpose.estimator.smoothing import rts_kernel
+
+    rng = np.random.default_rng(3 * n)
+    k_total = 60
+    scale = np.diag(10.0 ** rng.uniform(-5, 1, n))
+    A = rng.normal(size=(k_total, n, n))
+    P = scale @ (A @ np.swapaxes(A, 1, 2) + np.eye(n)) @ scale
+    F = np.eye(n) + rng.normal(size=(k_total, n, n)) * 0.01
+    B = rng.normal(size=(k_total, n, n)) * 1e-3
+    P_pred = F @ P @ np.swapaxes(F, 1, 2) + scale @ (B @ np.swapaxes(B, 1, 2)) @ scale
+    transition = rng.random(k_total) < 0.8
+    C, D = rts_kernel.gains(P, F, P_pred, transition)
+    C_ref, D_ref = gains(P[transition], F[transition], P_pred[transition])
+    for got, want in ((C[transition], C_ref), (D[transition], D_ref)):  # relative to each matrix's largest entry
+        assert np.all(np.abs(got - want).max(axis=(1, 2)) <= 1e-6 * np.abs(want).max(axis=(1, 2)))
+    assert not C[~transition].any() and not D[~transition].any()
+    singular = P_pred.copy()
+    singular[np.argmax(transition)] = 0.0  # a singular prediction: the kernel refuses, the backward pass falls back
+    with pytest.raises(np.linalg.LinAlgError):
+        rts_kernel.gains(P, F, singular, transition)

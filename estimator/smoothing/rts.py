@@ -157,15 +157,20 @@ class BackwardPass:
     def chunk(self, chunk: StepChunk) -> SmoothedChunk:
         k_total, n = len(chunk), chunk.dim
         transition = chunk.t_next_ns >= 0
-        C = np.zeros((k_total, n, n))
-        D = np.zeros((k_total, n, n))
         u = np.zeros((k_total, n))
+        P = np.ascontiguousarray(chunk.P)
         if np.any(transition):
             if transition[-1] and self._x is None:
                 raise ValueError("the newest chunk ends inside a segment: the recorder was not finished")
-            C[transition], D[transition] = gains(chunk.P[transition], chunk.F[transition], chunk.P_pred[transition])
+            try:  # compiled, the same operations (LAPACK's solve from scipy's build: equal to ~1e-12)
+                C, D = rts_kernel.gains(P, np.ascontiguousarray(chunk.F), np.ascontiguousarray(chunk.P_pred), transition)
+            except np.linalg.LinAlgError:  # a singular prediction: gains() takes the least-squares way
+                C, D = np.zeros((k_total, n, n)), np.zeros((k_total, n, n))
+                C[transition], D[transition] = gains(chunk.P[transition], chunk.F[transition], chunk.P_pred[transition])
             successor = np.concatenate([chunk.x[1:], [chunk.x[-1] if self._x is None else self._x]])
             u[transition] = error_between(successor[transition], chunk.x_pred[transition], n)
+        else:
+            C, D = np.zeros((k_total, n, n)), np.zeros((k_total, n, n))
         seg_all, t_all = chunk.segment, chunk.t_ns
         successor_seg = np.concatenate([seg_all[1:], [seg_all[-1] if self._segment is None else self._segment]])
         broken = transition & (successor_seg != seg_all)
@@ -174,7 +179,7 @@ class BackwardPass:
                              "steps out of order")
         n_zero = np.zeros(n)
         e_out, P_out, e, Ps = rts_kernel.recursion(  # compiled: bit for bit recursion() below
-            C, D, u, np.ascontiguousarray(chunk.P), np.ascontiguousarray(transition),
+            C, D, u, P, np.ascontiguousarray(transition),
             n_zero if self._e is None else self._e, np.zeros((n, n)) if self._Ps is None else self._Ps)
         # Where a segment's end and the next segment's start share a time, keep the later one.
         newest = np.iinfo(np.int64).max if self._last_t is None else self._last_t

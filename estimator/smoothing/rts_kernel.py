@@ -10,6 +10,8 @@ holds them together). Cached and loaded as ``inertial.propagation_kernel``.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -32,8 +34,41 @@ def recursion(C: np.ndarray, D: np.ndarray, u: np.ndarray, P: np.ndarray, transi
     return e_out, P_out, e, Ps
 
 
+@numba.njit(cache=True, nogil=True)
+def gains(P: np.ndarray, F: np.ndarray, P_pred: np.ndarray, transition: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``rts.gains`` for each step with a transition (zeros elsewhere), the same operations in the same
+    order; raises ``LinAlgError`` where a scaled prediction is singular (``rts.gains`` then takes over)."""
+    k_total, n = P.shape[0], P.shape[1]
+    C_out, D_out = np.zeros((k_total, n, n)), np.zeros((k_total, n, n))
+    s = np.empty(n)
+    scaled, rhs = np.empty((n, n)), np.empty((n, n))
+    for k in range(k_total):
+        if not transition[k]:
+            continue
+        Pk = np.ascontiguousarray(P[k])
+        FP = np.dot(np.ascontiguousarray(F[k]), Pk)
+        for i in range(n):
+            s[i] = 1.0 / math.sqrt(max(P_pred[k, i, i], 1e-300))
+        for i in range(n):
+            for j in range(n):
+                scaled[i, j] = P_pred[k, i, j] * s[i] * s[j]
+                rhs[i, j] = FP[i, j] * s[i]
+        Z = np.linalg.solve(scaled, rhs)
+        C = np.empty((n, n))
+        for i in range(n):
+            for j in range(n):
+                C[j, i] = Z[i, j] * s[i]
+        D = Pk - np.dot(C, FP)
+        for i in range(n):
+            for j in range(n):
+                C_out[k, i, j] = C[i, j]
+                D_out[k, i, j] = 0.5 * (D[i, j] + D[j, i])
+    return C_out, D_out
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) for the argument types the backward pass passes."""
     for n in (9, 15):
         recursion(np.zeros((2, n, n)), np.zeros((2, n, n)), np.zeros((2, n)), np.zeros((2, n, n)),
                   np.array([True, False]), np.zeros(n), np.zeros((n, n)))
+        gains(np.zeros((2, n, n)), np.zeros((2, n, n)), np.stack([np.eye(n)] * 2), np.array([True, False]))
