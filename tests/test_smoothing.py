@@ -11,7 +11,7 @@ from vtolpose.estimator.filter import Estimator, FilterOptions
 from vtolpose.estimator.metrics import evaluate, nees, pose_errors_for_nees
 from vtolpose.estimator.smoothing.fixed_lag import FixedLagSmoother
 from vtolpose.estimator.smoothing.recorder import StepRecorder
-from vtolpose.estimator.smoothing.rts import apply_error, error_between, gains, recursion, smooth_steps
+from vtolpose.estimator.smoothing.rts import apply_error, backward_step, error_between, gains, recursion, smooth_steps
 from vtolpose.estimator.smoothing.steps import Step
 
 
@@ -493,3 +493,25 @@ def test_the_compiled_gains_are_the_numpy_ones(n):
     singular[np.argmax(transition)] = 0.0  # a singular prediction: the kernel refuses, the backward pass falls back
     with pytest.raises(np.linalg.LinAlgError):
         rts_kernel.gains(P, F, singular, transition)
+
+
+def test_the_fixed_lag_sweeps_compiled_steps_are_bit_for_bit_the_numpy_ones():
+    """The fixed-lag smoother runs rts_kernel.backward_step and rts_kernel.apply_error (numba); rts' numpy
+    functions are their references: equal to the last bit, tiny and zero rotations included."""
+    from vtolpose.estimator.smoothing import rts_kernel
+
+    rng = np.random.default_rng(17)
+    for trial in range(400):
+        n = 15 if trial % 2 else 9
+        C, A = rng.normal(size=(n, n)), rng.normal(size=(n, n))
+        e, u, Ps, D = rng.normal(size=n), rng.normal(size=n), A @ A.T, A.T @ A
+        for got, want in zip(rts_kernel.backward_step(C, D, u, e, Ps), backward_step(C, D, u, e, Ps)):
+            assert np.array_equal(got, want)
+        x = rng.normal(size=16)
+        x[6:10] = quat_from_euler(*rng.uniform(-3.0, 3.0, 3))
+        dx = rng.normal(size=n) * 10.0 ** rng.uniform(-12.0, 0.0)
+        if trial % 5 == 0:
+            dx[6:9] = 0.0
+        assert np.array_equal(rts_kernel.apply_error(x, dx, n), apply_error(x, dx, n))
+    broken = np.zeros(16)  # a zero quaternion: NaN, as numpy gives, not an exception in the smoother
+    assert np.isnan(rts_kernel.apply_error(broken, np.zeros(9), 9)[6:10]).all()

@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vtolpose.estimator.smoothing.rts import (POSE_IX, apply_error, backward_step, error_between, gains,
-                                              published_pose_cov)
+from vtolpose.estimator.smoothing import rts_kernel
+from vtolpose.estimator.smoothing.rts import POSE_IX, error_between, gains, published_pose_cov
 from vtolpose.estimator.smoothing.steps import Step
 
 _POSE_BLOCK = np.ix_(POSE_IX, POSE_IX)
@@ -160,13 +160,13 @@ class FixedLagSmoother:
                 sweep.e, sweep.Ps = np.zeros(step.P.shape[0]), step.P  # the newest posterior, or a segment's last
             else:
                 C, D, u = self._gain(i)
-                sweep.e, sweep.Ps = backward_step(C, D, u, sweep.e, sweep.Ps)
+                sweep.e, sweep.Ps = rts_kernel.backward_step(C, D, u, sweep.e, sweep.Ps)  # compiled, bit for bit
             sweep.segment = step.segment
             used += 1
             if step.t_ns <= sweep.threshold_ns and (sweep.last_t is None or step.t_ns < sweep.last_t):
                 sweep.last_t = step.t_ns
                 Ps = sweep.Ps
-                sweep.reached.append(SmoothedPose(step.t_ns, apply_error(step.x, sweep.e, Ps.shape[0]),
+                sweep.reached.append(SmoothedPose(step.t_ns, rts_kernel.apply_error(step.x, sweep.e, Ps.shape[0]),
                                                   published_pose_cov(Ps[_POSE_BLOCK], step.heading_known),
                                                   np.diagonal(Ps)[3:6].copy(), step.heading_known))
             sweep.index -= 1
@@ -197,8 +197,11 @@ class FixedLagSmoother:
                 if not self._steps[j].ends_segment:
                     todo.append(j)
             steps, successors = [self._steps[j] for j in todo], [self._steps[j + 1] for j in todo]
-            C, D = gains(np.array([s.P for s in steps]), np.array([s.F for s in steps]),
-                         np.array([s.P_pred for s in steps]))
+            P, F, P_pred = (np.array([getattr(s, name) for s in steps]) for name in ("P", "F", "P_pred"))
+            try:  # compiled, as the backward pass (rts.BackwardPass.chunk) does
+                C, D = rts_kernel.gains(P, F, P_pred, np.ones(len(steps), dtype=bool))
+            except np.linalg.LinAlgError:  # a singular prediction: least squares
+                C, D = gains(P, F, P_pred)
             u = error_between(np.array([s.x for s in successors]), np.array([s.x_pred for s in steps]), steps[0].P.shape[0])
             for k, j in enumerate(todo):
                 self._gains[j] = (C[k], D[k], u[k])

@@ -15,6 +15,8 @@ import math
 import numba
 import numpy as np
 
+from vtolpose.estimator.core.rotation import _SMALL_ANGLE
+
 
 @numba.njit(cache=True, nogil=True)
 def recursion(C: np.ndarray, D: np.ndarray, u: np.ndarray, P: np.ndarray, transition: np.ndarray,
@@ -66,9 +68,42 @@ def gains(P: np.ndarray, F: np.ndarray, P_pred: np.ndarray, transition: np.ndarr
     return C_out, D_out
 
 
+@numba.njit(cache=True, nogil=True)
+def backward_step(C: np.ndarray, D: np.ndarray, u: np.ndarray, e_next: np.ndarray,
+                  Ps_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``rts.backward_step``, bit for bit: one step of the fixed-lag smoother's sweep."""
+    return np.dot(C, e_next + u), np.dot(np.dot(C, Ps_next), np.ascontiguousarray(C.T)) + D
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")  # a zero quaternion gives NaN, as in numpy, not an exception
+def apply_error(x: np.ndarray, dx: np.ndarray, n: int) -> np.ndarray:
+    """``rts.apply_error`` for one nominal vector (16) and one error (n), bit for bit: ``x ⊞ dx``."""
+    out = x.copy()
+    for i in range(6):
+        out[i] += dx[i]
+    rx, ry, rz = dx[6], dx[7], dx[8]
+    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+    half = 0.5 * angle
+    k = math.sin(half) / max(angle, _SMALL_ANGLE) if angle > _SMALL_ANGLE else 0.5 - angle**2 / 48.0
+    pw, px, py, pz = math.cos(half), k * rx, k * ry, k * rz
+    qw, qx, qy, qz = x[6], x[7], x[8], x[9]
+    w = pw * qw - px * qx - py * qy - pz * qz
+    a = pw * qx + px * qw + py * qz - pz * qy
+    b = pw * qy - px * qz + py * qw + pz * qx
+    c = pw * qz + px * qy - py * qx + pz * qw
+    norm = math.sqrt(w * w + a * a + b * b + c * c)
+    out[6], out[7], out[8], out[9] = w / norm, a / norm, b / norm, c / norm
+    if n > 9:
+        for i in range(6):
+            out[10 + i] += dx[9 + i]
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) for the argument types the backward pass passes."""
     for n in (9, 15):
         recursion(np.zeros((2, n, n)), np.zeros((2, n, n)), np.zeros((2, n)), np.zeros((2, n, n)),
                   np.array([True, False]), np.zeros(n), np.zeros((n, n)))
         gains(np.zeros((2, n, n)), np.zeros((2, n, n)), np.stack([np.eye(n)] * 2), np.array([True, False]))
+        backward_step(np.eye(n), np.eye(n), np.zeros(n), np.zeros(n), np.eye(n))
+        apply_error(np.array([0.0] * 6 + [1.0] + [0.0] * 9), np.zeros(n), n)
