@@ -99,11 +99,14 @@ def apply_error(x: np.ndarray, dx: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def warm_up() -> None:
-    """Compile (or load from the cache) for the argument types the backward pass passes."""
+def warm_up(backward_pass: bool = False) -> None:
+    """Compile (or load from the cache) for the argument types the smoothers pass: the fixed-lag smoother's
+    kernels, and with ``backward_pass`` the whole-flight pass's recursion too (only ``replay --smooth`` runs
+    it, after the replay, where loading it on first use costs nothing; each kernel loaded costs ~1–4 MB)."""
     for n in (9, 15):
-        recursion(np.zeros((2, n, n)), np.zeros((2, n, n)), np.zeros((2, n)), np.zeros((2, n, n)),
-                  np.array([True, False]), np.zeros(n), np.zeros((n, n)))
+        if backward_pass:
+            recursion(np.zeros((2, n, n)), np.zeros((2, n, n)), np.zeros((2, n)), np.zeros((2, n, n)),
+                      np.array([True, False]), np.zeros(n), np.zeros((n, n)))
         gains(np.zeros((2, n, n)), np.zeros((2, n, n)), np.stack([np.eye(n)] * 2), np.array([True, False]))
         backward_step(np.eye(n), np.eye(n), np.zeros(n), np.zeros(n), np.eye(n))
         apply_error(np.array([0.0] * 6 + [1.0] + [0.0] * 9), np.zeros(n), n)

@@ -61,11 +61,13 @@ def replay_camera_workers(cfg: dict[str, Any]) -> int:
     return cfg["replay.camera_workers"] or max(1, min(os.cpu_count() or 1, 16))
 
 
-def load_compiled_kernels() -> None:
+def load_compiled_kernels(backward_pass: bool = False) -> None:
     """The estimator's compiled kernels (numba), compiled or loaded from their caches: ~0.1 s once per
-    process, a few seconds the first time on a machine. Done before the first sample is handled."""
-    for kernels in (propagation_kernel, update_kernel, sample_kernel, rts_kernel):
+    process, a few seconds the first time on a machine. Done before the first sample is handled.
+    ``backward_pass``: also the offline smoother's (an image's build compiles every kernel)."""
+    for kernels in (propagation_kernel, update_kernel, sample_kernel):
         kernels.warm_up()
+    rts_kernel.warm_up(backward_pass)
 
 
 def build_runtime(
