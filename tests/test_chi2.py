@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 from scipy.special import chdtri
@@ -45,13 +42,3 @@ def test_bad_arguments_say_which(dof: float, tail: float) -> None:
     with pytest.raises(ValueError, match="degrees of freedom" if dof <= 0 else "tail probability"):
         upper_quantile(dof, tail)
 
-
-def test_the_estimator_imports_no_scipy_sub_package() -> None:
-    # numba imports scipy's top package (~1 MB) to look for its BLAS; scipy.special would add ~20 MB.
-    code = ("import sys; import vtolpose.estimator.filter, vtolpose.estimator.metrics; "
-            "print(sorted(m for m in sys.modules if m.startswith('scipy.') and m.split('.')[1][0] != '_'"
-            " and m != 'scipy.version'))")
-    root = Path(__file__).resolve().parents[1].parent
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "[]"

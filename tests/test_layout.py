@@ -94,13 +94,18 @@ def test_every_sub_package_says_what_it_owns():
         assert doc and len(doc) > 40, f"{init.relative_to(REPO)} has no docstring saying what it owns"
 
 
+def printed_by_a_fresh_process(code: str) -> str:
+    """What ``code`` prints in a new interpreter (nothing imported yet): for what an import pulls in."""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO.parent)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.strip()
+
+
 def test_the_mapper_client_imports_without_opencv_or_the_estimator():
     code = ("import sys; import vtolpose.client; "
             "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('cv2', 'scipy') "
             "or m.startswith(('vtolpose.estimator.filter', 'vtolpose.estimator.vision'))); print(heavy)")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO.parent)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "[]"
+    assert printed_by_a_fresh_process(code) == "[]"
 
 
 def test_the_command_line_and_a_runtime_without_camera_do_not_load_opencv() -> None:
@@ -108,6 +113,12 @@ def test_the_command_line_and_a_runtime_without_camera_do_not_load_opencv() -> N
     code = ("import sys; from vtolpose.service.cli import build_parser; build_parser(); "
             "import vtolpose.service.runtime.daemon, vtolpose.service.replay.session, vtolpose.service.bench.runner; "
             "print('cv2' in sys.modules)")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO.parent)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "False"
+    assert printed_by_a_fresh_process(code) == "False"
+
+
+def test_the_estimator_imports_no_scipy_sub_package() -> None:
+    # numba imports scipy's top package (~1 MB) to look for its BLAS; scipy.special would add ~20 MB.
+    code = ("import sys; import vtolpose.estimator.filter, vtolpose.estimator.metrics; "
+            "print(sorted(m for m in sys.modules if m.startswith('scipy.') and m.split('.')[1][0] != '_'"
+            " and m != 'scipy.version'))")
+    assert printed_by_a_fresh_process(code) == "[]"
