@@ -283,11 +283,16 @@ class FusionCore:
 
     def flush(self) -> None:
         """Fuse everything buffered (end of a replay, shutdown): the filter catches up with the present."""
-        self._advance(np.iinfo(np.int64).max)
+        self._advance(np.iinfo(np.int64).max, hold=False)
         self._out_cov = None
 
     # --------------------------------------------------------------------------- fusing
-    def _advance(self, horizon: int) -> None:
+    def _advance(self, horizon: int, hold: bool = True) -> None:
+        """Fuse in time order up to ``horizon``. Without a prediction nobody reads the state before the next
+        call, so a run that would end at the horizon (no measurement in it) may be ``hold``-ed: its samples
+        wait and are fused with the next stretch as one run, once — half as many runs, the same calls in
+        the same order (a run is bit for bit its samples one by one). What the horizon passed still
+        counts as fused for a measurement arriving too late, as if it had been."""
         queue, pending, est = self._queue, self._pending, self.est
         while queue or pending:
             t_imu = queue[0][0] if queue else None
@@ -298,6 +303,10 @@ class FusionCore:
                 until = min(horizon, t_meas) if t_meas is not None else horizon
                 if (not self.predict and not self._discontinuities and len(queue) >= MIN_RUN
                         and queue[MIN_RUN - 1][0] <= until and est.takes_runs):
+                    if (hold and (t_meas is None or t_meas > horizon)
+                            and (self._fused_until is None or t_imu > self._fused_until)):
+                        self._fused_until = self._last_time_until(horizon)
+                        return
                     self._fuse_run(until)
                     continue
                 self._fuse_one_imu()
@@ -309,6 +318,15 @@ class FusionCore:
                 apply(est)
                 self.counts[kind].used += 1
                 self._measured = True
+
+    def _last_time_until(self, horizon: int) -> int:
+        """The time of the last buffered IMU sample at or before ``horizon`` (there is one)."""
+        last = self._queue[0][0]
+        for item in self._queue:
+            if item[0] > horizon:
+                break
+            last = item[0]
+        return last
 
     def _fuse_one_imu(self) -> None:
         """The oldest buffered IMU sample into the estimator; the fused pose if it advanced the state."""

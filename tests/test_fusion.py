@@ -124,6 +124,41 @@ def test_runs_of_samples_fuse_exactly_as_one_at_a_time(flight, variant, heading)
     assert core.est.counts_report() == est.counts_report()
 
 
+@pytest.mark.parametrize("late_s", [0.1, 0.2])
+def test_held_runs_change_neither_the_result_nor_what_is_too_late(flight, late_s):
+    """Without a prediction, a run that would end at the horizon waits to be fused with the next stretch
+    (half as many runs). Fed in batches, the core gives the poses and counts of the sample-by-sample core,
+    fixes that arrive after the horizon passed them (0.2 s late) refused as too late all the same."""
+    fixes, samples = gps_fixes(flight), imu_samples(flight)
+    results, held = [], []
+    for batched in (False, True):
+        fused = []
+        core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY, predict=False),
+                          on_fused=lambda pose, out=fused: out.append((pose.t_ns, pose.p.copy(), pose.q.copy())))
+        k = 0
+        for start in range(0, len(samples), 12):
+            batch = samples[start:start + 12]
+            while k < len(fixes) and fixes[k].t_ns + late_s * 1e9 <= batch[0].t_ns:
+                core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
+                k += 1
+            if batched:
+                core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
+                                   np.array([s.accel for s in batch]))
+                held.append(core.fused_until_ns is not None and core.est.state is not None
+                            and core.fused_until_ns > core.est.state.t_ns)  # passed by the horizon, not yet fused
+            else:
+                for sample in batch:
+                    core.add_imu(sample)
+        core.flush()
+        results.append((fused, core.counts_report(), core.est.counts_report()))
+    (fused_one, *counts_one), (fused_batched, *counts_batched) = results
+    assert sum(held) > 100  # runs were held
+    assert_same_trajectory(fused_batched, fused_one)
+    assert counts_batched == counts_one
+    gps = counts_one[0]["gps"]  # the same in both, too-late refusals included
+    assert gps["rejected"]["too_late"] > 100 and (gps["used"] > 200 if late_s < DELAY else gps["used"] == 0)
+
+
 def test_late_measurements_are_fused_at_their_own_time(flight, reference):
     """Fixes arriving 100 ms late, within the 150 ms horizon, change nothing at all."""
     core, fused = through_core(flight, gps_late_s=0.1)
