@@ -21,8 +21,9 @@ PERCENT = re.compile(r"\]\s+([0-9.]+)%")
 
 @pytest.fixture(scope="module")
 def long_book(tmp_path_factory) -> Path:
+    # Ten minutes: at ~400 × real time its replay still lasts over a second, ten redraws of the progress line.
     out = tmp_path_factory.mktemp("progress") / "book"
-    assert main(["-q", "simulate", "--duration", "120", "--seed", "3", "--out", str(out), "--no-camera"]) == 0
+    assert main(["-q", "simulate", "--duration", "600", "--seed", "3", "--out", str(out), "--no-camera"]) == 0
     return out
 
 
