@@ -161,12 +161,11 @@ def _compiled_update(state: FilterState, cols: slice, H: np.ndarray, residual: n
                      gate: float | None, held: np.ndarray | None) -> UpdateOutcome:
     """:func:`ekf_update` for one to three rows on a column range, in one compiled call (``update_kernel``);
     the arrays made C-ordered and float so that one machine-code version serves every caller."""
-    kernel = update_kernel
     start, stop, _ = cols.indices(state.cov.shape[0])
-    code, nis, dx = kernel.small_update(
+    code, nis, dx = update_kernel.small_update(
         state.cov, start, stop, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(residual, dtype=float),
         np.ascontiguousarray(R, dtype=float), math.inf if gate is None else float(gate),
-        kernel.NO_HELD if held is None else np.ascontiguousarray(held, dtype=np.bool_))
+        update_kernel.NO_HELD if held is None else np.ascontiguousarray(held, dtype=np.bool_))
     m = residual.shape[0]
     if code:
         return UpdateOutcome(False, float(nis), m, _REASONS[code])

@@ -161,14 +161,13 @@ class HeadingBank:
 
     def heading(self) -> tuple[float, float]:
         """The mixture's heading [rad] and its sigma [rad] (its spread by weight plus each hypothesis' own)."""
-        mean, var = circular_spread(self._headings(), self.weights, self._variances())
+        _, _, _, mean, var = self._mixture()
         return mean, math.sqrt(var)
 
     def placed(self) -> FilterState | None:
         """The best hypothesis once the mixture's sigma is below ``place_sigma_deg``, its heading variance the
         mixture's about *its* heading (the others' weight still counts against it)."""
-        headings, weights, variances = self._headings(), self.weights, self._variances()
-        _, var = circular_spread(headings, weights, variances)
+        headings, weights, variances, _, var = self._mixture()
         if math.sqrt(var) > math.radians(self.options.place_sigma_deg):
             return None
         k = int(np.argmax(self.log_weights))
@@ -177,11 +176,11 @@ class HeadingBank:
         state.cov[YAW, YAW] = max(state.cov[YAW, YAW], float(weights @ (variances + offset**2)))
         return state
 
-    def _headings(self) -> np.ndarray:
-        return yaw_of(np.array([m.q for m in self.members]))
-
-    def _variances(self) -> np.ndarray:
-        return np.array([m.cov[YAW, YAW] for m in self.members])
+    def _mixture(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+        """Each hypothesis' heading, weight and heading variance, and the mixture's mean heading and variance."""
+        headings = yaw_of(np.array([m.q for m in self.members]))
+        weights, variances = self.weights, np.array([m.cov[YAW, YAW] for m in self.members])
+        return headings, weights, variances, *circular_spread(headings, weights, variances)
 
 
 def _logsumexp(x: np.ndarray) -> float:

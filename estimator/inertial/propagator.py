@@ -184,12 +184,11 @@ class ImuPropagator:
         # extra² (it adds to the horizontal accelerometer variance): Q = Q(0) + extra² (Q(1) − Q(0)),
         # so a heading still unknown (extra changing every step) costs no refit.
         key = layout.variant
-        terms = self._noise_terms(layout)
         e2 = extra * extra
         last = self._q_last.get(key)
         if last is not None and last[0] == dt and last[1] == e2:  # a steady IMU rate: the same Q again
             return last[2]
-        Q = propagation_kernel.noise_from_terms(terms, e2, dt)  # (c1 + (c2 + c3 dt) dt) dt, c = base + extra² Δ
+        Q = propagation_kernel.noise_from_terms(self._noise_terms(layout), e2, dt)  # (c1 + (c2 + c3 dt) dt) dt, c = base + extra² Δ
         self._q_last[key] = (dt, e2, Q)
         return Q
 

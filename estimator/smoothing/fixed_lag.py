@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vtolpose.estimator.smoothing import rts_kernel
-from vtolpose.estimator.smoothing.rts import POSE_IX, error_between, gains, published_pose_cov
+from vtolpose.estimator.smoothing.rts import POSE_IX, error_between, published_pose_cov, stacked_gains
 from vtolpose.estimator.smoothing.steps import Step
 
 _POSE_BLOCK = np.ix_(POSE_IX, POSE_IX)
@@ -198,10 +198,7 @@ class FixedLagSmoother:
                     todo.append(j)
             steps, successors = [self._steps[j] for j in todo], [self._steps[j + 1] for j in todo]
             P, F, P_pred = (np.array([getattr(s, name) for s in steps]) for name in ("P", "F", "P_pred"))
-            try:  # compiled, as the backward pass (rts.BackwardPass.chunk) does
-                C, D = rts_kernel.gains(P, F, P_pred, np.ones(len(steps), dtype=bool))
-            except np.linalg.LinAlgError:  # a singular prediction: least squares
-                C, D = gains(P, F, P_pred)
+            C, D = stacked_gains(P, F, P_pred, np.ones(len(steps), dtype=bool))  # as the backward pass
             u = error_between(np.array([s.x for s in successors]), np.array([s.x_pred for s in steps]), steps[0].P.shape[0])
             for k, j in enumerate(todo):
                 self._gains[j] = (C[k], D[k], u[k])

@@ -88,6 +88,20 @@ def gains(P: np.ndarray, F: np.ndarray, P_pred: np.ndarray) -> tuple[np.ndarray,
     return C, 0.5 * (D + np.swapaxes(D, -1, -2))
 
 
+def stacked_gains(P: np.ndarray, F: np.ndarray, P_pred: np.ndarray, transition: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`gains` for the steps with a ``transition`` (zeros elsewhere): compiled (``rts_kernel.gains``, the
+    same operations; LAPACK's solve from scipy's build, so equal to round-off), here where a singular
+    prediction needs the least-squares way."""
+    try:
+        return rts_kernel.gains(np.ascontiguousarray(P), np.ascontiguousarray(F), np.ascontiguousarray(P_pred),
+                                np.ascontiguousarray(transition))
+    except np.linalg.LinAlgError:
+        C, D = np.zeros(P.shape), np.zeros(P.shape)
+        if np.any(transition):
+            C[transition], D[transition] = gains(P[transition], F[transition], P_pred[transition])
+        return C, D
+
+
 def backward_step(C: np.ndarray, D: np.ndarray, u: np.ndarray, e_next: np.ndarray,
                   Ps_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One RTS step on the corrections: ``(e_k, Pˢ_k)`` from ``(e_{k+1}, Pˢ_{k+1})``."""
@@ -162,15 +176,9 @@ class BackwardPass:
         if np.any(transition):
             if transition[-1] and self._x is None:
                 raise ValueError("the newest chunk ends inside a segment: the recorder was not finished")
-            try:  # compiled, the same operations (LAPACK's solve from scipy's build: equal to ~1e-12)
-                C, D = rts_kernel.gains(P, np.ascontiguousarray(chunk.F), np.ascontiguousarray(chunk.P_pred), transition)
-            except np.linalg.LinAlgError:  # a singular prediction: gains() takes the least-squares way
-                C, D = np.zeros((k_total, n, n)), np.zeros((k_total, n, n))
-                C[transition], D[transition] = gains(chunk.P[transition], chunk.F[transition], chunk.P_pred[transition])
             successor = np.concatenate([chunk.x[1:], [chunk.x[-1] if self._x is None else self._x]])
             u[transition] = error_between(successor[transition], chunk.x_pred[transition], n)
-        else:
-            C, D = np.zeros((k_total, n, n)), np.zeros((k_total, n, n))
+        C, D = stacked_gains(P, chunk.F, chunk.P_pred, transition)
         seg_all, t_all = chunk.segment, chunk.t_ns
         successor_seg = np.concatenate([seg_all[1:], [seg_all[-1] if self._segment is None else self._segment]])
         broken = transition & (successor_seg != seg_all)
