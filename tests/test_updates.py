@@ -216,3 +216,65 @@ def test_the_compiled_small_update_is_bit_for_bit_the_numpy_one(m, case):
         assert np.array_equal(getattr(s_c, name), getattr(s_n, name)), name
     nis = [_compiled_update(start.copy(), cols, H, r, R, gate, held).nis, _numpy_update(start.copy(), cols, H, r, R, gate, held).nis]
     assert nis[0] == nis[1] or (np.isnan(nis[0]) and np.isnan(nis[1]))
+
+
+@pytest.mark.parametrize("case", ["plain", "landmarks", "held", "gated", "singular", "non_finite", "no_gate"])
+def test_the_compiled_gps_update_is_bit_for_bit_the_model_and_numpy_one(case):
+    """A fix's update runs as one compiled call (gps_kernel: lever arm, residual, Jacobian, noise, update);
+    the model's prediction and Jacobian through the numpy update are the reference: the same state,
+    covariance, NIS and outcome, to the last bit, for any attitude, lever arm and outcome."""
+    from vtolpose.estimator.core.kalman import _numpy_update
+    from vtolpose.estimator.gnss.gps_update import GPS_COLS
+
+    rng = np.random.default_rng(len(case))
+    for trial in range(20):
+        start = make_state("biases", n_landmarks=2 if case == "landmarks" else 0, seed=trial)
+        start.q = quat_exp(rng.normal(size=3) * 2.0)
+        lever = rng.normal(size=3) * 0.5
+        fix = GpsFix(1, start.p + rng.normal(size=3) * 0.3, float(rng.uniform(0.05, 2.0)),
+                     float(rng.uniform(0.05, 3.0)) if trial % 2 else float("nan"))
+        gps = GpsUpdater(lever, gate=None if case == "no_gate" else chi2_gate(3, 0.999))
+        held = None
+        if case == "held":
+            held = rng.random(start.dim) < 0.4
+        elif case == "gated":
+            gps.gate = 1e-9
+        elif case == "singular":
+            start.cov = -np.eye(start.dim) * 1e3
+        elif case == "non_finite":
+            fix = GpsFix(1, np.array([np.nan, 0.0, 0.0]), 1.0, 1.0)
+        results = []
+        for path in ("compiled", "model", "numpy"):
+            s = start.copy()
+            if path == "compiled":
+                out = gps.update(s, fix, held)
+            elif path == "model":
+                out = gps.update_reference(s, fix, held)
+            else:
+                arm = gps.model.arm(s)
+                residual = np.asarray(fix.p_ned, dtype=float) - gps.model.predict(s, arm)
+                out = _numpy_update(s, GPS_COLS, gps.model.jacobian(s, arm), residual, gps.noise(fix), gps.gate, held)
+            results.append((out, s))
+        if case in ("plain", "landmarks", "held", "no_gate"):
+            assert results[0][0].accepted
+        else:
+            assert not results[0][0].accepted
+        (ref, ref_state), others = results[2], results[:2]
+        for out, s in others:
+            assert (out.accepted, out.reason, out.dof) == (ref.accepted, ref.reason, ref.dof)
+            assert out.nis == ref.nis or (np.isnan(out.nis) and np.isnan(ref.nis))
+            for name in ("p", "v", "q", "b_g", "b_a", "landmarks", "cov"):
+                assert np.array_equal(getattr(s, name), getattr(ref_state, name)), (case, trial, name)
+
+
+def test_a_gps_update_on_a_covariance_that_is_not_contiguous_takes_the_model_path():
+    """The compiled call needs a C-ordered covariance; any other takes the model's path, with the same result."""
+    start = make_state("biases")
+    fix = GpsFix(1, start.p + 0.1, 0.5, 0.8)
+    gps = GpsUpdater(np.array([0.1, -0.2, 0.3]), gate=None)
+    a, b = start.copy(), start.copy()
+    b.cov = np.asfortranarray(b.cov)
+    assert not b.cov.flags.c_contiguous
+    out_a, out_b = gps.update(a, fix), gps.update(b, fix)
+    assert out_a.accepted and out_b.accepted and out_a.nis == out_b.nis
+    assert np.array_equal(a.p, b.p) and np.array_equal(a.q, b.q) and np.array_equal(a.cov, b.cov)

@@ -166,7 +166,11 @@ def _compiled_update(state: FilterState, cols: slice, H: np.ndarray, residual: n
         state.cov, start, stop, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(residual, dtype=float),
         np.ascontiguousarray(R, dtype=float), math.inf if gate is None else float(gate),
         update_kernel.NO_HELD if held is None else np.ascontiguousarray(held, dtype=np.bool_))
-    m = residual.shape[0]
+    return compiled_outcome(state, code, nis, dx, residual.shape[0])
+
+
+def compiled_outcome(state: FilterState, code: int, nis: float, dx: np.ndarray, m: int) -> UpdateOutcome:
+    """What a compiled update's (code, NIS, δx) mean for ``state``: the correction folded in when accepted."""
     if code:
         return UpdateOutcome(False, float(nis), m, _REASONS[code])
     state.inject(dx)

@@ -10,7 +10,10 @@ import math
 
 import numpy as np
 
-from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update, innovation_covariance, normalized_innovation
+from vtolpose.estimator.core.kalman import (UpdateOutcome, compiled_outcome, ekf_update, innovation_covariance,
+                                            normalized_innovation)
+from vtolpose.estimator.core.update_kernel import NO_HELD
+from vtolpose.estimator.gnss import gps_kernel
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import skew
 from vtolpose.estimator.core.state import FilterState
@@ -70,6 +73,20 @@ class GpsUpdater:
         return np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
 
     def update(self, state: FilterState, fix: GpsFix, held: np.ndarray | None = None) -> UpdateOutcome:
+        """Fuse ``fix``: in one compiled call (``gps_kernel``) where the covariance allows it, else through
+        :func:`ekf_update` with the model's prediction and Jacobian (the same numbers either way)."""
+        if not state.cov.flags.c_contiguous:
+            return self.update_reference(state, fix, held)
+        sigma_h, sigma_v = gps_sigmas(fix, self.sigma_floor_m)
+        code, nis, dx = gps_kernel.gps_update(
+            state.cov, np.ascontiguousarray(state.p, dtype=float), np.ascontiguousarray(state.q, dtype=float),
+            self.model.lever_arm_b, np.ascontiguousarray(fix.p_ned, dtype=float), sigma_h**2, sigma_v**2,
+            math.inf if self.gate is None else float(self.gate),
+            NO_HELD if held is None else np.ascontiguousarray(held, dtype=np.bool_))
+        return compiled_outcome(state, code, nis, dx, 3)
+
+    def update_reference(self, state: FilterState, fix: GpsFix, held: np.ndarray | None = None) -> UpdateOutcome:
+        """:meth:`update` from the model's prediction and Jacobian through :func:`ekf_update`."""
         arm = self.model.arm(state)
         residual = np.asarray(fix.p_ned, dtype=float) - self.model.predict(state, arm)
         return ekf_update(state, GPS_COLS, self.model.jacobian(state, arm), residual, self.noise(fix), self.gate, held)

@@ -22,6 +22,7 @@ from vtolpose.estimator.core.measurements import ImuRange
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import FusionOptions, OutputPose
 from vtolpose.estimator.core import update_kernel
+from vtolpose.estimator.gnss import gps_kernel
 from vtolpose.estimator.inertial import propagation_kernel, sample_kernel
 from vtolpose.estimator.smoothing import rts_kernel
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
@@ -67,7 +68,7 @@ def load_compiled_kernels(backward_pass: bool = False) -> None:
     """The estimator's compiled kernels (numba), compiled or loaded from their caches: ~0.1 s once per
     process, a few seconds the first time on a machine. Done before the first sample is handled.
     ``backward_pass``: also the offline smoother's (an image's build compiles every kernel)."""
-    for kernels in (propagation_kernel, update_kernel, sample_kernel):
+    for kernels in (propagation_kernel, update_kernel, gps_kernel, sample_kernel):
         kernels.warm_up()
     rts_kernel.warm_up(backward_pass)
 
