@@ -615,7 +615,7 @@ class Estimator:
         counts = self.counts["gps"]
         counts.received += 1
         p = np.asarray(fix.p_ned, dtype=float)
-        if not (np.all(np.isfinite(p)) and math.isfinite(fix.sigma_h)) or fix.sigma_h <= 0.0:
+        if not (np.isfinite(p).all() and math.isfinite(fix.sigma_h)) or fix.sigma_h <= 0.0:
             counts.reject("non_finite")
             self.health.measured("gps", fix.t_ns, used=False)  # alive, but not usable
             return None

@@ -21,6 +21,7 @@ replay through the runtime equals the offline replay.
 from __future__ import annotations
 
 import heapq
+from bisect import bisect_right
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -41,6 +42,10 @@ _RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (nume
 MIN_RUN = 4
 _ROBOT9 = StateLayout("thesis")  # p, v, θ: the blocks the predictor's covariance covers
 _POSE_FLAT = (np.r_[0:3, 6:9][:, None] * 9 + np.r_[0:3, 6:9][None, :]).ravel()  # [δp, δθ] entries of a flat 9 × 9
+
+
+def _sample_time(item: tuple) -> int:
+    return item[0]
 
 
 def _pose_cov(cov9: np.ndarray) -> np.ndarray:
@@ -234,7 +239,7 @@ class FusionCore:
         times = t_ns.tolist()
         newest = self._newest_t
         if (self.predict or self._refused is not None or len(self._queue) + n > self.options.max_imu_buffer
-                or (newest is not None and times[0] <= newest) or (n > 1 and not bool(np.all(t_ns[1:] > t_ns[:-1])))):
+                or (newest is not None and times[0] <= newest) or (n > 1 and not bool((t_ns[1:] > t_ns[:-1]).all()))):
             for t, g, a in zip(times, gyro, accel):
                 self.add_imu(ImuSample(t, g, a))
             return
@@ -320,13 +325,8 @@ class FusionCore:
                 self._measured = True
 
     def _last_time_until(self, horizon: int) -> int:
-        """The time of the last buffered IMU sample at or before ``horizon`` (there is one)."""
-        last = self._queue[0][0]
-        for item in self._queue:
-            if item[0] > horizon:
-                break
-            last = item[0]
-        return last
+        """The time of the last buffered IMU sample at or before ``horizon`` (there is one; the times increase)."""
+        return self._queue[bisect_right(self._queue, horizon, key=_sample_time) - 1][0]
 
     def _fuse_one_imu(self) -> None:
         """The oldest buffered IMU sample into the estimator; the fused pose if it advanced the state."""

@@ -133,8 +133,8 @@ class StillnessDetector:
         g_var = np.maximum(self._g_sq / n - g_mean**2, 0.0)
         a_var = np.maximum(self._a_sq / n - a_mean**2, 0.0)
         quiet = (
-            np.all(g_var < opts.gyro_std_max**2)
-            and np.all(a_var < opts.accel_std_max**2)
+            (g_var < opts.gyro_std_max**2).all()
+            and (a_var < opts.accel_std_max**2).all()
             and abs(math.sqrt(float(a_mean @ a_mean)) - gravity) < opts.gravity_tolerance
             and speed < opts.speed_max
         )
@@ -144,6 +144,6 @@ class StillnessDetector:
         # A slow, smooth motion (an arm starting to move, a gentle drift) keeps the scatter low
         # but shifts the mean: demand that this chunk's means agree with the previous chunk's.
         pg, pg_var, pa, pa_var = previous
-        if np.any((g_mean - pg) ** 2 > 16.0 * (g_var / n + pg_var)) or np.any((a_mean - pa) ** 2 > 16.0 * (a_var / n + pa_var)):
+        if ((g_mean - pg) ** 2 > 16.0 * (g_var / n + pg_var)).any() or ((a_mean - pa) ** 2 > 16.0 * (a_var / n + pa_var)).any():
             return None
         return StillChunk(g_mean, g_var / n, self._samples, duration)
