@@ -469,10 +469,11 @@ def test_the_compiled_backward_recursion_is_bit_for_bit_the_numpy_one(n):
 
 @pytest.mark.parametrize("n", [9, 15])
 def test_the_compiled_gains_are_the_numpy_ones(n):
-    """rts_kernel.gains does rts.gains' operations for each step with a transition (zeros elsewhere). Only
-    the LAPACK solve comes from another build (scipy's), so they agree to the round-off the conditioning
-    allows (here up to ~1e7, as a filter's prediction after a small Q: ~1e-8 relative), not to the bit;
-    the variances span ten orders of magnitude, as a filter's do."""
+    """rts_kernel.gains does rts.gains' scaling and products for each step with a transition (zeros elsewhere).
+    Only the solve differs (Cholesky, written out, against LAPACK's LU), so they agree to the round-off the
+    conditioning allows (here up to ~1e7, as a filter's prediction after a small Q: ~1e-8 relative), not to
+    the bit; the variances span ten orders of magnitude, as a filter's do. A prediction that is not
+    positive definite is refused, for the numpy path to take over."""
     from vtolpose.estimator.smoothing import rts_kernel
 
     rng = np.random.default_rng(3 * n)
@@ -493,6 +494,10 @@ def test_the_compiled_gains_are_the_numpy_ones(n):
     singular[np.argmax(transition)] = 0.0  # a singular prediction: the kernel refuses, the backward pass falls back
     with pytest.raises(np.linalg.LinAlgError):
         rts_kernel.gains(P, F, singular, transition)
+    indefinite = P_pred.copy()
+    indefinite[np.argmax(transition), 0, 0] *= -1.0  # invertible, but no covariance
+    with pytest.raises(np.linalg.LinAlgError):
+        rts_kernel.gains(P, F, indefinite, transition)
 
 
 def test_the_fixed_lag_sweeps_compiled_steps_are_bit_for_bit_the_numpy_ones():

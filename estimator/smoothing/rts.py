@@ -90,8 +90,8 @@ def gains(P: np.ndarray, F: np.ndarray, P_pred: np.ndarray) -> tuple[np.ndarray,
 
 def stacked_gains(P: np.ndarray, F: np.ndarray, P_pred: np.ndarray, transition: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """:func:`gains` for the steps with a ``transition`` (zeros elsewhere): compiled (``rts_kernel.gains``, the
-    same operations; LAPACK's solve from scipy's build, so equal to round-off), here where a singular
-    prediction needs the least-squares way."""
+    same scaling, a Cholesky solve: equal to round-off), here where a prediction that is not positive
+    definite needs the least-squares way."""
     try:
         return rts_kernel.gains(np.ascontiguousarray(P), np.ascontiguousarray(F), np.ascontiguousarray(P_pred),
                                 np.ascontiguousarray(transition))
