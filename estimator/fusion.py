@@ -488,14 +488,17 @@ class FusionCore:
         return (c1 + (c2 + c3 * dt) * dt) * dt
 
     def _fused_pose(self, gyro: np.ndarray) -> OutputPose:
+        """The filter's state as a pose (made after every step). Its nominal arrays are the state's own: the
+        filter replaces them, never changes them in place (``FilterState``; a test holds every pose to
+        what it was when made), so they need no copy."""
         est = self.est
         s = est.state
         cov9 = est.published_cov9()
-        return OutputPose(
-            t_ns=s.t_ns, p=s.p.copy(), v=s.v.copy(), q=s.q.copy(), omega_b=gyro - s.b_g, cov9=cov9,
-            pose_cov=_pose_cov(cov9), omega_var=self._omega_var(), heading_aligned=est.heading_aligned,
-            position_initialized=est.position_initialized, reset_counter=est.reset_counter, fused_t_ns=s.t_ns,
-            quality_cap=est.health.quality_cap(s.t_ns), initialising=est.initialising, local_position=est.local_position,
+        t = s.t_ns
+        return OutputPose(  # in field order (positional: a quarter of this call's cost is keyword handling)
+            t, s.p, s.v, s.q, gyro - s.b_g, cov9, _pose_cov(cov9), self._omega_var(), est.heading_aligned,
+            est.position_initialized, est.reset_counter, t, est.health.quality_cap(t), est.initialising,
+            est.local_position,
         )
 
     # --------------------------------------------------------------------------- status

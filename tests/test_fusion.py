@@ -1,6 +1,8 @@
 """Fusion order: the delayed horizon fuses in time order, late measurements at their own time, the
 predictor reaches the newest sample; everything deterministic."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -122,6 +124,40 @@ def test_runs_of_samples_fuse_exactly_as_one_at_a_time(flight, variant, heading)
     assert_same_trajectory(fused, reference)
     assert np.array_equal(core.est.state.cov, est.state.cov)
     assert core.est.counts_report() == est.counts_report()
+
+
+def pose_fields(pose) -> tuple:
+    """Every field of a pose, arrays as copies (a later change to one would show)."""
+    return tuple(np.array(value, copy=True) if isinstance(value, np.ndarray) else value
+                 for value in (getattr(pose, f.name) for f in dataclasses.fields(pose)))
+
+
+@pytest.mark.parametrize("predict, heading", [(True, "gps"), (False, "gps"), (False, "dataset")])
+def test_a_fused_pose_never_changes_after_it_was_made(flight, predict, heading):
+    """A fused pose holds the state's own nominal arrays (no copies: the filter replaces them, never changes
+    them in place). Whatever the filter does afterwards — steps one by one or as runs, GPS updates, the
+    heading search and its placement, rest updates — every pose still says what it said when it was made."""
+    cfg = load_config(None, {"estimator": {"heading": {"source": heading}}})
+    made = []
+    core = FusionCore(new_estimator(flight, cfg), FusionOptions(delay_s=DELAY, predict=predict),
+                      on_fused=lambda pose: made.append((pose, pose_fields(pose))))
+    fixes, k = gps_fixes(flight), 0
+    samples = imu_samples(flight)
+    for start in range(0, len(samples), 12):
+        batch = samples[start:start + 12]
+        while k < len(fixes) and fixes[k].t_ns <= batch[0].t_ns:
+            core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
+            k += 1
+        core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
+                           np.array([s.accel for s in batch]))
+    core.flush()
+    est = core.est
+    assert len(made) > 1000 and est.counts["gps"].used > 100 and est.counts["still"].used > 0
+    if heading == "gps":
+        assert est.heading_aligned and est.heading_placement is not None
+    for pose, then in made:
+        for now, was in zip(pose_fields(pose), then):
+            assert np.array_equal(now, was), pose.t_ns
 
 
 @pytest.mark.parametrize("late_s", [0.1, 0.2])

@@ -48,7 +48,10 @@ class StateLayout:
 
 
 class FilterState:
-    """Nominal state plus covariance; the single mutable object the filter works on."""
+    """Nominal state plus covariance; the single mutable object the filter works on.
+
+    The nominal arrays (``p``, ``v``, ``q``, ``b_g``, ``b_a``) are replaced, never changed in place: a pose
+    and the smoother's recorder keep them without a copy. The covariance is changed in place."""
 
     def __init__(self, layout: StateLayout) -> None:
         self.layout = layout
