@@ -116,6 +116,23 @@ def test_the_command_line_and_a_runtime_without_camera_do_not_load_opencv() -> N
     assert printed_by_a_fresh_process(code) == "False"
 
 
+def test_a_live_service_loads_no_kernel_of_runs_and_a_replay_loads_them_all() -> None:
+    # A live service (an output, so the present pose is wanted) goes sample by sample: the kernels of runs
+    # of samples, ~5 MB loaded, stay out of it; an offline replay's runtime has them ready before its first sample.
+    code = ("from vtolpose.config import load_config; "
+            "from vtolpose.estimator.core.calibration import Calibration, ImuCalibration, ImuNoise; "
+            "from vtolpose.service.runtime.daemon import build_runtime; "
+            "from vtolpose.estimator.inertial import propagation_kernel as p, sample_kernel as s; "
+            "cal = Calibration(ImuCalibration(200.0, ImuNoise(1e-3, 1e-2, 1e-5, 1e-4))); "
+            "live = %s; "
+            "cfg = load_config(None, {'outputs': {'mavlink': {'enabled': live, 'url': 'udpout:127.0.0.1:9'}}}); "
+            "runtime = build_runtime(cfg, cal); "
+            "print(runtime.fuses_runs, [bool(k.signatures) for k in (p.step_run, s.downsample_run, s.stillness_run, "
+            "s.level_run, s.plain_run, p.step, p.step_all, s.screen_rows)])")
+    assert printed_by_a_fresh_process(code % True) == "False " + str([False] * 5 + [True] * 3)
+    assert printed_by_a_fresh_process(code % False) == "True " + str([True] * 8)
+
+
 def test_the_estimator_imports_no_scipy_sub_package() -> None:
     # numba imports scipy's top package (~1 MB) to look for its BLAS; scipy.special would add ~20 MB.
     code = ("import sys; import vtolpose.estimator.filter, vtolpose.estimator.metrics; "

@@ -200,12 +200,14 @@ def plain_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, last_t: int, m
     return True
 
 
-def warm_up() -> None:
-    """Compile (or load from the cache) for the argument types the estimator passes."""
+def warm_up(runs: bool = True) -> None:
+    """Compile (or load from the cache) for the argument types the estimator passes. ``runs``: also the
+    kernels of runs of samples, which only a process fusing runs (a replay) calls."""
     t = np.arange(4, dtype=np.int64) * 5_000_000
     rows = np.zeros((4, 3))
-    downsample_run(t, rows, rows, np.zeros(14), np.zeros(3, np.int64), 0.009)
-    stillness_run(t, rows, rows, np.zeros(18), np.zeros(6, np.int64), 0.1, 1.0)
     screen_rows(rows, rows, 2700.0, 76800.0)
-    level_run(t, rows, np.zeros(3), np.zeros(2, np.int64), 0.5)
-    plain_run(t, rows, rows, -1, 0.1)
+    if runs:
+        downsample_run(t, rows, rows, np.zeros(14), np.zeros(3, np.int64), 0.009)
+        stillness_run(t, rows, rows, np.zeros(18), np.zeros(6, np.int64), 0.1, 1.0)
+        level_run(t, rows, np.zeros(3), np.zeros(2, np.int64), 0.5)
+        plain_run(t, rows, rows, -1, 0.1)

@@ -64,12 +64,16 @@ def replay_camera_workers(cfg: dict[str, Any]) -> int:
     return cfg["replay.camera_workers"] or max(1, min(2 * (os.cpu_count() or 1), 16))
 
 
-def load_compiled_kernels(backward_pass: bool = False) -> None:
+def load_compiled_kernels(backward_pass: bool = False, runs: bool = True) -> None:
     """The estimator's compiled kernels (numba), compiled or loaded from their caches: ~0.1 s once per
     process, a few seconds the first time on a machine. Done before the first sample is handled.
-    ``backward_pass``: also the offline smoother's (an image's build compiles every kernel)."""
-    for kernels in (propagation_kernel, update_kernel, gps_kernel, sample_kernel):
-        kernels.warm_up()
+    ``backward_pass``: also the offline smoother's (an image's build compiles every kernel). ``runs``:
+    also those of runs of samples, which a live service, sample by sample, never calls (~5 MB less);
+    any kernel left out here would still load on its first call."""
+    propagation_kernel.warm_up(runs)
+    update_kernel.warm_up()
+    gps_kernel.warm_up()
+    sample_kernel.warm_up(runs)
     rts_kernel.warm_up(backward_pass)
 
 
@@ -91,7 +95,6 @@ def build_runtime(
     """
     calibration = calibration_with_overrides(cfg, calibration)
     estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
-    load_compiled_kernels()  # now, not on the first IMU step or fix
     options = RuntimeOptions(
         fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"],
         camera_workers=replay_camera_workers(cfg) if lockstep else cfg["fusion.camera_workers"],
@@ -119,6 +122,7 @@ def build_runtime(
         runtime.enable_smoothing(cfg["smoothing.fixed_lag_s"], cfg["smoothing.steps_per_sample"],
                                  cfg["smoothing.max_window_s"])
     add_interop_outputs(runtime, cfg, camera_processor)
+    load_compiled_kernels(runs=runtime.fuses_runs)  # now, not on the first IMU step or fix
     return runtime
 
 

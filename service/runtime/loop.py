@@ -224,13 +224,19 @@ class Runtime:
                 self.failures.record("fixed-lag smoother (stopped)", exc)
                 self.smoother = None
 
+    @property
+    def fuses_runs(self) -> bool:
+        """Whether IMU batches go to the fusion as runs: nobody wants the present pose (no outputs, probes
+        or live smoother, as in an offline replay) and no tap sees the samples."""
+        return not (self.outputs or self.sample_taps or self.latency is not None or self.smoother is not None)
+
     def _on_imu_batch(self, batch: ImuBatch, arrived_ns: int | None) -> None:
         """A replay's run of IMU samples: what :meth:`_on_imu` does for each, done once for all.
 
         Only where no present pose is wanted (no outputs, probes or live smoother, as in an offline
         replay) and no tap sees samples; otherwise each sample takes the live path, one by one.
         """
-        if self.outputs or self.sample_taps or self.latency is not None or self.smoother is not None:
+        if not self.fuses_runs:
             for sample in batch.samples():
                 self.handle(sample, arrived_ns)
             return
