@@ -288,9 +288,11 @@ class Estimator:
         """The steps from ``order[i]`` on that need nothing but propagation (no rest chunk or levelling at their
         sample, no periodic check before the last), in one compiled call (``propagator.propagate_steps``),
         then each step's bookkeeping and ``after_step`` in turn, the state as :meth:`_propagate` leaves it.
-        Returns how many were taken: none while the heading is searched for, a visual start or a recorder
-        watches the steps, or where the propagator has no compiled sequence (a map, non-isotropic noise)."""
-        if not self.heading_aligned or self.recorder is not None or self._visual_start_pending():
+        While the heading is unknown the steps have its extra noise, and the heading hypotheses take the same
+        steps in one compiled call of their own. Returns how many were taken: none while a visual start or a
+        recorder watches the steps, or where the propagator has no compiled sequence (a map, non-isotropic
+        noise)."""
+        if self.recorder is not None or self._visual_start_pending():
             return 0
         end = i
         while end < len(order):
@@ -302,9 +304,15 @@ class Estimator:
                 break  # the check may rebuild the state: the next steps start from what it leaves
         j0, j1 = step_at[order[i]], step_at[order[end - 1]] + 1
         state = self.state
+        unaligned = not (self.heading_aligned or self.local_position)  # as _propagate
         computed = self.propagator.propagate_steps(state, steps.deltas[j0:j1], steps.dts[j0:j1], self._horizontal_accel,
-                                                   self.options.init.average_s)
+                                                   self.options.init.average_s,
+                                                   self.options.unaligned_accel_noise if unaligned else None,
+                                                   self._accel_at_rest)
         if computed is None:
+            return 0
+        bank = self._bank if not self.heading_aligned else None
+        if bank is not None and not bank.propagate_run(steps.deltas[j0:j1], steps.dts[j0:j1], int(steps.times[j1 - 1, 1])):
             return 0
         states, covs, means = computed
         ends = steps.times[j0:j1, 1].tolist()
@@ -331,8 +339,8 @@ class Estimator:
             # acceleration, that is: vibration (zero mean, tens of hertz) is in the IMU noise
             # already, so it is averaged over init.average_s first, and what the tilt and bias
             # errors make of gravity (the reading at the last still chunk) is taken off.
-            accel = self._horizontal_accel - self._accel_at_rest
-            extra = max(self.options.unaligned_accel_noise, 2.0 * math.hypot(accel[0], accel[1]))
+            ax, ay = (self._horizontal_accel - self._accel_at_rest).tolist()
+            extra = max(self.options.unaligned_accel_noise, 2.0 * math.sqrt(ax * ax + ay * ay))  # as step_run does
         recorder = self.recorder
         if recorder is not None:
             recorder.before_propagation(self.state, self.heading_aligned)

@@ -1,5 +1,7 @@
 """IMU time update: analytic Jacobian against central differences, fast path against reference."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -230,10 +232,12 @@ def test_compiled_step_is_bit_for_bit_the_interpreted_one(variant):
             assert np.array_equal(kernel.noise_from_terms(terms, extra2, dt), numpy_q)
 
 
-@pytest.mark.parametrize("variant", ["thesis", "biases"])
-def test_a_compiled_sequence_of_steps_is_bit_for_bit_the_steps_one_by_one(variant):
+@pytest.mark.parametrize("variant, unaligned", [("thesis", False), ("biases", False), ("thesis", True), ("biases", True)])
+def test_a_compiled_sequence_of_steps_is_bit_for_bit_the_steps_one_by_one(variant, unaligned):
     """propagate_steps: the states, covariances and running horizontal acceleration after each step are those
-    of propagate called step by step (the estimator's loop), whatever dt each step has."""
+    of propagate called step by step (the estimator's loop), whatever dt each step has; while the heading is
+    unknown, with the extra horizontal noise the estimator adds from the running mean before each step
+    (its floor, or twice the mean's distance from the reading at rest, whichever is larger: both occur)."""
     layout = StateLayout(variant)
     local = np.random.default_rng(11)
     state = FilterState(layout)
@@ -245,16 +249,25 @@ def test_a_compiled_sequence_of_steps_is_bit_for_bit_the_steps_one_by_one(varian
     deltas = np.hstack([local.normal(size=(6, 3)) * dts[:, None],
                         (local.normal(size=(6, 3)) + [0.0, 0.0, -9.8]) * dts[:, None]])
     horizontal, average_s = np.array([0.2, -0.1]), 0.5
+    floor, at_rest = 0.3, np.array([0.05, 0.02])
     prop = ImuPropagator(ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4), 9.81)
-    states, covs, means = prop.propagate_steps(state, deltas, dts, horizontal, average_s)
+    states, covs, means = prop.propagate_steps(state, deltas, dts, horizontal, average_s,
+                                               floor if unaligned else None, at_rest)
     hx, hy = horizontal.tolist()
+    extras = []
     for j, dt in enumerate(dts.tolist()):
-        a_w = prop.propagate(state, ImuDelta(0, 1, dt, deltas[j, 0:3], deltas[j, 3:6]))
+        extra = 0.0
+        if unaligned:
+            ax, ay = hx - at_rest[0], hy - at_rest[1]
+            extra = max(floor, 2.0 * math.sqrt(ax * ax + ay * ay))
+            extras.append(extra > floor)
+        a_w = prop.propagate(state, ImuDelta(0, 1, dt, deltas[j, 0:3], deltas[j, 3:6]), extra)
         keep = average_s / (average_s + dt)
         hx, hy = keep * hx + (1.0 - keep) * a_w[0], keep * hy + (1.0 - keep) * a_w[1]
         assert np.array_equal(states[j], np.concatenate([state.p, state.v, state.q]))
         assert np.array_equal(covs[j], state.cov)
         assert means[j].tolist() == [hx, hy]
+    assert not unaligned or (any(extras) and not all(extras))
     state.landmarks, state.cov = np.zeros((1, 6)), np.eye(layout.robot_dim + 6)
     assert prop.propagate_steps(state, deltas, dts, horizontal, average_s) is None  # a map: step by step
 
@@ -283,12 +296,21 @@ def test_states_propagated_together_are_bit_for_bit_each_propagated_alone(varian
         for together, single in zip(states, alone):
             for name in ("p", "v", "q", "cov"):
                 assert np.array_equal(getattr(together, name), getattr(single, name)), name
+    deltas = np.hstack([local.normal(size=(5, 3)) * 0.01, (local.normal(size=(5, 3)) + [0.0, 0.0, -9.8]) * 0.01])
+    dts = np.array([0.01, 0.0095, 0.0105, 0.01, 0.02])
+    assert prop.propagate_all_run(states, deltas, dts)  # a run of deltas in one call: each in turn, as above
+    for dt, delta in zip(dts.tolist(), deltas):
+        assert prop.propagate_all(alone, ImuDelta(0, 1, dt, delta[0:3], delta[3:6]))
+    for together, single in zip(states, alone):
+        for name in ("p", "v", "q", "cov"):
+            assert np.array_equal(getattr(together, name), getattr(single, name)), name
     other = FilterState(StateLayout("thesis" if variant == "biases" else "biases"))
     mapped = states[0].copy()
     mapped.landmarks, mapped.cov = np.zeros((1, 6)), np.eye(layout.robot_dim + 6)
     for odd in (other, mapped):
         before = [s.p.copy() for s in states]
         assert not prop.propagate_all(states + [odd], delta)
+        assert not prop.propagate_all_run(states + [odd], deltas, dts)
         assert all(np.array_equal(s.p, p) for s, p in zip(states, before))  # nothing done
 
 
@@ -312,10 +334,13 @@ def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
 
     def compiled() -> list[set]:
         return [set(f.signatures) for f in (kernel.step, kernel.noise_from_terms, kernel.step_run, kernel.step_all,
-                                             update_kernel.small_update,
+                                             kernel.step_all_run,
+                                             update_kernel.small_update, gps_kernel.gps_update,
                                              sample_kernel.downsample_run, sample_kernel.stillness_run,
                                              sample_kernel.screen_rows, sample_kernel.plain_run, sample_kernel.level_run)]
-    for module in (kernel, update_kernel, sample_kernel):
+    from vtolpose.estimator.gnss import gps_kernel
+
+    for module in (kernel, update_kernel, gps_kernel, sample_kernel):
         module.warm_up()
     before = compiled()
     for variant in ("thesis", "biases"):

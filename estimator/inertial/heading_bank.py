@@ -130,6 +130,15 @@ class HeadingBank:
         for member in self.members:
             member.t_ns = delta.t1_ns
 
+    def propagate_run(self, deltas: np.ndarray, dts: np.ndarray, t_ns: int) -> bool:
+        """:meth:`propagate` over each of a sequence of deltas ([Δθ, Δv] rows; the last ending at ``t_ns``) in
+        one compiled call; False, with nothing done, where the propagator declines it."""
+        if not self.propagator.propagate_all_run(self.members, deltas, dts):
+            return False
+        for member in self.members:
+            member.t_ns = t_ns
+        return True
+
     def update(self, fix: GpsFix) -> None:
         """Fuse one fix into every hypothesis and reweight them by how well each predicted it."""
         if not self.positioned:

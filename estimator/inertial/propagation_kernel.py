@@ -130,12 +130,16 @@ def noise_from_terms(terms: np.ndarray, extra2: float, dt: float) -> np.ndarray:
 @numba.njit(cache=True, nogil=True)
 def step_run(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, deltas: np.ndarray,
              dts: np.ndarray, gravity: float, F: np.ndarray, cov: np.ndarray, terms: np.ndarray, biases: bool,
-             horizontal: np.ndarray, average_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+             horizontal: np.ndarray, average_s: float, unaligned: bool, floor: float,
+             at_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`step` for each of a sequence of deltas (rows of [Δθ, Δv]), with the isotropic noise of each
-    ``dt`` (:func:`noise_from_terms`, no extra noise) and the filter's running mean of the horizontal
-    acceleration, from ``horizontal`` on: what the interpreted loop of steps does, in the same order.
+    ``dt`` (:func:`noise_from_terms`) and the filter's running mean of the horizontal acceleration, from
+    ``horizontal`` on: what the interpreted loop of steps does, in the same order.
 
-    Returns, after each step, p, v, q (rows of 10), the robot covariance, and that mean (rows of 2).
+    ``unaligned``: the heading is unknown, and each step's noise has the extra horizontal accelerometer
+    noise the filter adds then, ``max(floor, 2 |mean − at_rest|)`` from the mean before the step
+    (``Estimator._propagate``). Returns, after each step, p, v, q (rows of 10), the robot
+    covariance, and that mean (rows of 2).
     """
     m = dts.shape[0]
     n = cov.shape[0]
@@ -146,7 +150,12 @@ def step_run(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: 
     hx, hy = horizontal[0], horizontal[1]
     for j in range(m):
         dt = dts[j]
-        Q = noise_from_terms(terms, 0.0, dt)
+        extra2 = 0.0
+        if unaligned:
+            ax, ay = hx - at_rest[0], hy - at_rest[1]
+            extra = max(floor, 2.0 * math.sqrt(ax * ax + ay * ay))
+            extra2 = extra * extra
+        Q = noise_from_terms(terms, extra2, dt)
         cov = step(p, v, q, b_g, b_a, deltas[j, 0:3], deltas[j, 3:6], dt, gravity, F, cov, Q, biases, out)
         covs[j] = cov
         states[j] = out[0:10]
@@ -174,6 +183,25 @@ def step_all(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: 
     return states, grown
 
 
+@numba.njit(cache=True, nogil=True)
+def step_all_run(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, deltas: np.ndarray,
+                 dts: np.ndarray, gravity: float, F: np.ndarray, covs: np.ndarray, terms: np.ndarray,
+                 biases: bool) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`step_all` over each of a sequence of deltas (rows of [Δθ, Δv]) in turn, each with the isotropic
+    noise of its ``dt`` (:func:`noise_from_terms`, no extra noise): the heading hypotheses through a run.
+    Returns p, v, q (rows of 10) and the covariance of each state after the last delta."""
+    h = p.shape[0]
+    states = np.empty((h, 10))
+    for k in range(h):
+        states[k, 0:3], states[k, 3:6], states[k, 6:10] = p[k], v[k], q[k]
+    for j in range(dts.shape[0]):
+        Q = noise_from_terms(terms, 0.0, dts[j])
+        states, covs = step_all(np.ascontiguousarray(states[:, 0:3]), np.ascontiguousarray(states[:, 3:6]),
+                                np.ascontiguousarray(states[:, 6:10]), b_g, b_a, np.ascontiguousarray(deltas[j, 0:3]),
+                                np.ascontiguousarray(deltas[j, 3:6]), dts[j], gravity, F, covs, Q, biases)
+    return states, covs
+
+
 def warm_up(runs: bool = True) -> None:
     """Compile the kernels, or load them from the cache, now rather than on the first IMU step (which
     would then take a second): each once per layout, on the argument types the filter passes. ``runs``:
@@ -187,5 +215,8 @@ def warm_up(runs: bool = True) -> None:
         step_all(rows, rows, np.array([[1.0, 0.0, 0.0, 0.0]] * 2), rows, rows, v3, v3, 0.01, 9.8, np.eye(n),
                  np.zeros((2, n, n)), np.eye(n), n == 15)
         if runs:
+            step_all_run(rows, rows, np.array([[1.0, 0.0, 0.0, 0.0]] * 2), rows, rows, np.zeros((2, 6)),
+                         np.full(2, 0.01), 9.8, np.eye(n), np.zeros((2, n, n)), np.zeros((6, n, n)), n == 15)
+        if runs:
             step_run(v3, v3, np.array([1.0, 0.0, 0.0, 0.0]), v3, v3, np.zeros((2, 6)), np.full(2, 0.01), 9.8, np.eye(n),
-                     np.eye(n), np.zeros((6, n, n)), n == 15, np.zeros(2), 0.5)
+                     np.eye(n), np.zeros((6, n, n)), n == 15, np.zeros(2), 0.5, False, 0.2, np.zeros(2))

@@ -151,6 +151,9 @@ def noise_dt_polynomial(noise: ImuNoise, layout: StateLayout, extra: float = 0.0
     return q1 - c2 - c3, c2, c3
 
 
+_NO_ACCEL = np.zeros(2)
+
+
 class ImuPropagator:
     """Advances a :class:`FilterState` by one IMU delta.
 
@@ -209,18 +212,23 @@ class ImuPropagator:
         return F
 
     def propagate_steps(self, state: FilterState, deltas: np.ndarray, dts: np.ndarray, horizontal: np.ndarray,
-                        average_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """:meth:`propagate` (no extra noise) over a sequence of deltas ([Δθ, Δv] rows) in one compiled call,
-        ``state`` itself left as it was: p, v, q (rows of 10) and the covariance after each step, and the
-        running mean of the horizontal acceleration from ``horizontal`` on (``average_s``, as the filter keeps
-        it). None where only :meth:`propagate` applies: noise that is not isotropic, or a map in the state."""
+                        average_s: float, unaligned_floor: float | None = None,
+                        at_rest: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """:meth:`propagate` over a sequence of deltas ([Δθ, Δv] rows) in one compiled call, ``state`` itself
+        left as it was: p, v, q (rows of 10) and the covariance after each step, and the running mean of the
+        horizontal acceleration from ``horizontal`` on (``average_s``, as the filter keeps it). No extra
+        noise, or with ``unaligned_floor`` the filter's while the heading is unknown (from that floor, that
+        mean and ``at_rest``, see ``propagation_kernel.step_run``). None where only :meth:`propagate` applies: noise
+        that is not isotropic, or a map in the state."""
         lay = state.layout
         cov = state.cov
         if not self._isotropic or cov.shape[0] != lay.robot_dim or not cov.flags.c_contiguous:
             return None
         return propagation_kernel.step_run(state.p, state.v, state.q, state.b_g, state.b_a, deltas, dts, self._g,
                                            self._transition(lay), cov, self._noise_terms(lay), lay.estimates_biases,
-                                           horizontal, average_s)
+                                           horizontal, average_s, unaligned_floor is not None,
+                                           0.0 if unaligned_floor is None else float(unaligned_floor),
+                                           _NO_ACCEL if at_rest is None else at_rest)
 
     def propagate_all(self, states: list[FilterState], delta: ImuDelta) -> bool:
         """:meth:`propagate` (no extra noise) of each of ``states`` over the same delta, in one compiled call.
@@ -235,6 +243,21 @@ class ImuPropagator:
         nominal, covs = propagation_kernel.step_all(p, v, q, b_g, b_a, delta.dtheta, delta.dvel, delta.dt, self._g,
                                                     self._transition(layout), np.array([s.cov for s in states]), Q,
                                                     layout.estimates_biases)
+        for state, row, cov in zip(states, nominal, covs):
+            state.p, state.v, state.q, state.cov = row[0:3], row[3:6], row[6:10], cov
+        return True
+
+    def propagate_all_run(self, states: list[FilterState], deltas: np.ndarray, dts: np.ndarray) -> bool:
+        """:meth:`propagate_all` over each of a sequence of deltas ([Δθ, Δv] rows) in turn, in one compiled
+        call; False, with nothing done, where :meth:`propagate_all` would decline."""
+        layout = states[0].layout
+        n = layout.robot_dim
+        if not self._isotropic or any(s.layout != layout or s.cov.shape[0] != n for s in states):
+            return False
+        p, v, q, b_g, b_a = (np.array([getattr(s, name) for s in states]) for name in ("p", "v", "q", "b_g", "b_a"))
+        nominal, covs = propagation_kernel.step_all_run(p, v, q, b_g, b_a, deltas, dts, self._g, self._transition(layout),
+                                                        np.array([s.cov for s in states]), self._noise_terms(layout),
+                                                        layout.estimates_biases)
         for state, row, cov in zip(states, nominal, covs):
             state.p, state.v, state.q, state.cov = row[0:3], row[3:6], row[6:10], cov
         return True
