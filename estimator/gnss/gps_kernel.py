@@ -50,7 +50,7 @@ def gps_update(cov: np.ndarray, p: np.ndarray, q: np.ndarray, lever_b: np.ndarra
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) for the argument types the filter passes."""
-    for held in (NO_HELD, np.zeros(15, dtype=np.bool_)):
-        gps_update(np.eye(15), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3), np.zeros(3), 1.0, 2.0, math.inf,
-                   held)
+    """Compile (or load from the cache) for the argument types the filter passes (a mask of held states, or
+    none, is the same type)."""
+    gps_update(np.eye(15), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3), np.zeros(3), 1.0, 2.0, math.inf,
+               NO_HELD)

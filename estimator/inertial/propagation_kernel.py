@@ -205,7 +205,8 @@ def step_all_run(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b
 def warm_up(runs: bool = True) -> None:
     """Compile the kernels, or load them from the cache, now rather than on the first IMU step (which
     would then take a second): each once per layout, on the argument types the filter passes. ``runs``:
-    also the sequence of steps (``step_run``), which only a process fusing runs (a replay) calls."""
+    also the sequences of steps (``step_run``, ``step_all_run``), which only a process fusing runs (a
+    replay) calls."""
     for n in (9, 15):
         v3 = np.zeros(3)
         step(v3, v3, np.array([1.0, 0.0, 0.0, 0.0]), v3, v3, v3, v3, 0.01, 9.8, np.eye(n), np.eye(n), np.eye(n),
@@ -217,6 +218,5 @@ def warm_up(runs: bool = True) -> None:
         if runs:
             step_all_run(rows, rows, np.array([[1.0, 0.0, 0.0, 0.0]] * 2), rows, rows, np.zeros((2, 6)),
                          np.full(2, 0.01), 9.8, np.eye(n), np.zeros((2, n, n)), np.zeros((6, n, n)), n == 15)
-        if runs:
             step_run(v3, v3, np.array([1.0, 0.0, 0.0, 0.0]), v3, v3, np.zeros((2, 6)), np.full(2, 0.01), 9.8, np.eye(n),
                      np.eye(n), np.zeros((6, n, n)), n == 15, np.zeros(2), 0.5, False, 0.2, np.zeros(2))

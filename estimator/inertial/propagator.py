@@ -154,6 +154,12 @@ def noise_dt_polynomial(noise: ImuNoise, layout: StateLayout, extra: float = 0.0
 _NO_ACCEL = np.zeros(2)
 
 
+def _unstack(states: list[FilterState], nominal: np.ndarray, covs: np.ndarray) -> None:
+    """Each state takes its row of the compiled call's p, v, q (rows of 10) and its covariance."""
+    for state, row, cov in zip(states, nominal, covs):
+        state.p, state.v, state.q, state.cov = row[0:3], row[3:6], row[6:10], cov
+
+
 class ImuPropagator:
     """Advances a :class:`FilterState` by one IMU delta.
 
@@ -234,33 +240,35 @@ class ImuPropagator:
         """:meth:`propagate` (no extra noise) of each of ``states`` over the same delta, in one compiled call.
         False, with nothing done, where only :meth:`propagate` applies: noise that is not isotropic (its Q
         depends on each attitude), a map in a state, or states of different layouts."""
-        layout = states[0].layout
-        n = layout.robot_dim
-        if not self._isotropic or any(s.layout != layout or s.cov.shape[0] != n for s in states):
+        stacked = self._stacked(states)
+        if stacked is None:
             return False
+        layout = states[0].layout
         Q = self._noise(states[0].q, delta.dt, layout, 0.0)
-        p, v, q, b_g, b_a = (np.array([getattr(s, name) for s in states]) for name in ("p", "v", "q", "b_g", "b_a"))
-        nominal, covs = propagation_kernel.step_all(p, v, q, b_g, b_a, delta.dtheta, delta.dvel, delta.dt, self._g,
-                                                    self._transition(layout), np.array([s.cov for s in states]), Q,
-                                                    layout.estimates_biases)
-        for state, row, cov in zip(states, nominal, covs):
-            state.p, state.v, state.q, state.cov = row[0:3], row[3:6], row[6:10], cov
+        _unstack(states, *propagation_kernel.step_all(*stacked[:5], delta.dtheta, delta.dvel, delta.dt, self._g,
+                                                      self._transition(layout), stacked[5], Q, layout.estimates_biases))
         return True
 
     def propagate_all_run(self, states: list[FilterState], deltas: np.ndarray, dts: np.ndarray) -> bool:
         """:meth:`propagate_all` over each of a sequence of deltas ([Δθ, Δv] rows) in turn, in one compiled
         call; False, with nothing done, where :meth:`propagate_all` would decline."""
+        stacked = self._stacked(states)
+        if stacked is None:
+            return False
+        layout = states[0].layout
+        _unstack(states, *propagation_kernel.step_all_run(*stacked[:5], deltas, dts, self._g, self._transition(layout),
+                                                          stacked[5], self._noise_terms(layout), layout.estimates_biases))
+        return True
+
+    def _stacked(self, states: list[FilterState]) -> tuple[np.ndarray, ...] | None:
+        """p, v, q, b_g, b_a and the covariances of ``states`` stacked for the compiled calls; None where they
+        cannot go together: noise that is not isotropic (its Q depends on each attitude), a map in a state,
+        or states of different layouts."""
         layout = states[0].layout
         n = layout.robot_dim
         if not self._isotropic or any(s.layout != layout or s.cov.shape[0] != n for s in states):
-            return False
-        p, v, q, b_g, b_a = (np.array([getattr(s, name) for s in states]) for name in ("p", "v", "q", "b_g", "b_a"))
-        nominal, covs = propagation_kernel.step_all_run(p, v, q, b_g, b_a, deltas, dts, self._g, self._transition(layout),
-                                                        np.array([s.cov for s in states]), self._noise_terms(layout),
-                                                        layout.estimates_biases)
-        for state, row, cov in zip(states, nominal, covs):
-            state.p, state.v, state.q, state.cov = row[0:3], row[3:6], row[6:10], cov
-        return True
+            return None
+        return tuple(np.array([getattr(s, name) for s in states]) for name in ("p", "v", "q", "b_g", "b_a", "cov"))
 
     def propagate(self, state: FilterState, delta: ImuDelta, extra_horizontal_accel: float = 0.0) -> np.ndarray:
         """Propagate nominal state and covariance over ``delta``; returns ``a_W``.
