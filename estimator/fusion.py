@@ -25,6 +25,7 @@ from bisect import bisect_right
 import math
 from collections import deque
 from dataclasses import dataclass
+from operator import itemgetter
 from itertools import chain
 from typing import Any, Callable
 
@@ -42,10 +43,6 @@ _RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (nume
 MIN_RUN = 4
 _ROBOT9 = StateLayout("thesis")  # p, v, θ: the blocks the predictor's covariance covers
 _POSE_FLAT = (np.r_[0:3, 6:9][:, None] * 9 + np.r_[0:3, 6:9][None, :]).ravel()  # [δp, δθ] entries of a flat 9 × 9
-
-
-def _sample_time(item: tuple) -> int:
-    return item[0]
 
 
 def _pose_cov(cov9: np.ndarray) -> np.ndarray:
@@ -326,7 +323,7 @@ class FusionCore:
 
     def _last_time_until(self, horizon: int) -> int:
         """The time of the last buffered IMU sample at or before ``horizon`` (there is one; the times increase)."""
-        return self._queue[bisect_right(self._queue, horizon, key=_sample_time) - 1][0]
+        return self._queue[bisect_right(self._queue, horizon, key=itemgetter(0)) - 1][0]
 
     def _fuse_one_imu(self) -> None:
         """The oldest buffered IMU sample into the estimator; the fused pose if it advanced the state."""

@@ -238,8 +238,7 @@ class ImuPropagator:
 
     def propagate_all(self, states: list[FilterState], delta: ImuDelta) -> bool:
         """:meth:`propagate` (no extra noise) of each of ``states`` over the same delta, in one compiled call.
-        False, with nothing done, where only :meth:`propagate` applies: noise that is not isotropic (its Q
-        depends on each attitude), a map in a state, or states of different layouts."""
+        False, with nothing done, where only :meth:`propagate` applies (see :meth:`_stacked`)."""
         stacked = self._stacked(states)
         if stacked is None:
             return False
