@@ -33,10 +33,12 @@ from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
 from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
+from vtolpose.estimator.vision.features import extract_features
 from vtolpose.service.runtime.daemon import build_runtime, serve
 from vtolpose.service.commands.run import camera_processor
 from vtolpose.service.runtime.loop import set_thread_priority
 from vtolpose.service.runtime.sources import ReplayClock, ReplaySource, ThreadedSource
+from vtolpose.service.runtime.wiring import feature_options
 from vtolpose.service.runtime.status import LatencyProbe, resident_memory_mb
 from vtolpose.service.bench.rows import Row
 
@@ -130,8 +132,6 @@ def bench_runtime_latency(duration_s: float = 15.0) -> list[Row]:
 
 
 def latency_run(duration_s: float, priority: int | None, label: str, overrides: dict | None = None) -> list[Row]:
-    import cv2
-
     zenoh_port, mav_port = free_port(), free_port(socket.SOCK_DGRAM)
     with tempfile.TemporaryDirectory() as tmp:
         write_flight(simulate_flight("landfill", duration_s + 15.0, 1), Path(tmp) / "d")
@@ -150,16 +150,15 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
     imu_samples = [ImuSample(int(t), g, a) for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel)]
     gps_fixes = [GpsFix(int(t), p, float(h), float(v)) for t, p, h, v in zip(gps.t_ns, gps.p_ned, gps.sigma_h, gps.sigma_v)]
     image = _test_image()
-    sift = cv2.SIFT_create(nfeatures=400, contrastThreshold=0.02)  # as features.* configure it
+    options = feature_options(cfg)  # the service's own extraction, as features.* configure it
     features: list[int] = []
 
     extract_ms: list[float] = []
 
     def extract(frame: CameraFrame):
-        started = time.perf_counter()
-        keypoints, _ = sift.detectAndCompute(frame.image, None)
-        extract_ms.append((time.perf_counter() - started) * 1e3)
-        features.append(len(keypoints))
+        found = extract_features(frame.image, frame.t_ns, options, image.shape)
+        extract_ms.append(found.extract_ms)
+        features.append(len(found))
         return lambda est: None  # the measurement hook, as process_features will use it
 
     runtime = build_runtime(cfg, dataset.calibration, camera_processor=extract, measure_latency=True)
@@ -210,7 +209,7 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
         (f"[{label}] IMU in -> MAVLink+Zenoh out, max", pmax * 1e3, "us", ""),
         Row(f"[{label}]   of which handling on the loop, p50", h50 * 1e3, "us", "the rest: waiting to be scheduled", "<= 200"),
         (f"[{label}]   of which handling on the loop, p99", h99 * 1e3, "us", ""),
-        (f"[{label}] camera frames through SIFT in the executor", float(len(features)), "frames", extract_note),
+        (f"[{label}] camera frames through {options.detector.upper()} in the executor", float(len(features)), "frames", extract_note),
         (f"[{label}] Zenoh poses received by the subscriber process", float(received), "poses",
          f"{summary.status['outputs'].get('mavlink', {}).get('odometry_sent', 0)} ODOMETRY sent, "
          f"{datagrams} datagrams received by the UDP peer"),
