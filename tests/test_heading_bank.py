@@ -108,3 +108,61 @@ def test_the_outputs_say_when_the_heading_is_unknown_or_weak() -> None:
     assert (pose_status(unknown, pose_quality(unknown)), pose_quality(unknown)) == ("heading_unaligned", 0)
     assert pose_status(weak, pose_quality(weak)) == "heading_weak" and 0 < pose_quality(weak) < pose_quality(good)
     assert pose_status(good, pose_quality(good)) == "ok"
+
+
+def _one_fix_at_a_time(bank: HeadingBank, fix: GpsFix) -> tuple[list[FilterState], np.ndarray]:
+    """The reference for :meth:`HeadingBank.update`: each hypothesis through the filter's own GPS update, its
+    likelihood from numpy's log-determinant of the innovation covariance before the update."""
+    from vtolpose.estimator.core.kalman import innovation_covariance
+    from vtolpose.estimator.gnss.gps_update import GPS_COLS
+
+    members, log_like = [], []
+    cap = bank._likelihood_cap
+    for member in bank.members:
+        s = member.copy()
+        sign, log_det = np.linalg.slogdet(innovation_covariance(s, GPS_COLS, bank.gps.model.jacobian(s), bank.gps.noise(fix)))
+        out = bank.gps.update(s, fix)
+        usable = sign > 0 and out.accepted and s.is_finite()
+        log_like.append(-0.5 * (min(out.nis, cap) + log_det) if usable else -np.inf)
+        members.append(s)
+    return members, np.array(log_like)
+
+
+@pytest.mark.parametrize("case", ["plain", "lever_arm", "broken", "gated"])
+def test_one_compiled_call_updates_every_hypothesis_as_one_at_a_time_would(case: str) -> None:
+    """The bank's fix is one compiled call over all hypotheses (gps_kernel.bank_update). Each hypothesis must
+    come out bit for bit as the filter's own GPS update leaves it, its correction folded in; the weights
+    as their likelihoods give them (to round-off: the log-determinant comes from a Cholesky factor, not LU).
+    A hypothesis whose update fails or turns non-finite drops out; a fix no hypothesis takes changes nothing."""
+    rng = np.random.default_rng(7)
+    for trial in range(10):
+        lever = rng.normal(size=3) * 0.4 if case == "lever_arm" else np.zeros(3)
+        gps = GpsUpdater(lever, 1e-9 if case == "gated" else None)
+        start = level_state(float(rng.uniform(-math.pi, math.pi)))
+        start.v = rng.normal(size=3)
+        bank = HeadingBank(HeadingBankOptions(), start, ImuPropagator(NOISE, G), gps)
+        bank.update(GpsFix(0, np.zeros(3), 0.05, 0.08))  # placed at the first fix
+        for member in bank.members:
+            member.p = member.p + rng.normal(size=3) * 0.2
+            member.b_a = member.b_a + rng.normal(size=3) * 0.01
+            noise = rng.normal(size=(15, 15)) * 1e-3
+            member.cov = member.cov + noise @ noise.T
+        if case == "broken":
+            bank.members[2].cov[0:3, 0:3] = -np.eye(3)  # its innovation covariance is not positive definite
+            bank.members[5].cov[10, 10] = np.inf  # its update turns the state non-finite
+        fix = GpsFix(1, rng.normal(size=3) * 0.3, float(rng.uniform(0.05, 0.5)), float(rng.uniform(0.05, 0.8)))
+        before = bank.log_weights.copy()
+        expected, log_like = _one_fix_at_a_time(bank, fix)
+        bank.update(fix)
+        for got, want in zip(bank.members, expected):
+            for name in ("p", "v", "q", "b_g", "b_a", "cov"):
+                assert np.array_equal(getattr(got, name), getattr(want, name), equal_nan=True), (case, trial, name)
+        if case == "gated":
+            assert np.array_equal(bank.log_weights, before) and bank.fixes == 0
+            continue
+        w = before + log_like
+        w -= np.max(w) + math.log(np.sum(np.exp(w - np.max(w))))
+        np.testing.assert_allclose(bank.log_weights, w, rtol=0, atol=1e-9)
+        assert bank.fixes == 1
+        if case == "broken":
+            assert np.isneginf(log_like[[2, 5]]).all() and np.isneginf(bank.log_weights[[2, 5]]).all()

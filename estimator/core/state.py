@@ -126,3 +126,12 @@ class FilterState:
         """Every nominal part (biases and landmarks included) and the covariance are finite."""
         parts = (self.p, self.v, self.q, self.b_g, self.b_a, self.landmarks.ravel(), self.cov.ravel())
         return bool(np.isfinite(np.concatenate(parts)).all())  # one pass: a check per part costs 5 × more
+
+
+STACKED_PARTS = ("p", "v", "q", "b_g", "b_a", "cov")
+
+
+def stacked(states: list[FilterState]) -> tuple[np.ndarray, ...]:
+    """``p``, ``v``, ``q``, ``b_g``, ``b_a`` and ``cov`` of ``states`` (one layout, no map), each as one array with
+    a row per state: the form of the compiled calls that work on several states at once."""
+    return tuple(np.array([getattr(s, name) for s in states]) for name in STACKED_PARTS)

@@ -1,4 +1,5 @@
-"""A GPS fix's whole EKF update in one compiled call: lever arm, residual, Jacobian, noise and the update.
+"""A GPS fix's whole EKF update in one compiled call: lever arm, residual, Jacobian, noise and the update;
+and the same for every heading hypothesis at once, with what its weight needs.
 
 In Python the fix costs a dozen calls on three-element arrays (rotation, lever arm, prediction,
 Jacobian, noise, each wrapper dearer than its arithmetic) around the compiled update. Here the same
@@ -31,10 +32,9 @@ def lever_arm_world(q: np.ndarray, lever_b: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def gps_update(cov: np.ndarray, p: np.ndarray, q: np.ndarray, lever_b: np.ndarray, fix: np.ndarray, var_h: float,
-               var_v: float, gate: float, held: np.ndarray) -> tuple[int, float, np.ndarray]:
-    """Fuse a fix ``fix`` (NED, m) with variances ``var_h``, ``var_h``, ``var_v`` into ``cov`` (in place), the
-    antenna ``lever_b`` from the IMU: ``small_update``'s (outcome code, NIS, correction δx)."""
+def fix_model(p: np.ndarray, q: np.ndarray, lever_b: np.ndarray, fix: np.ndarray, var_h: float,
+              var_v: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A fix's residual, Jacobian on [δp, δv, δθ] and noise, as ``GpsModel`` and ``GpsUpdater.noise`` give them."""
     arm = lever_arm_world(q, lever_b)
     residual = fix - (p + arm)
     H = np.zeros((3, 9))
@@ -46,7 +46,88 @@ def gps_update(cov: np.ndarray, p: np.ndarray, q: np.ndarray, lever_b: np.ndarra
     H[2, 6], H[2, 7], H[2, 8] = ay, -ax, -0.0
     R = np.zeros((3, 3))
     R[0, 0], R[1, 1], R[2, 2] = var_h, var_h, var_v
+    return residual, H, R
+
+
+@numba.njit(cache=True, nogil=True)
+def gps_update(cov: np.ndarray, p: np.ndarray, q: np.ndarray, lever_b: np.ndarray, fix: np.ndarray, var_h: float,
+               var_v: float, gate: float, held: np.ndarray) -> tuple[int, float, np.ndarray]:
+    """Fuse a fix ``fix`` (NED, m) with variances ``var_h``, ``var_h``, ``var_v`` into ``cov`` (in place), the
+    antenna ``lever_b`` from the IMU: ``small_update``'s (outcome code, NIS, correction δx)."""
+    residual, H, R = fix_model(p, q, lever_b, fix, var_h, var_v)
     return small_update(cov, 0, 9, H, residual, R, gate, held)
+
+
+@numba.njit(cache=True, nogil=True)
+def innovation_log_det(cov: np.ndarray, H: np.ndarray, R: np.ndarray) -> float:
+    """``log det(H P H^T + R)`` over the first nine error states, through its Cholesky factor; -inf where the
+    innovation covariance is not positive definite (a likelihood of zero)."""
+    S = np.dot(np.dot(H, np.ascontiguousarray(cov[0:9, 0:9])), np.ascontiguousarray(H.T)) + R
+    log_det = 0.0
+    L = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(i + 1):
+            acc = S[i, j]
+            for m in range(j):
+                acc -= L[i, m] * L[j, m]
+            if i == j:
+                if not (acc > 0.0 and math.isfinite(acc)):
+                    return -math.inf
+                L[i, i] = math.sqrt(acc)
+                log_det += math.log(acc)
+            else:
+                L[i, j] = acc / L[j, j]
+    return log_det
+
+
+@numba.njit(cache=True, nogil=True)
+def bank_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, covs: np.ndarray,
+                biases: bool, lever_b: np.ndarray, fix: np.ndarray, var_h: float, var_v: float, gate: float,
+                held: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`gps_update` of each of a stack of states (rows of ``p`` … ``covs``, changed in place), its correction
+    folded in as ``FilterState.inject`` does. Returns each one's NIS, ``log det S`` before the update, and
+    whether it came out accepted and finite (a hypothesis that did not is out of the race)."""
+    k = p.shape[0]
+    nis = np.full(k, math.nan)
+    log_det = np.full(k, -math.inf)
+    usable = np.zeros(k, dtype=np.bool_)
+    for j in range(k):
+        cov = covs[j]
+        residual, H, R = fix_model(p[j], q[j], lever_b, fix, var_h, var_v)
+        log_det[j] = innovation_log_det(cov, H, R)
+        code, nis[j], dx = small_update(cov, 0, 9, H, residual, R, gate, held)
+        if code != 0:
+            continue
+        for i in range(3):
+            p[j, i] = p[j, i] + dx[i]
+            v[j, i] = v[j, i] + dx[3 + i]
+        # Exp(δθ) ⊗ q, then normalised (FilterState.inject with rotation.rotvec_quat).
+        x, y, z = dx[6], dx[7], dx[8]
+        angle = math.sqrt(x * x + y * y + z * z)
+        s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
+        dw, ex, ey, ez = math.cos(0.5 * angle), s * x, s * y, s * z
+        w, qx, qy, qz = q[j, 0], q[j, 1], q[j, 2], q[j, 3]
+        r0 = dw * w - ex * qx - ey * qy - ez * qz
+        r1 = dw * qx + ex * w + ey * qz - ez * qy
+        r2 = dw * qy - ex * qz + ey * w + ez * qx
+        r3 = dw * qz + ex * qy - ey * qx + ez * w
+        norm = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
+        q[j, 0], q[j, 1], q[j, 2], q[j, 3] = r0 / norm, r1 / norm, r2 / norm, r3 / norm
+        if biases:
+            for i in range(3):
+                b_g[j, i] = b_g[j, i] + dx[9 + i]
+                b_a[j, i] = b_a[j, i] + dx[12 + i]
+        finite = math.isfinite(log_det[j])
+        for i in range(3):
+            finite = finite and math.isfinite(p[j, i]) and math.isfinite(v[j, i]) and math.isfinite(b_g[j, i]) \
+                and math.isfinite(b_a[j, i])
+        for i in range(4):
+            finite = finite and math.isfinite(q[j, i])
+        for a in range(cov.shape[0]):
+            for b in range(cov.shape[1]):
+                finite = finite and math.isfinite(cov[a, b])
+        usable[j] = finite
+    return nis, log_det, usable
 
 
 def warm_up() -> None:
@@ -54,3 +135,6 @@ def warm_up() -> None:
     none, is the same type)."""
     gps_update(np.eye(15), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3), np.zeros(3), 1.0, 2.0, math.inf,
                NO_HELD)
+    stack = np.zeros((2, 3))
+    bank_update(stack, stack.copy(), np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)), stack.copy(), stack.copy(),
+                np.stack([np.eye(15)] * 2), True, np.zeros(3), np.zeros(3), 1.0, 2.0, math.inf, NO_HELD)

@@ -23,11 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update, innovation_covariance
+from vtolpose.estimator.core.kalman import chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import quat_mul, rotvec_quat, yaw_of
-from vtolpose.estimator.core.state import FilterState, StateLayout
-from vtolpose.estimator.gnss.gps_update import GPS_COLS, GpsUpdater, place_at_fix
+from vtolpose.estimator.core.state import FilterState, StateLayout, stacked
+from vtolpose.estimator.core.update_kernel import NO_HELD
+from vtolpose.estimator.gnss import gps_kernel
+from vtolpose.estimator.gnss.gps_update import GpsUpdater, gps_sigmas, place_at_fix
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 
@@ -146,15 +148,19 @@ class HeadingBank:
                 place_at_fix(member, fix, self.gps.model.lever_arm_b, self.gps.sigma_floor_m)
             self.positioned = True
             return
-        log_like = np.empty(len(self.members))
-        R = self.gps.noise(fix)
-        for k, member in enumerate(self.members):
-            sign, log_det = np.linalg.slogdet(innovation_covariance(member, GPS_COLS, self.gps.model.jacobian(member), R))
-            outcome: UpdateOutcome = self.gps.update(member, fix)
-            if sign <= 0 or not outcome.accepted or not member.is_finite():  # a broken hypothesis is out of the race
-                log_like[k] = -np.inf
-                continue
-            log_like[k] = -0.5 * (min(outcome.nis, self._likelihood_cap) + log_det)
+        sigma_h, sigma_v = gps_sigmas(fix, self.gps.sigma_floor_m)
+        parts = stacked(self.members)
+        gate = self.gps.gate
+        # Every hypothesis' update in one compiled call, its correction folded in (gps_kernel.bank_update).
+        nis, log_det, usable = gps_kernel.bank_update(
+            *parts, self.members[0].layout.estimates_biases, self.gps.model.lever_arm_b,
+            np.ascontiguousarray(fix.p_ned, dtype=float), sigma_h**2, sigma_v**2, math.inf if gate is None else float(gate),
+            NO_HELD)
+        for member, *rows in zip(self.members, *parts):
+            member.p, member.v, member.q, member.b_g, member.b_a, member.cov = rows
+        # A broken hypothesis (not accepted, not finite) is out of the race.
+        log_like = np.full(len(self.members), -np.inf)
+        log_like[usable] = -0.5 * (np.minimum(nis[usable], self._likelihood_cap) + log_det[usable])
         if not np.any(np.isfinite(log_like)):
             return
         w = self.log_weights + log_like

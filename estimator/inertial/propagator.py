@@ -23,7 +23,7 @@ from vtolpose.estimator.core.calibration import ImuNoise
 from vtolpose.estimator.inertial import propagation_kernel
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
 from vtolpose.estimator.core.rotation import rot_of as _rot, rotvec_quat
-from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator.core.state import FilterState, StateLayout, stacked
 
 OUT_LEN = propagation_kernel.OUT_LEN  # what the compiled step writes: p, v, q, a_W
 
@@ -267,7 +267,7 @@ class ImuPropagator:
         n = layout.robot_dim
         if not self._isotropic or any(s.layout != layout or s.cov.shape[0] != n for s in states):
             return None
-        return tuple(np.array([getattr(s, name) for s in states]) for name in ("p", "v", "q", "b_g", "b_a", "cov"))
+        return stacked(states)
 
     def propagate(self, state: FilterState, delta: ImuDelta, extra_horizontal_accel: float = 0.0) -> np.ndarray:
         """Propagate nominal state and covariance over ``delta``; returns ``a_W``.
