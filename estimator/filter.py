@@ -257,10 +257,14 @@ class Estimator:
         while i < len(order):
             k = order[i]
             j = step_at.get(k)
-            if j is not None and k not in chunks and k not in levels:
+            if j is not None:
                 taken = self._compiled_steps(order, i, step_at, chunks, levels, steps, t_ns, gyro, after_step)
                 if taken:
                     i += taken
+                    last = order[i - 1]
+                    if last in chunks or last in levels:  # the sequence's last step owes its sample's measures
+                        self._level_and_rest(levels.get(last), chunks.get(last))
+                        after_step(last)
                     continue
             i += 1
             self._last_imu_t, self._gyro = t_ns[k], gyro[k]
@@ -268,26 +272,29 @@ class Estimator:
                 self._propagate(steps.delta(j))
                 if self.health.check_due(t_ns[k]):
                     self._check_state()
-            f_mean = levels.get(k)
-            if f_mean is not None:
-                self._apply_level(f_mean)
-            chunk = chunks.get(k)
-            if chunk is not None:
-                vx, vy, vz = self.state.v.tolist()
-                still = self._stillness.judge(*chunk, self.propagator.gravity[2], math.sqrt(vx * vx + vy * vy + vz * vz))
-                if still is not None:
-                    self._apply_still(still)
+            self._level_and_rest(levels.get(k), chunks.get(k))
             if j is not None or k == 0:
                 after_step(k)
         self._last_imu_t = t_ns[-1]
         self._gyro = gyro[n - 1]
         return True
 
+    def _level_and_rest(self, f_mean: np.ndarray | None, chunk: tuple | None) -> None:
+        """A sample's measures after its step, as :meth:`process_imu` makes them: the levelling, then the rest chunk."""
+        if f_mean is not None:
+            self._apply_level(f_mean)
+        if chunk is not None:
+            vx, vy, vz = self.state.v.tolist()
+            still = self._stillness.judge(*chunk, self.propagator.gravity[2], math.sqrt(vx * vx + vy * vy + vz * vz))
+            if still is not None:
+                self._apply_still(still)
+
     def _compiled_steps(self, order: list[int], i: int, step_at: dict[int, int], chunks: dict, levels: dict,
                         steps: DeltaRun, t_ns: list[int], gyro: np.ndarray, after_step: Callable[[int], None]) -> int:
-        """The steps from ``order[i]`` on that need nothing but propagation (no rest chunk or levelling at their
-        sample, no periodic check before the last), in one compiled call (``propagator.propagate_steps``),
-        then each step's bookkeeping and ``after_step`` in turn, the state as :meth:`_propagate` leaves it.
+        """The steps from ``order[i]`` on that need nothing but propagation (no rest chunk, levelling or periodic
+        check before the last), in one compiled call (``propagator.propagate_steps``), then each step's
+        bookkeeping and ``after_step`` in turn, the state as :meth:`_propagate` leaves it. Where the last
+        step's sample has a levelling or a rest chunk, its measures and ``after_step`` are the caller's.
         While the heading is unknown the steps have its extra noise, and the heading hypotheses take the same
         steps in one compiled call of their own. Returns how many were taken: none while a visual start or a
         recorder watches the steps, or where the propagator has no compiled sequence (a map, non-isotropic
@@ -297,11 +304,11 @@ class Estimator:
         end = i
         while end < len(order):
             k = order[end]
-            if k not in step_at or k in chunks or k in levels:
+            if k not in step_at:
                 break
             end += 1
-            if self.health.check_would_be_due(t_ns[k]):
-                break  # the check may rebuild the state: the next steps start from what it leaves
+            if k in chunks or k in levels or self.health.check_would_be_due(t_ns[k]):
+                break  # the measures or the check change the state: the next steps start from what they leave
         j0, j1 = step_at[order[i]], step_at[order[end - 1]] + 1
         state = self.state
         unaligned = not (self.heading_aligned or self.local_position)  # as _propagate
@@ -324,7 +331,8 @@ class Estimator:
             self._horizontal_accel = means[x]
             if self.health.check_due(t_ns[k]):
                 self._check_state()
-            after_step(k)
+            if k not in chunks and k not in levels:  # else the caller makes the sample's measures first
+                after_step(k)
         return end - i
 
     def _propagate(self, delta: ImuDelta) -> None:
