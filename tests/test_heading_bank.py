@@ -130,7 +130,7 @@ def _one_fix_at_a_time(bank: HeadingBank, fix: GpsFix) -> tuple[list[FilterState
 
 @pytest.mark.parametrize("case", ["plain", "lever_arm", "broken", "gated"])
 def test_one_compiled_call_updates_every_hypothesis_as_one_at_a_time_would(case: str) -> None:
-    """The bank's fix is one compiled call over all hypotheses (gps_kernel.bank_update). Each hypothesis must
+    """The bank's fix is one compiled call over all hypotheses (gps_kernel.gps_update on their stack). Each hypothesis must
     come out bit for bit as the filter's own GPS update leaves it, its correction folded in; the weights
     as their likelihoods give them (to round-off: the log-determinant comes from a Cholesky factor, not LU).
     A hypothesis whose update fails or turns non-finite drops out; a fix no hypothesis takes changes nothing."""

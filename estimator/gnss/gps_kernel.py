@@ -1,5 +1,5 @@
-"""A GPS fix's whole EKF update in one compiled call: lever arm, residual, Jacobian, noise and the update;
-and the same for every heading hypothesis at once, with what its weight needs.
+"""A GPS fix's whole EKF update in one compiled call: lever arm, residual, Jacobian, noise and the update, for
+the filter's state or for every heading hypothesis at once (with what a hypothesis' weight needs).
 
 In Python the fix costs a dozen calls on three-element arrays (rotation, lever arm, prediction,
 Jacobian, noise, each wrapper dearer than its arithmetic) around the compiled update. Here the same
@@ -50,15 +50,6 @@ def fix_model(p: np.ndarray, q: np.ndarray, lever_b: np.ndarray, fix: np.ndarray
 
 
 @numba.njit(cache=True, nogil=True)
-def gps_update(cov: np.ndarray, p: np.ndarray, q: np.ndarray, lever_b: np.ndarray, fix: np.ndarray, var_h: float,
-               var_v: float, gate: float, held: np.ndarray) -> tuple[int, float, np.ndarray]:
-    """Fuse a fix ``fix`` (NED, m) with variances ``var_h``, ``var_h``, ``var_v`` into ``cov`` (in place), the
-    antenna ``lever_b`` from the IMU: ``small_update``'s (outcome code, NIS, correction δx)."""
-    residual, H, R = fix_model(p, q, lever_b, fix, var_h, var_v)
-    return small_update(cov, 0, 9, H, residual, R, gate, held)
-
-
-@numba.njit(cache=True, nogil=True)
 def innovation_log_det(cov: np.ndarray, H: np.ndarray, R: np.ndarray) -> float:
     """``log det(H P H^T + R)`` over the first nine error states, through its Cholesky factor; -inf where the
     innovation covariance is not positive definite (a likelihood of zero)."""
@@ -81,22 +72,31 @@ def innovation_log_det(cov: np.ndarray, H: np.ndarray, R: np.ndarray) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
-def bank_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, covs: np.ndarray,
-                biases: bool, lever_b: np.ndarray, fix: np.ndarray, var_h: float, var_v: float, gate: float,
-                held: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`gps_update` of each of a stack of states (rows of ``p`` … ``covs``, changed in place), its correction
-    folded in as ``FilterState.inject`` does. Returns each one's NIS, ``log det S`` before the update, and
-    whether it came out accepted and finite (a hypothesis that did not is out of the race)."""
+def gps_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, covs: np.ndarray,
+               fold_in: bool, biases: bool, lever_b: np.ndarray, fix: np.ndarray, var_h: float, var_v: float,
+               gate: float, held: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fuse a fix ``fix`` (NED, m) with variances ``var_h``, ``var_h``, ``var_v``, the antenna ``lever_b`` from
+    the IMU, into each of a stack of states (rows of ``p`` … ``covs``; the covariances change in place).
+
+    Returns per state ``small_update``'s outcome code, NIS and correction δx, ``log det S`` before the
+    update, and whether it came out accepted and finite. ``fold_in``: the corrections are folded into the
+    rows of ``p``, ``v``, ``q`` (and ``b_g``, ``b_a`` with ``biases``) as ``FilterState.inject`` does, and the
+    finiteness checked (the heading hypotheses, robot states only); otherwise the nominal rows are only
+    read and the caller folds δx in (the filter, one state, a map perhaps)."""
     k = p.shape[0]
+    codes = np.zeros(k, dtype=np.int64)
     nis = np.full(k, math.nan)
     log_det = np.full(k, -math.inf)
+    dxs = np.zeros((k, covs.shape[1]))
     usable = np.zeros(k, dtype=np.bool_)
     for j in range(k):
         cov = covs[j]
         residual, H, R = fix_model(p[j], q[j], lever_b, fix, var_h, var_v)
         log_det[j] = innovation_log_det(cov, H, R)
         code, nis[j], dx = small_update(cov, 0, 9, H, residual, R, gate, held)
-        if code != 0:
+        codes[j] = code
+        dxs[j] = dx
+        if code != 0 or not fold_in:
             continue
         for i in range(3):
             p[j, i] = p[j, i] + dx[i]
@@ -127,14 +127,12 @@ def bank_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_
             for b in range(cov.shape[1]):
                 finite = finite and math.isfinite(cov[a, b])
         usable[j] = finite
-    return nis, log_det, usable
+    return codes, nis, log_det, dxs, usable
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) for the argument types the filter passes (a mask of held states, or
-    none, is the same type)."""
-    gps_update(np.eye(15), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3), np.zeros(3), 1.0, 2.0, math.inf,
-               NO_HELD)
+    """Compile (or load from the cache) for the argument types the filter and the heading hypotheses pass (a
+    mask of held states, or none, is the same type)."""
     stack = np.zeros((2, 3))
-    bank_update(stack, stack.copy(), np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)), stack.copy(), stack.copy(),
-                np.stack([np.eye(15)] * 2), True, np.zeros(3), np.zeros(3), 1.0, 2.0, math.inf, NO_HELD)
+    gps_update(stack, stack.copy(), np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)), stack.copy(), stack.copy(),
+               np.stack([np.eye(15)] * 2), True, True, np.zeros(3), np.zeros(3), 1.0, 2.0, math.inf, NO_HELD)

@@ -151,9 +151,9 @@ class HeadingBank:
         sigma_h, sigma_v = gps_sigmas(fix, self.gps.sigma_floor_m)
         parts = stacked(self.members)
         gate = self.gps.gate
-        # Every hypothesis' update in one compiled call, its correction folded in (gps_kernel.bank_update).
-        nis, log_det, usable = gps_kernel.bank_update(
-            *parts, self.members[0].layout.estimates_biases, self.gps.model.lever_arm_b,
+        # Every hypothesis' update in one compiled call, its correction folded in.
+        _, nis, log_det, _, usable = gps_kernel.gps_update(
+            *parts, True, self.members[0].layout.estimates_biases, self.gps.model.lever_arm_b,
             np.ascontiguousarray(fix.p_ned, dtype=float), sigma_h**2, sigma_v**2, math.inf if gate is None else float(gate),
             NO_HELD)
         for member, *rows in zip(self.members, *parts):
