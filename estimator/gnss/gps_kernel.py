@@ -74,27 +74,26 @@ def innovation_log_det(cov: np.ndarray, H: np.ndarray, R: np.ndarray) -> float:
 @numba.njit(cache=True, nogil=True)
 def gps_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, covs: np.ndarray,
                fold_in: bool, biases: bool, lever_b: np.ndarray, fix: np.ndarray, var_h: float, var_v: float,
-               gate: float, held: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+               gate: float, held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Fuse a fix ``fix`` (NED, m) with variances ``var_h``, ``var_h``, ``var_v``, the antenna ``lever_b`` from
     the IMU, into each of a stack of states (rows of ``p`` … ``covs``; the covariances change in place).
 
-    Returns per state ``small_update``'s outcome code, NIS and correction δx, ``log det S`` before the
-    update, and whether it came out accepted and finite. ``fold_in``: the corrections are folded into the
-    rows of ``p``, ``v``, ``q`` (and ``b_g``, ``b_a`` with ``biases``) as ``FilterState.inject`` does, and the
-    finiteness checked (the heading hypotheses, robot states only); otherwise the nominal rows are only
-    read and the caller folds δx in (the filter, one state, a map perhaps)."""
+    Returns per state a row of (``small_update``'s outcome code, NIS, ``log det S`` before the update, 1.0 if
+    it came out accepted and finite else 0.0), and its correction δx (two arrays: each one returned costs). ``fold_in`` (the heading hypotheses, robot states
+    only): the corrections are folded into the rows of ``p``, ``v``, ``q`` (and ``b_g``, ``b_a`` with
+    ``biases``) as ``FilterState.inject`` does, the log-determinants and finiteness worked out. Otherwise
+    (the filter, one state, a map perhaps) the nominal rows are only read, the caller folds δx in, and the
+    log-determinants stay -inf."""
     k = p.shape[0]
-    codes = np.zeros(k, dtype=np.int64)
-    nis = np.full(k, math.nan)
-    log_det = np.full(k, -math.inf)
-    dxs = np.zeros((k, covs.shape[1]))
-    usable = np.zeros(k, dtype=np.bool_)
+    info = np.empty((k, 4))
+    dxs = np.empty((k, covs.shape[1]))
     for j in range(k):
         cov = covs[j]
         residual, H, R = fix_model(p[j], q[j], lever_b, fix, var_h, var_v)
-        log_det[j] = innovation_log_det(cov, H, R)
-        code, nis[j], dx = small_update(cov, 0, 9, H, residual, R, gate, held)
-        codes[j] = code
+        # A hypothesis' weight needs the log-determinant, the filter does not.
+        log_det = innovation_log_det(cov, H, R) if fold_in else -math.inf
+        code, nis, dx = small_update(cov, 0, 9, H, residual, R, gate, held)
+        info[j, 0], info[j, 1], info[j, 2], info[j, 3] = code, nis, log_det, 0.0
         dxs[j] = dx
         if code != 0 or not fold_in:
             continue
@@ -117,7 +116,7 @@ def gps_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a
             for i in range(3):
                 b_g[j, i] = b_g[j, i] + dx[9 + i]
                 b_a[j, i] = b_a[j, i] + dx[12 + i]
-        finite = math.isfinite(log_det[j])
+        finite = math.isfinite(log_det)
         for i in range(3):
             finite = finite and math.isfinite(p[j, i]) and math.isfinite(v[j, i]) and math.isfinite(b_g[j, i]) \
                 and math.isfinite(b_a[j, i])
@@ -126,8 +125,8 @@ def gps_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a
         for a in range(cov.shape[0]):
             for b in range(cov.shape[1]):
                 finite = finite and math.isfinite(cov[a, b])
-        usable[j] = finite
-    return codes, nis, log_det, dxs, usable
+        info[j, 3] = 1.0 if finite else 0.0
+    return info, dxs
 
 
 def warm_up() -> None:

@@ -79,12 +79,13 @@ class GpsUpdater:
             return self.update_reference(state, fix, held)
         sigma_h, sigma_v = gps_sigmas(fix, self.sigma_floor_m)
         p = np.ascontiguousarray(state.p, dtype=float).reshape(1, 3)  # a stack of one, only read
-        codes, nis, _, dxs, _ = gps_kernel.gps_update(
+        info, dxs = gps_kernel.gps_update(
             p, p, np.ascontiguousarray(state.q, dtype=float).reshape(1, 4), p, p, state.cov[np.newaxis], False, False,
             self.model.lever_arm_b, np.ascontiguousarray(fix.p_ned, dtype=float), sigma_h**2, sigma_v**2,
             math.inf if self.gate is None else float(self.gate),
             NO_HELD if held is None else np.ascontiguousarray(held, dtype=np.bool_))
-        return compiled_outcome(state, int(codes[0]), nis[0], dxs[0], 3)
+        code, nis = info[0, :2].tolist()
+        return compiled_outcome(state, int(code), nis, dxs[0], 3)
 
     def update_reference(self, state: FilterState, fix: GpsFix, held: np.ndarray | None = None) -> UpdateOutcome:
         """:meth:`update` from the model's prediction and Jacobian through :func:`ekf_update`."""

@@ -152,15 +152,16 @@ class HeadingBank:
         parts = stacked(self.members)
         gate = self.gps.gate
         # Every hypothesis' update in one compiled call, its correction folded in.
-        _, nis, log_det, _, usable = gps_kernel.gps_update(
+        info, _ = gps_kernel.gps_update(
             *parts, True, self.members[0].layout.estimates_biases, self.gps.model.lever_arm_b,
             np.ascontiguousarray(fix.p_ned, dtype=float), sigma_h**2, sigma_v**2, math.inf if gate is None else float(gate),
             NO_HELD)
         for member, *rows in zip(self.members, *parts):
             member.p, member.v, member.q, member.b_g, member.b_a, member.cov = rows
         # A broken hypothesis (not accepted, not finite) is out of the race.
+        usable = info[:, 3] > 0.0
         log_like = np.full(len(self.members), -np.inf)
-        log_like[usable] = -0.5 * (np.minimum(nis[usable], self._likelihood_cap) + log_det[usable])
+        log_like[usable] = -0.5 * (np.minimum(info[usable, 1], self._likelihood_cap) + info[usable, 2])
         if not np.any(np.isfinite(log_like)):
             return
         w = self.log_weights + log_like
