@@ -79,11 +79,12 @@ def gps_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a
     the IMU, into each of a stack of states (rows of ``p`` … ``covs``; the covariances change in place).
 
     Returns per state a row of (``small_update``'s outcome code, NIS, ``log det S`` before the update, 1.0 if
-    it came out accepted and finite else 0.0), and its correction δx (two arrays: each one returned costs). ``fold_in`` (the heading hypotheses, robot states
-    only): the corrections are folded into the rows of ``p``, ``v``, ``q`` (and ``b_g``, ``b_a`` with
-    ``biases``) as ``FilterState.inject`` does, the log-determinants and finiteness worked out. Otherwise
-    (the filter, one state, a map perhaps) the nominal rows are only read, the caller folds δx in, and the
-    log-determinants stay -inf."""
+    it came out accepted and finite else 0.0) and its correction δx: two arrays, for each one returned costs.
+
+    ``fold_in`` (the heading hypotheses, robot states only): the corrections are folded into the rows of
+    ``p``, ``v``, ``q`` (and ``b_g``, ``b_a`` with ``biases``) as ``FilterState.inject`` does, and the
+    log-determinants and finiteness worked out. Otherwise (the filter: one state, a map perhaps) the nominal
+    rows are only read, the caller folds δx in, and the log-determinants stay -inf."""
     k = p.shape[0]
     info = np.empty((k, 4))
     dxs = np.empty((k, covs.shape[1]))
