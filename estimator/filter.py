@@ -261,10 +261,6 @@ class Estimator:
                 taken = self._compiled_steps(order, i, step_at, chunks, levels, steps, t_ns, gyro, after_step)
                 if taken:
                     i += taken
-                    last = order[i - 1]
-                    if last in chunks or last in levels:  # the sequence's last step owes its sample's measures
-                        self._level_and_rest(levels.get(last), chunks.get(last))
-                        after_step(last)
                     continue
             i += 1
             self._last_imu_t, self._gyro = t_ns[k], gyro[k]
@@ -293,8 +289,8 @@ class Estimator:
                         steps: DeltaRun, t_ns: list[int], gyro: np.ndarray, after_step: Callable[[int], None]) -> int:
         """The steps from ``order[i]`` on that need nothing but propagation (no rest chunk, levelling or periodic
         check before the last), in one compiled call (``propagator.propagate_steps``), then each step's
-        bookkeeping and ``after_step`` in turn, the state as :meth:`_propagate` leaves it. Where the last
-        step's sample has a levelling or a rest chunk, its measures and ``after_step`` are the caller's.
+        bookkeeping, the last sample's levelling or rest chunk if it has one, and ``after_step`` in turn,
+        the state as :meth:`_propagate` leaves it.
         While the heading is unknown the steps have its extra noise, and the heading hypotheses take the same
         steps in one compiled call of their own. Returns how many were taken: none while a visual start or a
         recorder watches the steps, or where the propagator has no compiled sequence (a map, non-isotropic
@@ -331,8 +327,8 @@ class Estimator:
             self._horizontal_accel = means[x]
             if self.health.check_due(t_ns[k]):
                 self._check_state()
-            if k not in chunks and k not in levels:  # else the caller makes the sample's measures first
-                after_step(k)
+            self._level_and_rest(levels.get(k), chunks.get(k))  # only the last step's sample may have any
+            after_step(k)
         return end - i
 
     def _propagate(self, delta: ImuDelta) -> None:

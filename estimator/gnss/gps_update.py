@@ -78,7 +78,9 @@ class GpsUpdater:
         if not state.cov.flags.c_contiguous:
             return self.update_reference(state, fix, held)
         sigma_h, sigma_v = gps_sigmas(fix, self.sigma_floor_m)
-        p = np.ascontiguousarray(state.p, dtype=float).reshape(1, 3)  # a stack of one, only read
+        # A stack of one whose nominal rows are only read: without folding in, v, b_g and b_a are not
+        # touched, so p stands in for them.
+        p = np.ascontiguousarray(state.p, dtype=float).reshape(1, 3)
         info, dxs = gps_kernel.gps_update(
             p, p, np.ascontiguousarray(state.q, dtype=float).reshape(1, 4), p, p, state.cov[np.newaxis], False, False,
             self.model.lever_arm_b, np.ascontiguousarray(fix.p_ned, dtype=float), sigma_h**2, sigma_v**2,

@@ -239,24 +239,24 @@ class ImuPropagator:
     def propagate_all(self, states: list[FilterState], delta: ImuDelta) -> bool:
         """:meth:`propagate` (no extra noise) of each of ``states`` over the same delta, in one compiled call.
         False, with nothing done, where only :meth:`propagate` applies (see :meth:`_stacked`)."""
-        stacked = self._stacked(states)
-        if stacked is None:
+        parts = self._stacked(states)
+        if parts is None:
             return False
         layout = states[0].layout
         Q = self._noise(states[0].q, delta.dt, layout, 0.0)
-        _unstack(states, *propagation_kernel.step_all(*stacked[:5], delta.dtheta, delta.dvel, delta.dt, self._g,
-                                                      self._transition(layout), stacked[5], Q, layout.estimates_biases))
+        _unstack(states, *propagation_kernel.step_all(*parts[:5], delta.dtheta, delta.dvel, delta.dt, self._g,
+                                                      self._transition(layout), parts[5], Q, layout.estimates_biases))
         return True
 
     def propagate_all_run(self, states: list[FilterState], deltas: np.ndarray, dts: np.ndarray) -> bool:
         """:meth:`propagate_all` over each of a sequence of deltas ([Δθ, Δv] rows) in turn, in one compiled
         call; False, with nothing done, where :meth:`propagate_all` would decline."""
-        stacked = self._stacked(states)
-        if stacked is None:
+        parts = self._stacked(states)
+        if parts is None:
             return False
         layout = states[0].layout
-        _unstack(states, *propagation_kernel.step_all_run(*stacked[:5], deltas, dts, self._g, self._transition(layout),
-                                                          stacked[5], self._noise_terms(layout), layout.estimates_biases))
+        _unstack(states, *propagation_kernel.step_all_run(*parts[:5], deltas, dts, self._g, self._transition(layout),
+                                                          parts[5], self._noise_terms(layout), layout.estimates_biases))
         return True
 
     def _stacked(self, states: list[FilterState]) -> tuple[np.ndarray, ...] | None:
