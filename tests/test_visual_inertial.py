@@ -95,6 +95,17 @@ def test_tracks_follow_points_across_frames_and_say_when_the_scene_moves():
     assert not calm.image_moving(calm.frames[-1].t_ns, 1.0, 2.0)
 
 
+def test_the_epipolar_test_of_a_sample_without_motion_keeps_its_matches():
+    """Points that did not move fit no essential matrix: OpenCV 5.1's five-point solver refuses such a
+    sample with an error (5.0 returned a matrix that all of them fit). The tracker must keep them all either
+    way, as when there are too few to test, not fail the frame."""
+    rng = np.random.default_rng(0)
+    x0 = rng.uniform(-0.3, 0.3, size=(40, 2))
+    tracker = FeatureTracker(CameraModel(CAMERA))
+    kept = tracker._epipolar_inliers(x0, x0.copy())
+    assert kept.shape == (40,) and kept.dtype == bool and kept.all()
+
+
 def test_book_in_flight_converges_to_the_truth_within_its_covariance():
     flight = simulate_flight("book", 6.0, 3, SimulationOptions(start_s=20.0))
     init, start = run_start(flight)

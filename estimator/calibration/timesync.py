@@ -113,7 +113,10 @@ def _pair_rotation(p0, p1, camera: CameraCalibration, options: TrackOptions, nor
     plane = _plane_rotation(x0, x1, camera, options, normal)
     if plane is not None:
         return plane
-    E, mask = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / camera.fx)
+    try:
+        E, mask = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / camera.fx)
+    except cv2.error:  # a degenerate pair (OpenCV ≥ 5.1's solver refuses it): no rotation from it
+        return None, normal
     if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < options.min_tracks:
         return None, normal
     _, R_10, _, _ = cv2.recoverPose(E, x0, x1, np.eye(3), mask=mask)  # x1 = R_10 x0 + t

@@ -132,8 +132,11 @@ class FeatureTracker:
         import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
 
         threshold = self.options.epipolar_px / max(self.camera.fx, self.camera.fy)
-        E, mask = cv2.findEssentialMat(x0.astype(np.float64), x1.astype(np.float64), np.eye(3), method=cv2.RANSAC,
-                                       prob=0.999, threshold=threshold)
+        try:
+            E, mask = cv2.findEssentialMat(x0.astype(np.float64), x1.astype(np.float64), np.eye(3),
+                                           method=cv2.RANSAC, prob=0.999, threshold=threshold)
+        except cv2.error:  # a degenerate sample (no motion: OpenCV ≥ 5.1's solver refuses it) tests nothing
+            return np.ones(len(x0), dtype=bool)
         if E is None or mask is None:
             return np.ones(len(x0), dtype=bool)
         return mask.ravel().astype(bool)
