@@ -51,6 +51,9 @@ def _pose_cov(cov9: np.ndarray) -> np.ndarray:
 
 
 Apply = Callable[[Estimator], Any]
+# At equal time stamps measurements fuse in the streams' order (GPS, then camera, then the rest), whichever
+# arrived first: a replay that hands frames over early (their features ready sooner) fuses as one that does not.
+_KIND_RANK = {"gps": 0, "camera": 1}
 
 
 @dataclass(slots=True)
@@ -175,7 +178,7 @@ class FusionCore:
         self.counts: dict[str, RejectionCounts] = {"imu": RejectionCounts()}
         self._queue: deque[tuple[int, np.ndarray, np.ndarray, bool]] = deque()  # not yet fused
         self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque()  # fused, newer than the filter state
-        self._pending: list[tuple[int, int, str, Apply]] = []
+        self._pending: list[tuple[int, int, int, str, Apply]] = []  # (t_ns, kind's rank, arrival, kind, apply)
         self._seq = 0
         self._newest_t: int | None = None
         self._refused: tuple[int, int] | None = None  # stamps spanned by the current run of refused IMU samples
@@ -275,7 +278,7 @@ class FusionCore:
         if len(self._pending) >= self.options.max_pending:
             counts.reject("buffer_full")
             return False
-        heapq.heappush(self._pending, (int(t_ns), self._seq, kind, apply))
+        heapq.heappush(self._pending, (int(t_ns), _KIND_RANK.get(kind, 2), self._seq, kind, apply))
         self._seq += 1
         if self._newest_t is not None and t_ns <= self._newest_t - self.delay_ns:
             self._advance(self._newest_t - self.delay_ns)  # already behind the horizon: fuse it now
@@ -315,7 +318,7 @@ class FusionCore:
             else:
                 if t_meas > horizon:
                     return
-                t, _, kind, apply = heapq.heappop(pending)
+                t, _, _, kind, apply = heapq.heappop(pending)
                 self._fused_until = max(t, self._fused_until or t)
                 apply(est)
                 self.counts[kind].used += 1

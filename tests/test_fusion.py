@@ -233,6 +233,22 @@ def test_measurements_are_applied_in_time_order_at_their_time(flight):
     assert core.counts["test"].used == 3
 
 
+def test_at_equal_times_gps_fuses_before_camera_whichever_arrived_first(flight):
+    """A full-speed replay hands frames over early, so a frame's features may queue before the fix of the same
+    time stamp; the fusion order must not depend on that (the streams' order: GPS, then camera, then others)."""
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY))
+    samples = imu_samples(flight)
+    for s in samples[:2000]:
+        core.add_imu(s)
+    t = samples[1995].t_ns
+    applied = []
+    for kind in ("other", "camera", "gps"):
+        core.add_measurement(t, lambda est, kind=kind: applied.append(kind), kind)
+    for s in samples[2000:2100]:
+        core.add_imu(s)
+    assert applied == ["gps", "camera", "other"]
+
+
 def test_prediction_reaches_the_newest_sample_by_nominal_propagation(flight):
     core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY))
     samples = imu_samples(flight)[:3000]

@@ -11,11 +11,11 @@ from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
-from vtolpose.estimator.core.measurements import GpsFix, ImuBatch, ImuRange, ImuSample
+from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuBatch, ImuRange, ImuSample
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import FusionOptions
 from vtolpose.service.runtime.loop import Runtime, RuntimeOptions
-from vtolpose.service.runtime.sources import ReplayClock, ReplaySource, _segments
+from vtolpose.service.runtime.sources import FRAME_LEAD_S, ReplayClock, ReplaySource, _segments
 from vtolpose.service.runtime.wiring import filter_options
 
 from runtime_helpers import flight_samples
@@ -76,6 +76,35 @@ def test_a_full_speed_source_batches_the_paced_sources_samples(dataset, sensors,
         assert progress_batched and progress_batched == sorted(progress_batched)
         # A batch reports the time of its last sample, so it is never behind the sample-by-sample report.
         assert progress_single[-1] <= progress_batched[-1] <= (stop_s if stop_s is not None else 12.0)
+
+
+@pytest.mark.parametrize("stop_s", [None, 7.5])
+def test_a_full_speed_source_hands_frames_over_early_and_a_paced_one_at_their_time(dataset, stop_s):
+    """As fast as possible each frame comes FRAME_LEAD_S of data before its time stamp (its features are then
+    extracted while the IMU's work goes on), keeping its own time; the other streams are unchanged, and frames up
+    to the stop are all handed over. Paced, each frame comes at its time."""
+    imu_t = dataset.imu().t_ns
+    frame_t = [int(imu_t[0]) + int(k * 1e9 / 7.5) + 3_000_000 for k in range(1, 80)]
+    frames = [(t, k) for k, t in enumerate(frame_t)]
+    image = np.zeros((4, 4), np.uint8)
+    t_end = None if stop_s is None else int(imu_t[0]) + int(stop_s * 1e9)
+    expected = [t for t in frame_t if t_end is None or t <= t_end]
+    for clock, early in ((ReplayClock(0.0), int(FRAME_LEAD_S * 1e9)), (ReplayClock(1e12), 0)):
+        items = collect(ReplaySource(dataset, ["imu", "gps"], clock, stop_s, frames, lambda path: image))
+        assert [item.t_ns for item in items if isinstance(item, CameraFrame)] == expected
+        others = [item for item in items if not isinstance(item, CameraFrame)]
+        assert unbatched(others) == unbatched(collect(ReplaySource(dataset, ["imu", "gps"], clock, stop_s)))
+        for n, item in enumerate(items):
+            if isinstance(item, CameraFrame):
+                before = [x for x in items[:n] if not isinstance(x, CameraFrame)]
+                after = [x for x in items[n + 1:] if not isinstance(x, CameraFrame)]
+                # Everything up to (t - lead) before the frame, everything after it after (IMU first at equal times).
+                assert not before or _times(before[-1])[-1] <= item.t_ns - early
+                assert not after or _times(after[0])[0] > item.t_ns - early
+
+
+def _times(item) -> list[int]:
+    return item.t_ns.tolist() if isinstance(item, ImuBatch) else [item.t_ns]
 
 
 def make_runtime(flight, imu_range: ImuRange | None = None, max_imu_buffer: int = 4096) -> tuple[Runtime, list]:
