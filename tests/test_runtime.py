@@ -183,3 +183,34 @@ def test_the_pose_history_is_kept_for_outputs_only(flight):
         assert (len(runtime.history) > 0) is bool(outputs)
         fused[bool(outputs)] = seen
     assert fused[True] == fused[False] and len(fused[True]) > 100
+
+
+def test_latency_probes_time_each_outputs_publish_within_the_handling(flight):
+    """Measuring, the runtime times each output's publish call by name (the bench's "of which" rows): a slow
+    output's share shows as its own, inside the loop's handling; not measuring, nothing is timed."""
+
+    class SlowOutput(PoseList):
+        name = "slow"
+
+        def publish(self, pose) -> None:
+            time.sleep(0.002)
+            super().publish(pose)
+
+    est = Estimator(flight.calibration, filter_options(load_config(), flight.calibration.imu.noise))
+    fast, slow = PoseList(), SlowOutput()
+    runtime = Runtime(est, RuntimeOptions(fusion=FusionOptions(delay_s=0.15), measure_latency=True), outputs=[fast])
+    runtime.outputs.append(slow)  # outputs join after construction, as the daemon adds them
+    for s in samples(flight, 0.0, 11.0, frames=False):
+        runtime.handle(s)
+    published = runtime.poses_published
+    assert published > 100 and len(fast.poses) == len(slow.poses) == published
+    assert {name: len(probe) for name, probe in runtime.publishing.items()} == {"list": published, "slow": published}
+    slow_p50, = runtime.publishing["slow"].percentiles_ms(50)
+    fast_p50, = runtime.publishing["list"].percentiles_ms(50)
+    handling_p50, = runtime.handling.percentiles_ms(50)
+    assert 2.0 <= slow_p50 <= handling_p50 and fast_p50 < 1.0
+    quiet = Runtime(Estimator(flight.calibration, filter_options(load_config(), flight.calibration.imu.noise)),
+                    RuntimeOptions(fusion=FusionOptions(delay_s=0.15)), outputs=[PoseList()])
+    for s in samples(flight, 0.0, 1.0, frames=False):
+        quiet.handle(s)
+    assert quiet.publishing is None and quiet.handling is None

@@ -22,6 +22,7 @@ import logging
 import os
 import threading
 import time
+from collections import defaultdict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any, AsyncIterator, Callable, Protocol, Sequence
@@ -147,6 +148,8 @@ class Runtime:
         # it spent in this loop's handling (the rest is waiting to be scheduled).
         self.latency = LatencyProbe() if opts.measure_latency else None
         self.handling = LatencyProbe() if opts.measure_latency else None
+        # And each output's own share of the handling (its publish call), by name (outputs join after this).
+        self.publishing: defaultdict[str, LatencyProbe] | None = defaultdict(LatencyProbe) if opts.measure_latency else None
         self.origin: Callable[[], tuple[float, float, float] | None] = lambda: None  # geodetic origin of NED
         self.last_pose: OutputPose | None = None
         self.recorder: Any | None = None  # set by `vtolpose run --record`
@@ -200,11 +203,15 @@ class Runtime:
             return
         pose = fusion.output() if self.outputs else None
         if pose is not None:
+            publishing = self.publishing
             for out in self.outputs:
+                started = time.perf_counter_ns() if publishing is not None else 0
                 try:
                     out.publish(pose)
                 except Exception as exc:  # a dead link degrades the service, never stops the others
                     self.failures.record(f"output {out.name}", exc)
+                if publishing is not None:
+                    publishing[out.name].add(time.perf_counter_ns() - started)
             self.poses_published += 1
             if self.latency is not None:
                 left = time.perf_counter_ns()
