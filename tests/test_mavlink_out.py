@@ -422,19 +422,35 @@ def test_a_serial_link_frames_the_stream_and_answers_timesync():
         os.close(slave)
 
 
+def accept_while_servicing(server: socket.socket, transport, timeout_s: float = 10.0) -> socket.socket:
+    """The link's connection, accepted while the link is serviced: it connects from ``service()``, after its
+    back-off, so a plain blocking ``accept`` could wait for ever."""
+    server.settimeout(0.02)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        transport.service()
+        try:
+            conn, _ = server.accept()
+        except socket.timeout:
+            continue
+        conn.settimeout(5.0)
+        return conn
+    raise AssertionError(f"the TCP link did not connect within {timeout_s} s")
+
+
 def test_a_tcp_link_reconnects_without_blocking():
     server = socket.create_server(("127.0.0.1", 0))
     port = server.getsockname()[1]
     out = MavlinkOutput([endpoint(f"tcp:127.0.0.1:{port}")])
     out.open()
+    conn = None
     try:
         ep = out.endpoints[0]
+        conn = accept_while_servicing(server, ep.transport)
         deadline = time.monotonic() + 3.0
-        conn = None
         while time.monotonic() < deadline and not ep.transport.connected:
             ep.transport.service()
             time.sleep(0.01)
-        conn, _ = server.accept()
         out.heartbeat()
         assert mav.MAVLink(None).parse_buffer(conn.recv(4096))[0].get_type() == "HEARTBEAT"
         conn.close()
@@ -445,7 +461,7 @@ def test_a_tcp_link_reconnects_without_blocking():
             out.poll()
             time.sleep(0.01)
         assert time.monotonic() - started < 2.0
-        conn, _ = server.accept()
+        conn = accept_while_servicing(server, ep.transport)
         while not ep.transport.connected and time.monotonic() - started < 10.0:
             ep.transport.service()
             time.sleep(0.05)
@@ -453,6 +469,8 @@ def test_a_tcp_link_reconnects_without_blocking():
         assert mav.MAVLink(None).parse_buffer(conn.recv(4096))[0].get_type() == "HEARTBEAT"
         assert ep.transport.counts["link_lost"] >= 1
     finally:
+        if conn is not None:
+            conn.close()
         out.close()
         server.close()
 
