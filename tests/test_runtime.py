@@ -214,3 +214,13 @@ def test_latency_probes_time_each_outputs_publish_within_the_handling(flight):
     for s in samples(flight, 0.0, 1.0, frames=False):
         quiet.handle(s)
     assert quiet.publishing is None and quiet.handling is None
+
+
+def test_the_bare_sends_of_the_latency_bench_reach_their_peers():
+    """The latency bench's floor (a bare datagram and a bare Zenoh put) is timed on sends that arrive: a peer in
+    another process for each, on loopback; a put that nobody subscribes to would cost less than a real one."""
+    from vtolpose.service.bench.runtime import bare_sends_us
+
+    udp_us, put_us, udp_got, put_got = bare_sends_us(245, 900, count=200)
+    assert 0.0 < udp_us < 10_000.0 and 0.0 < put_us < 10_000.0
+    assert udp_got == 200 and put_got >= 190  # the first puts may race the subscriber's interest

@@ -204,7 +204,7 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
     shares = [(f"[{label}]   of which {name} publish, p50", probe.percentiles_ms(50)[0] * 1e3, "us", "its publish call")
               for name, probe in runtime.publishing.items()]
     datagram, document = _bare_send_sizes(runtime)
-    udp_us, put_us = bare_sends_us(datagram, document)
+    udp_us, put_us, udp_got, put_got = bare_sends_us(datagram, document)
     n = len(runtime.latency)
     load = f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores"
     extract_note = (f"{np.mean(extract_ms):.0f} ms each, {np.mean(features):.0f} features kept; "
@@ -218,7 +218,7 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
         *shares,
         (f"[{label}] floor: a bare UDP datagram + a bare Zenoh put, p50", udp_us + put_us, "us",
          f"{udp_us:.0f} + {put_us:.0f} us for {datagram} + {document} bytes to peers in other processes, "
-         "paced at 1 kHz, nothing else in the loop"),
+         f"paced at 1 kHz, nothing else in the loop; {udp_got} and {put_got} of 2000 received"),
         (f"[{label}] camera frames through {options.detector.upper()} in the executor", float(len(features)), "frames", extract_note),
         (f"[{label}] Zenoh poses received by the subscriber process", float(received), "poses",
          f"{summary.status['outputs'].get('mavlink', {}).get('odometry_sent', 0)} ODOMETRY sent, "
@@ -227,17 +227,19 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
 
 
 def _bare_send_sizes(runtime: Any) -> tuple[int, int]:
-    """Bytes of the last ODOMETRY frame (MAVLink v2, unsigned: 12 + 232 at most) and of the last pose document."""
+    """Bytes of the largest ODOMETRY frame (MAVLink v2, unsigned: a 10-byte header, the 233-byte payload and
+    the checksum) and of the last pose document sent."""
     from vtolpose.service.outputs.pose_json import PoseJson
 
     pose = runtime.last_pose
-    return 244, len(PoseJson()(pose, 0, None)) if pose is not None else 900
+    return 245, len(PoseJson()(pose, 0, None)) if pose is not None else 900
 
 
-def bare_sends_us(datagram: int, document: int, count: int = 2000) -> tuple[float, float]:
+def bare_sends_us(datagram: int, document: int, count: int = 2000) -> tuple[float, float, int, int]:
     """p50 [us] of a UDP ``sendto`` of ``datagram`` bytes and of a Zenoh ``put`` of ``document`` bytes (as the
     pose publisher is declared: express, real-time priority, drop on congestion), each to a peer in another
-    process, paced at 1 kHz: the system's part of the two sends, with no estimator around them."""
+    process, paced at 1 kHz: the system's part of the two sends, with no estimator around them. Then how
+    many datagrams and puts the peers received (a put nobody subscribes to would cost less)."""
     import zenoh
 
     zenoh_port, udp_port = free_port(), free_port(socket.SOCK_DGRAM)
@@ -246,8 +248,9 @@ def bare_sends_us(datagram: int, document: int, count: int = 2000) -> tuple[floa
     conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{zenoh_port}"]')
     conf.insert_json5("scouting/multicast/enabled", "false")
     session = zenoh.open(conf)
-    peers = [subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-             for script in (_SUBSCRIBER % (zenoh_port, "vtolpose/floor"), _UDP_SINK % udp_port)]
+    subscriber, sink = peers = [
+        subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        for script in (_SUBSCRIBER % (zenoh_port, "vtolpose/floor"), _UDP_SINK % udp_port)]
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         publisher = session.declare_publisher("vtolpose/floor/pose", congestion_control=zenoh.CongestionControl.DROP,
@@ -265,14 +268,19 @@ def bare_sends_us(datagram: int, document: int, count: int = 2000) -> tuple[floa
             publisher.put(payload)
             udp[k], put[k] = t1 - t0, time.perf_counter_ns() - t1
             time.sleep(0.001)
+        time.sleep(0.2)  # the last ones arrive
         publisher.undeclare()
+        received = []
+        for peer in (sink, subscriber):
+            peer.stdin.close()
+            received.append(int(peer.stdout.readline() or 0))
     finally:
         sock.close()
         for peer in peers:
             peer.kill()
             peer.wait()
         session.close()
-    return float(np.median(udp)) * 1e-3, float(np.median(put)) * 1e-3
+    return float(np.median(udp)) * 1e-3, float(np.median(put)) * 1e-3, received[0], received[1]
 
 
 class _LogCounter(logging.Handler):
