@@ -26,13 +26,17 @@ import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Callable
 
 import numpy as np
 
+from vtolpose.estimator.core import covariance
 from vtolpose.estimator.core.calibration import Calibration, ImuNoise
+from vtolpose.estimator.core.covariance import BG, TH, V
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
+from vtolpose.estimator.vision.landmarks import INVERSE_DEPTH, landmark_points
 from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
 from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonitor, HealthOptions
@@ -47,13 +51,15 @@ from vtolpose.estimator.core.rotation import quat_from_euler, yaw_of
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.inertial.startup import state_from_static, velocity_from_fixes
 from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator.modes import FilterMode, HeadingMode, ModeEvent, ModeMachine
+from vtolpose.estimator.status import EstimatorEvent, EstimatorStatus, EventKind, HeadingPlacement
+from vtolpose.estimator.init.visual_inertial import ROBOT_DIM as VI_ROBOT_DIM
 from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.smoothing.recorder import FilterRecorder
 from vtolpose.estimator.inertial.sample_kernel import level_run, plain_run
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
-_POSE = np.r_[0:3, 6:9]  # [δp, δθ] within [δp, δv, δθ]
 VELOCITY_FIT_S = 1.0  # the fixes before the start that give its velocity (a constant acceleration holds that long)
 HEADING_WEAK_SIGMA_RAD = math.radians(5.0)  # a placed heading the camera waits for the GPS to narrow below this
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
@@ -114,13 +120,13 @@ class Estimator:
         self.counts = {name: RejectionCounts() for name in ("imu", "gps", "still", "level")}
         self.state: FilterState | None = None
         self.propagator: ImuPropagator | None = None
-        self.heading_aligned = False
-        self.heading_placement: dict | None = None  # how the bank placed the heading (time, sigma, fixes)
-        self.position_initialized = False
+        self.heading_placement: HeadingPlacement | None = None  # how the bank placed the heading
         self.reset_counter = 0
-        self.events: list[tuple[int, str]] = []  # (t_ns, message): start-up, alignment, resets
+        self.events: list[EstimatorEvent] = []  # start-up, alignment, resets
         heading, self._heading_sigma = self._known_heading()
-        self._heading_known = heading is not None
+        self._heading_known = heading is not None  # configuration: the dataset's or the operator's heading
+        # The modes (estimator.modes): changed only by self.modes.fire(event), where the conditions below hold.
+        self.modes = ModeMachine(self._heading_known)
         self._initializer = StaticInitializer(opts.init, calibration.imu.gravity, heading or 0.0)
         self._bank: HeadingBank | None = None  # heading hypotheses while the heading is unknown
         self._bank_gps = GpsUpdater(calibration.gps.lever_arm_b, None, opts.gps_sigma_floor_m)  # no gate: every fix weighs
@@ -142,9 +148,9 @@ class Estimator:
         cam = calibration.camera
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
-        self._moving_start = False  # no still window began it: the camera waits for the heading bank
-        self._joining = False  # a GPS appeared in a filter without a world frame: its first second is being collected
-        self.initialising = False  # started moving with no GPS: nothing to stand on until the visual-inertial start
+        # Facts of the input's history, not modes: how the filter started (a start in motion: the camera waits
+        # for the heading bank) and whether any usable GPS fix was heard (no visual start then, no own frame).
+        self._moving_start = False
         self._gps_seen = False
         self.visual_inertial = None
         if cam is not None and opts.visual_inertial.enabled:
@@ -158,11 +164,32 @@ class Estimator:
         return self.state is not None
 
     @property
+    def mode(self) -> FilterMode:
+        return self.modes.mode
+
+    @property
+    def heading_mode(self) -> HeadingMode:
+        return self.modes.heading
+
+    @property
+    def heading_aligned(self) -> bool:
+        """A running filter whose heading is known or placed (before the start there is no heading to speak of)."""
+        return self.modes.mode is not FilterMode.WAITING and self.modes.heading.aligned
+
+    @property
+    def position_initialized(self) -> bool:
+        return self.modes.mode is FilterMode.GPS
+
+    @property
+    def initialising(self) -> bool:
+        """Started moving with no GPS: nothing to stand on until the visual-inertial start (or a GPS's join)."""
+        return self.modes.mode.initialising
+
+    @property
     def local_position(self) -> bool:
         """No GPS heard at all, but the camera holds the filter's own frame: its origin where it started and,
         unless one was known, its heading the one it started with (the yaw gauge of an unknown heading)."""
-        camera = self.counts.get("camera")
-        return not (self.position_initialized or self._gps_seen) and camera is not None and camera.used > 0
+        return self.modes.mode.local_position
 
     def _known_heading(self) -> tuple[float | None, float]:
         """Initial heading and its sigma [rad]; (None, 0) when it must come from GPS."""
@@ -362,23 +389,20 @@ class Estimator:
         """The heading becomes unknown: the filter's frame gets an arbitrary yaw, a gauge rather than an
         error (landmarks, if any, share it), so its variance starts from zero. What the heading may be —
         anywhere on the circle — is what :meth:`published_cov9` says."""
-        cov = self.state.cov
-        cov[YAW, :] = 0.0
-        cov[:, YAW] = 0.0
+        covariance.forget_yaw(self.state.cov)
 
     def published_cov9(self) -> np.ndarray:
         """Covariance of [δp, δv, δθ] as the outputs publish it: the filter's, except that an unknown
         heading has the variance of a heading uniform on the circle, uncorrelated with the rest. In a
         frame of its own (``local_position``) the heading is the frame's: its variance is the filter's,
         what the heading may have drifted since the start (never below the start's own gauge sigma)."""
-        cov9 = self.state.cov[:9, :9].copy()
+        cov9 = covariance.nav_block(self.state.cov)
         if self.heading_aligned:
             return cov9
         if self.local_position:
             cov9[YAW, YAW] = max(cov9[YAW, YAW], math.radians(self.options.visual_inertial.heading_sigma_deg) ** 2)
             return cov9
-        cov9[YAW, :] = 0.0
-        cov9[:, YAW] = 0.0
+        covariance.forget_yaw(cov9)
         cov9[YAW, YAW] = UNKNOWN_HEADING_VAR
         return cov9
 
@@ -429,22 +453,25 @@ class Estimator:
         problem = self.health.check(self.state)
         if problem is None:
             return
-        state, snap, init = self.state, self.health.snapshot, self.options.init
+        state, snap = self.state, self.health.snapshot
         nominal = (state.p, state.v, state.q, state.b_g, state.b_a)
         if snap is not None and not all(np.all(np.isfinite(x)) for x in nominal):
             state.p, state.v, state.q, state.b_g, state.b_a = (x.copy() for x in (snap.p, snap.v, snap.q, snap.b_g, snap.b_a))
         state.landmarks = state.landmarks[:0]  # the covariance is rebuilt for the robot; _reset clears the book
-        var_p = np.diagonal(state.cov)[0:3]
+        var_p = covariance.block_variances(state.cov, covariance.P)
         if not (np.all(np.isfinite(var_p)) and np.all(var_p > 0.0)):
             var_p = np.full(3, LOST_POSITION_SIGMA_M**2)
-        sigmas = [init.sigma_velocity_moving] * 3 + [math.radians(init.sigma_attitude_moving_deg)] * 3
-        if self.layout.estimates_biases:
-            sigmas += [init.sigma_gyro_bias] * 3 + [init.sigma_accel_bias] * 3
-        state.cov = np.diag(np.concatenate([var_p, np.square(sigmas)]))
+        state.cov = self._reset_covariance(var_p)
         if self.position_initialized and self._last_fix is not None and self.health.fresh("gps", state.t_ns):
             self._init_position(self._last_fix)  # the GPS is alive: position from it
         self._reset(state.t_ns, "state_invalid",
                     f"{problem}: nominal state from the last sound check, covariance re-initialised, map cleared")
+
+    def _reset_covariance(self, var_p: np.ndarray) -> np.ndarray:
+        """The robot covariance a reset rebuilds: position variances ``var_p``, the rest a start in motion's."""
+        init = self.options.init
+        return covariance.robot_reset(self.layout, var_p, init.sigma_velocity_moving,
+                                      math.radians(init.sigma_attitude_moving_deg), init.sigma_gyro_bias, init.sigma_accel_bias)
 
     def _reset(self, t_ns: int, kind: str, reason: str, clear_map: bool = True) -> None:
         """Count a reset (ODOMETRY reset_counter), note it; landmarks placed by the old estimate go."""
@@ -453,7 +480,7 @@ class Estimator:
         self.reset_counter += 1
         self._bank = None  # its hypotheses followed the old estimate: they start again at the next fix
         self.health.record_reset(t_ns, kind, reason)
-        self.events.append((t_ns, f"reset #{self.reset_counter}: {reason}"))
+        self._event(t_ns, EventKind.RESET, f"reset #{self.reset_counter}: {reason}", reset_kind=kind)
 
     def _propagate_to(self, t_ns: int) -> None:
         """Bring the state to a measurement's time: the partial step, then hold the last sample."""
@@ -469,7 +496,7 @@ class Estimator:
         self.propagator = ImuPropagator(self.noise, gravity)
         self._leveller = GravityLeveller(gravity, self.options.level_sigma, chi2_gate(3, 0.999))
         self._level_t0 = state.t_ns
-        self.events.append((state.t_ns, message))
+        self._event(state.t_ns, EventKind.STARTED, message)
 
     def _start(self, init: InitialAttitude) -> None:
         """Start from the IMU window; the GPS heard meanwhile gives the velocity. A window that looks
@@ -488,21 +515,22 @@ class Estimator:
         state = state_from_static(self.layout, init, opts.init, self._heading_sigma)
         if velocity is not None and not init.static:
             state.v = velocity[0]
-            state.cov[3:6, 3:6] = velocity[1]
+            covariance.reinitialise(state.cov, V, velocity[1])
         self._fixed_bias_var = np.full(3, init.sigma_gyro_bias**2)
-        self.heading_aligned = self._heading_known
         how = ("still" if init.static else "moving (GPS)" if moving else "moving (camera), from the mean specific force" if seen
                else f"not still within {opts.init.max_wait_s:g} s: from the mean specific force")
         camera = self.counts.get("camera")
+        placed = init.static and window and (init.t_ns - window[-1].t_ns) < 1e9  # the last fix places a still vehicle
         if not init.static and not self._gps_seen and self.visual_inertial is not None and camera is not None and camera.received:
-            self.initialising = True
+            self.modes.fire(ModeEvent.START_BLIND)
             how += "; initialising until the visual-inertial start"
+        else:
+            self.modes.fire(ModeEvent.START_PLACED if placed else ModeEvent.START_UNREFERENCED)
         self._moving_start = not init.static
         self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
         if not (self.heading_aligned or self.initialising):
             self._bank = self._new_bank(state, None)
-        # The last fix places a still vehicle; a moving one waits for the next fix.
-        if init.static and window and (init.t_ns - window[-1].t_ns) < 1e9:
+        if placed:  # a moving vehicle waits for the next fix
             self._init_position(window[-1])
 
     def _fixes_moved(self, t_ns: int) -> bool:
@@ -536,28 +564,25 @@ class Estimator:
     def _apply_visual_start(self, start: VisualInertialStart) -> None:
         """Start (or restart) EKF-SLAM from a converged visual-inertial window, its landmarks included. An
         unknown heading stays unknown: the frame's yaw is a gauge (its variance zero, held by the camera)."""
-        n = self.layout.robot_dim
-        keep = np.r_[0:n, 15 : len(start.cov)]
         state = FilterState(self.layout)
         state.t_ns = start.t_ns
         state.p, state.v, state.q, state.b_g = start.p.copy(), start.v.copy(), start.q.copy(), start.b_g.copy()
         if self.layout.estimates_biases:
             state.b_a = start.b_a.copy()
         state.landmarks = start.landmarks.copy()
-        state.cov = start.cov[np.ix_(keep, keep)].copy()
-        self._fixed_bias_var = np.diag(start.cov)[9:12].copy()
+        state.cov = covariance.robot_and_map(start.cov, VI_ROBOT_DIM, self.layout.robot_dim)
+        self._fixed_bias_var = covariance.block_variances(start.cov, BG)
         message = start.describe()
         if self.state is None:
             self._begin(state, self.calibration.imu.gravity, message)
-            self.heading_aligned = self._heading_known
         else:
             self.state = state
-            self.events.append((state.t_ns, message))
             self.reset_counter += 1  # the initialising estimate is replaced: a jump
+            self._event(state.t_ns, EventKind.VISUAL_START, message)
+        self.modes.fire(ModeEvent.VISUAL_START)
         if not self.heading_aligned:
             self._forget_heading()
-        self.camera.adopt(state, start.descriptors, np.sqrt(np.diag(start.cov)[15 + 5 :: 6]))
-        self.initialising = False
+        self.camera.adopt(state, start.descriptors, covariance.landmark_sigmas(start.cov, VI_ROBOT_DIM, INVERSE_DEPTH))
         self.visual_inertial.reset()
 
     def _join_gps(self, fix: GpsFix) -> bool:
@@ -575,22 +600,21 @@ class Estimator:
         recent = [f for f in fixes if fix.t_ns - f.t_ns <= VELOCITY_FIT_S * 1e9]
         velocity = velocity_from_fixes(recent, fix.t_ns, floor) or velocity_from_fixes(fixes, fix.t_ns, floor)
         state = self.state
-        state.cov[3:6, :] = 0.0
-        state.cov[:, 3:6] = 0.0
         if velocity is not None:
             state.v = velocity[0]
-            state.cov[3:6, 3:6] = velocity[1]
+            covariance.reinitialise(state.cov, V, velocity[1])
         else:
-            state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
+            covariance.reinitialise(state.cov, V, np.eye(3) * self.options.init.sigma_velocity_moving**2)
         if self.camera is not None:
             self.camera.clear(state)
-        self.initialising = False
+        self.modes.fire(ModeEvent.GPS_JOINED)
         if self.visual_inertial is not None:
             self.visual_inertial.reset()
         self._init_position(fix)
         self.reset_counter += 1  # the frame jumps to the GPS's
-        self.events.append((fix.t_ns, f"GPS joined: velocity from {len(recent if velocity is not None else fixes)} fixes, "
-                            f"position from the last; reset #{self.reset_counter}"))
+        used = len(recent if velocity is not None else fixes)
+        self._event(fix.t_ns, EventKind.GPS_JOINED, f"GPS joined: velocity from {used} fixes, position from the last; "
+                    f"reset #{self.reset_counter}", fixes=used)
         if not self.heading_aligned:
             self._bank = self._new_bank(state, None)
             self._bank.update(fix)  # positions the hypotheses
@@ -608,18 +632,19 @@ class Estimator:
         bank = self._bank
         if self.camera is not None:
             self.camera.clear(self.state)
-        state, n = self.state, self.layout.robot_dim
+        state = self.state
         state.p, state.v, state.q, state.b_g, state.b_a = placed.p, placed.v, placed.q, placed.b_g, placed.b_a
-        state.cov = placed.cov[:n, :n].copy()
-        self._fixed_bias_var = np.diagonal(placed.cov)[9:12].copy()  # the thesis model keeps b_g at this
-        self.heading_aligned = True
+        state.cov = covariance.robot_block(placed.cov, self.layout.robot_dim)
+        self._fixed_bias_var = covariance.block_variances(placed.cov, BG)  # the thesis model keeps b_g at this
+        self.modes.fire(ModeEvent.HEADING_PLACED)
         self._bank = None
         heading, sigma = bank.heading()
-        self.heading_placement = {"t_ns": fix_t_ns, "sigma_deg": math.degrees(sigma), "fixes": bank.fixes,
-                                  "hypotheses": len(bank.members), "best_weight": float(bank.weights.max())}
-        sd = np.degrees(np.sqrt(np.diag(state.cov)[6:9]))
-        self.events.append((fix_t_ns, f"heading placed from {bank.fixes} GPS fixes by {len(bank.members)} hypotheses: "
-                            f"{math.degrees(heading):.1f} deg, attitude sigma {sd[0]:.2f}/{sd[1]:.2f}/{sd[2]:.2f} deg"))
+        self.heading_placement = HeadingPlacement(fix_t_ns, math.degrees(heading), math.degrees(sigma), bank.fixes,
+                                                  len(bank.members), float(bank.weights.max()))
+        sd = np.degrees(np.sqrt(covariance.block_variances(state.cov, TH)))
+        self._event(fix_t_ns, EventKind.HEADING_PLACED, f"heading placed from {bank.fixes} GPS fixes by {len(bank.members)} "
+                    f"hypotheses: {math.degrees(heading):.1f} deg, attitude sigma {sd[0]:.2f}/{sd[1]:.2f}/{sd[2]:.2f} deg",
+                    heading_deg=math.degrees(heading), sigma_deg=math.degrees(sigma), fixes=bank.fixes)
 
     # -------------------------------------------------------------------------------- GPS
     def process_gps(self, fix: GpsFix) -> UpdateOutcome | None:
@@ -642,17 +667,19 @@ class Estimator:
             return None
         self._propagate_to(fix.t_ns)
         self._last_fix = fix
-        if self._joining or self.initialising or self.local_position:
-            self._joining = self._gps_seen = True
+        if self.mode.joining or self.initialising or self.local_position:
+            self._gps_seen = True
+            if not self.mode.joining:
+                self.modes.fire(ModeEvent.GPS_HEARD)
             if not self._join_gps(fix):
                 counts.reject("joining")
                 return None
-            self._joining = False
             counts.used += 1
             self.health.measured("gps", fix.t_ns, used=True)
             return UpdateOutcome(True, 0.0, 3, "GPS joined")
         self._gps_seen = True
         if not self.position_initialized:
+            self.modes.fire(ModeEvent.GPS_HEARD)
             self._init_position(fix)
             counts.used += 1
             self.health.measured("gps", fix.t_ns, used=True)
@@ -688,13 +715,12 @@ class Estimator:
 
     def _held_until_aligned(self) -> np.ndarray:
         held = np.zeros(self.state.dim, dtype=bool)
-        held[6:] = True  # attitude, biases and map wait for a heading
+        held[TH.start :] = True  # attitude, biases and map wait for a heading
         return held
 
     def _init_position(self, fix: GpsFix) -> None:
         place_at_fix(self.state, fix, self.calibration.gps.lever_arm_b, self.options.gps_sigma_floor_m)
-        self.position_initialized = True
-        self.events.append((fix.t_ns, "position initialised from GPS"))
+        self._event(fix.t_ns, EventKind.POSITION_INITIALISED, "position initialised from GPS")
 
     def _reset_from_gps(self, fix: GpsFix) -> None:
         """Every fix rejected for ``gps_reset_after_s``: the estimate, not the GPS, is wrong.
@@ -708,8 +734,8 @@ class Estimator:
         again = self._gps_reset_t is not None and (fix.t_ns - self._gps_reset_t) * 1e-9 <= 2.0 * after_s
         self._gps_reset_t = fix.t_ns
         what = "position and velocity re-initialised from GPS"
-        if self.heading_placement is not None and self.heading_aligned:
-            self.heading_aligned = False  # and _reset restarts the hypotheses
+        if self.heading_mode is HeadingMode.PLACED:
+            self.modes.fire(ModeEvent.HEADING_SEARCH)  # and _reset restarts the hypotheses
             what += "; the heading searched for again"
         if again:
             self._relevel()
@@ -717,9 +743,7 @@ class Estimator:
         if not self.heading_aligned:
             self._forget_heading()
         self._init_position(fix)
-        state.cov[3:6, :] = 0.0
-        state.cov[:, 3:6] = 0.0
-        state.cov[3:6, 3:6] = np.eye(3) * self.options.init.sigma_velocity_moving**2
+        covariance.reinitialise(state.cov, V, np.eye(3) * self.options.init.sigma_velocity_moving**2)
         self._reset(fix.t_ns, "gps_rejected", f"every GPS fix rejected for {after_s:g} s; {what}")
 
     def _relevel(self) -> None:
@@ -728,11 +752,9 @@ class Estimator:
         back), with a moving start's sigma; the heading becomes unknown."""
         state = self.state
         state.q = quat_from_euler(0.0, 0.0, float(yaw_of(state.q)))
-        self.heading_aligned = False
+        self.modes.fire(ModeEvent.RELEVEL)
         sigma = math.radians(self.options.init.sigma_attitude_moving_deg)
-        state.cov[6:9, :] = 0.0
-        state.cov[:, 6:9] = 0.0
-        state.cov[6:8, 6:8] = np.eye(2) * sigma**2
+        covariance.reinitialise(state.cov, TH, np.diag([sigma**2, sigma**2, 0.0]))
         self._forget_heading()
         self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, state.t_ns
 
@@ -741,19 +763,14 @@ class Estimator:
         re-initialised as for a start in motion; without GPS the visual-inertial start begins again."""
         self._reset(t_ns, "camera_lost", f"camera innovations out of band for {self.options.health.innovation_reset_s:g} s "
                     f"({why}): map cleared, velocity, attitude and biases re-initialised")
-        state, init = self.state, self.options.init
-        n = self.layout.robot_dim
-        var_p = np.diagonal(state.cov)[0:3].copy()
-        sigmas = [init.sigma_velocity_moving] * 3 + [math.radians(init.sigma_attitude_moving_deg)] * 3
-        if self.layout.estimates_biases:
-            sigmas += [init.sigma_gyro_bias] * 3 + [init.sigma_accel_bias] * 3
-        state.cov = np.diag(np.concatenate([var_p, np.square(sigmas)]))[:n, :n]
+        state = self.state
+        state.cov = self._reset_covariance(covariance.block_variances(state.cov, covariance.P))
         if not self.heading_aligned:
             self._forget_heading()
         if self.position_initialized and self._last_fix is not None and self.health.fresh("gps", t_ns):
             self._init_position(self._last_fix)
         elif self.visual_inertial is not None and not self._gps_seen:
-            self.initialising = True
+            self.modes.fire(ModeEvent.CAMERA_LOST)
             self.visual_inertial.reset()
 
     # ------------------------------------------------------------------------------ camera
@@ -793,6 +810,8 @@ class Estimator:
         report = self.camera.process(self.state, features, t_ns, True, self.position_initialized, held)
         if report.accepted:
             counts.used += 1
+            if self.mode is FilterMode.UNREFERENCED and not self._gps_seen:
+                self.modes.fire(ModeEvent.CAMERA_USED)  # the camera's own frame from now on
         else:
             counts.reject(report.reason)
         self.health.measured("camera", t_ns, report.accepted)
@@ -833,7 +852,7 @@ class Estimator:
         The bank placed the heading, but it is still tens of degrees uncertain: the camera waits. A map
         started under such a heading grows overconfident in it (and in the tilt) faster than the GPS
         corrects it — a flight joined in the air ended 7-9 sigma off; the IMU and GPS narrow it alone."""
-        return (self.heading_aligned and self.heading_placement is not None
+        return (self.heading_mode is HeadingMode.PLACED
                 and self.state.cov[YAW, YAW] > HEADING_WEAK_SIGMA_RAD**2)
 
     def _frame_rejection(self, features: FrameFeatures, t_ns: int) -> str | None:
@@ -880,7 +899,7 @@ class Estimator:
         # Only roll, pitch and the gyro bias may move: the heading is invisible to gravity, and
         # position and velocity must not absorb the vehicle's own accelerations.
         held = np.ones(self.state.dim, dtype=bool)
-        held[6:8] = False
+        held[TH.start : YAW] = False
         if self.layout.estimates_biases:
             held[self.layout.BG] = False
         outcome = self._leveller.update(self.state, f_mean, held)
@@ -929,11 +948,47 @@ class Estimator:
             v=state.v.copy(),
             q=state.q.copy(),
             omega_b=self._gyro - state.b_g,
-            pose_cov=self.published_cov9()[np.ix_(_POSE, _POSE)],
-            vel_cov=state.cov[3:6, 3:6].copy(),
+            pose_cov=covariance.pose_block(self.published_cov9()),
+            vel_cov=state.cov[V, V].copy(),
             heading_aligned=self.heading_aligned,
             reset_counter=self.reset_counter,
         )
+
+    def _event(self, t_ns: int, kind: EventKind, message: str, reset_kind: str | None = None, **figures: float) -> None:
+        self.events.append(EstimatorEvent(t_ns, kind, message, self.reset_counter, reset_kind, MappingProxyType(figures)))
+
+    def count_refused_imu(self, reason: str, n: int = 1) -> None:
+        """IMU samples the caller refused before they reached the filter (out of the sensor's range): counted
+        with the filter's own, so a report shows them beside the rest."""
+        counts = self.counts["imu"]
+        counts.received += n
+        counts.reject(reason, n)
+
+    def status(self) -> EstimatorStatus:
+        """A frozen snapshot of what the service may know (modes, counters, health, events, map size)."""
+        state, camera = self.state, self.camera
+        t_ns = state.t_ns if state is not None else None
+        heading_sigma = None if state is None else math.degrees(math.sqrt(self.published_cov9()[YAW, YAW]))
+        return EstimatorStatus(
+            t_ns=t_ns, mode=self.mode, heading=self.heading_mode, reset_counter=self.reset_counter,
+            heading_sigma_deg=heading_sigma, heading_placement=self.heading_placement, started_moving=self._moving_start,
+            counts=MappingProxyType(self.counts_report()), health=MappingProxyType(self.health.report(t_ns)),
+            events=tuple(self.events),
+            gyro_bias=None if state is None else tuple(float(x) for x in state.b_g),
+            accel_bias=None if state is None else tuple(float(x) for x in state.b_a),
+            landmarks=0 if state is None else state.n_landmarks,
+            landmarks_initialised=camera.initialized_total if camera is not None else 0,
+            landmarks_deleted=MappingProxyType(dict(sorted(camera.deleted_total.items())) if camera is not None else {}),
+        )
+
+    def map_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Ids and world points of the map's landmarks that lie ahead of their anchor (positive inverse depth)."""
+        state, camera = self.state, self.camera
+        if state is None or camera is None or state.n_landmarks == 0:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        y = state.landmarks
+        ahead = y[:, INVERSE_DEPTH] > 0.0
+        return camera.book.ids[ahead], landmark_points(y[ahead])
 
     def counts_report(self) -> dict:
         return {name: c.as_dict() for name, c in self.counts.items()}

@@ -35,6 +35,7 @@ from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.core.measurements import ImuSample, RejectionCounts, readings_finite, rows_finite
 from vtolpose.estimator.inertial.propagator import is_isotropic, noise_dt_polynomial, process_noise
 from vtolpose.estimator.core.rotation import rotvec_quat, skew
+from vtolpose.estimator.core.covariance import BG
 from vtolpose.estimator.core.state import StateLayout
 
 _RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (numerical drift only)
@@ -473,7 +474,7 @@ class FusionCore:
         if white is None or white[0] is not noise or white[1] != rate:
             white = self._white_rate_var = (noise, rate, noise.gyro_noise_density**2 * rate)
         if s.layout.estimates_biases:
-            return white[2] + s.cov.diagonal()[9:12]
+            return white[2] + s.cov.diagonal()[BG]
         return white[2].copy()
 
     def _noise(self, q: np.ndarray, dt: float) -> np.ndarray:

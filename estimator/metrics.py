@@ -13,6 +13,7 @@ from typing import Protocol
 import numpy as np
 
 from vtolpose.estimator.core.chi2 import upper_quantile
+from vtolpose.estimator.core.covariance import P
 from vtolpose.estimator.core.rotation import quat_conj, quat_log, quat_mul, quat_slerp, quat_to_rot, rotation_angle, skew
 
 
@@ -193,7 +194,7 @@ def pose_errors_for_nees(
     cov = J @ pose_cov @ np.swapaxes(J, 1, 2)
     err_p = p_true - (p + lever_w)
     if q_true is None:
-        return err_p, cov[:, 0:3, 0:3], 3
+        return err_p, cov[:, P, P], 3
     err_th = quat_log(quat_mul(q_true, quat_conj(q)))
     return np.hstack([err_p, err_th]), cov, 6
 

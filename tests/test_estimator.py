@@ -85,7 +85,7 @@ def test_still_start_refines_the_thesis_gyro_bias(book, book_runs):
 def test_unknown_heading_is_found_in_motion(book):
     est, t, p, q, _ = run(book, FilterOptions(heading_source="gps"))
     assert est.heading_placement is not None  # the heading came from the bank of hypotheses
-    after = (t > est.heading_placement["t_ns"]) & (t <= book.truth.t_ns[-1])
+    after = (t > est.heading_placement.t_ns) & (t <= book.truth.t_ns[-1])
     i = np.searchsorted(book.truth.t_ns, t[after])
     heading_err = np.degrees(np.abs(np.angle(np.exp(1j * (yaw_of(q[after]) - yaw_of(book.truth.q[i]))))))
     assert np.sqrt(np.mean(heading_err**2)) < 2.0
@@ -95,10 +95,10 @@ def test_moving_start_mid_flight_finds_its_heading(book):
     """Switched on at 18 s while the arm swings (the dataset's heading is the one at 0 s, so it is not used):
     a pose at once, the heading placed within seconds with a sigma that covers its error, then held."""
     est, t, p, q, cov = run(book, FilterOptions(heading_source="gps"), start_s=18.0)
-    assert "moving" in est.events[0][1] and (est.events[0][0] - book.imu.t_ns[0]) * 1e-9 < 18.0 + 3.5
+    assert "moving" in est.events[0].message and (est.events[0].t_ns - book.imu.t_ns[0]) * 1e-9 < 18.0 + 3.5
     assert est.heading_placement is not None and est.heading_aligned and est.reset_counter == 0
-    assert (est.heading_placement["t_ns"] - est.events[0][0]) * 1e-9 < 10.0
-    after = t > est.heading_placement["t_ns"]
+    assert (est.heading_placement.t_ns - est.events[0].t_ns) * 1e-9 < 10.0
+    after = t > est.heading_placement.t_ns
     i = np.minimum(np.searchsorted(book.truth.t_ns, t[after]), len(book.truth.t_ns) - 1)
     heading_err = np.abs(np.angle(np.exp(1j * (yaw_of(q[after]) - yaw_of(book.truth.q[i])))))
     assert np.all(heading_err < 3.0 * np.sqrt(cov[after, 5, 5]))
@@ -143,7 +143,7 @@ def test_gps_rejected_for_seconds_means_the_filter_is_lost_and_resets(book):
     moved = [replace(f, p_ned=f.p_ned + [3.0, 0.0, 0.0]) if f.t_ns > book.imu.t_ns[0] + 25e9 else f for f in fixes]
     est, t, p, q, _ = run(book, gps=moved)
     assert est.reset_counter == 1
-    assert any("reset #1" in message for _, message in est.events)
+    assert any("reset #1" in e.message for e in est.events)
     end = book.truth.p[-1] + [3.0, 0.0, 0.0]
     assert np.linalg.norm(p[-1] - end) < 0.05  # it followed the GPS after the reset
 

@@ -137,7 +137,7 @@ def test_a_reset_after_a_corrupted_attitude_restores_the_attitude(tmp_path):
     n = len(flight.imu.t_ns)
     damaged = damaged_copy(root, tmp_path / "turned", {n // 2: {1: "20.0", 3: "30.0"}})
     result = replay(Dataset.open(damaged), load_config())
-    events = " ".join(e for _, e in result.estimator.events)
+    events = " ".join(e.message for e in result.estimator.events)
     assert "attitude levelled again" in events and "heading placed" in events
     truth = Dataset.open(root).truth()
     k = min(np.searchsorted(truth.t_ns, result.trajectory.t_ns[-1]), len(truth.t_ns) - 1)

@@ -27,6 +27,8 @@ from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
 from vtolpose.estimator.inertial.motion_alignment import MotionAligner, MotionAlignOptions, integrate
 from vtolpose.estimator.core.rotation import quat_to_rot, so3_exp
 
+LEVER_ARM = slice(-3, None)  # the fit's last three parameters
+
 MOTION_ADVICE = (
     "record the vehicle moving with accelerations that change within seconds (starts and stops, back-and-forth "
     "sweeps, turns; carried by hand is enough) for a minute or more, with GPS fixes arriving throughout")
@@ -366,7 +368,7 @@ def fit_lever_arm(
         cov = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         raise GpsCalibrationError(f"the lever arm is not observable: {ROTATION_ADVICE}") from None
-    sigma = np.sqrt(np.maximum(np.diag(cov)[-3:], 0.0)) * max(1.0, ratio)
+    sigma = np.sqrt(np.maximum(np.diag(cov)[LEVER_ARM], 0.0)) * max(1.0, ratio)
     if np.max(sigma) > o.max_sigma_lever_m:
         raise GpsCalibrationError(
             f"the lever arm is not determined: ±{np.round(sigma, 3).tolist()} m (limit {o.max_sigma_lever_m:g} m): "

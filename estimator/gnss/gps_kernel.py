@@ -19,6 +19,8 @@ import numpy as np
 
 from vtolpose.estimator.core.update_kernel import NO_HELD, small_update
 
+NAV_DIM = 9  # δp, δv, δθ: the error states a fix depends on
+
 
 @numba.njit(cache=True, nogil=True)
 def lever_arm_world(q: np.ndarray, lever_b: np.ndarray) -> np.ndarray:
@@ -53,7 +55,7 @@ def fix_model(p: np.ndarray, q: np.ndarray, lever_b: np.ndarray, fix: np.ndarray
 def innovation_log_det(cov: np.ndarray, H: np.ndarray, R: np.ndarray) -> float:
     """``log det(H P H^T + R)`` over the first nine error states, through its Cholesky factor; -inf where the
     innovation covariance is not positive definite (a likelihood of zero)."""
-    S = np.dot(np.dot(H, np.ascontiguousarray(cov[0:9, 0:9])), np.ascontiguousarray(H.T)) + R
+    S = np.dot(np.dot(H, np.ascontiguousarray(cov[:NAV_DIM, :NAV_DIM])), np.ascontiguousarray(H.T)) + R
     log_det = 0.0
     L = np.zeros((3, 3))
     for i in range(3):

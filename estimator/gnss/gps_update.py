@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from vtolpose.estimator.core import covariance
 from vtolpose.estimator.core.kalman import (UpdateOutcome, compiled_outcome, ekf_update, innovation_covariance,
                                             normalized_innovation)
 from vtolpose.estimator.core.update_kernel import NO_HELD
@@ -18,7 +19,7 @@ from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import skew
 from vtolpose.estimator.core.state import FilterState
 
-GPS_COLS = slice(0, 9)  # δp, δv, δθ: the only error states a fix depends on
+GPS_COLS = covariance.NAV  # δp, δv, δθ: the only error states a fix depends on
 
 
 def gps_sigmas(fix: GpsFix, floor_m: float) -> tuple[float, float]:
@@ -33,9 +34,7 @@ def place_at_fix(state: FilterState, fix: GpsFix, lever_arm_b: np.ndarray, sigma
     the fix's, uncorrelated with the rest (a first fix, or a re-initialisation)."""
     sigma_h, sigma_v = gps_sigmas(fix, sigma_floor_m)
     state.p = np.asarray(fix.p_ned, dtype=float) - state.R @ np.asarray(lever_arm_b, dtype=float)
-    state.cov[0:3, :] = 0.0
-    state.cov[:, 0:3] = 0.0
-    state.cov[0:3, 0:3] = np.diag([sigma_h**2, sigma_h**2, sigma_v**2])
+    covariance.reinitialise(state.cov, covariance.P, np.diag([sigma_h**2, sigma_h**2, sigma_v**2]))
 
 
 class GpsModel:

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vtolpose.estimator.core import covariance
+from vtolpose.estimator.core.covariance import BA, BG, TH, V, YAW
 from vtolpose.estimator.core.kalman import chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import quat_mul, rotvec_quat, yaw_of
@@ -33,8 +35,6 @@ from vtolpose.estimator.gnss.gps_update import GpsUpdater, gps_sigmas, place_at_
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 
-TH = slice(6, 9)
-YAW = 8
 UNKNOWN_HEADING_VAR = math.pi**2 / 3.0  # a heading uniform on the circle: its variance about any guess
 _LIKELIHOOD_PROBABILITY = 0.9999  # one wild fix costs a hypothesis no more than this χ² quantile
 
@@ -68,8 +68,7 @@ def rotated_about_down(state: FilterState, angle: float) -> FilterState:
     turn = np.eye(n)
     turn[TH, TH] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
     out.cov = turn @ state.cov[:n, :n] @ turn.T
-    out.cov[YAW, :] = 0.0
-    out.cov[:, YAW] = 0.0
+    covariance.forget_yaw(out.cov)
     return out
 
 
@@ -84,8 +83,8 @@ def with_bias_states(state: FilterState, sigma_gyro_bias: np.ndarray, sigma_acce
     out.p, out.v, out.q, out.b_g, out.b_a = state.p.copy(), state.v.copy(), state.q.copy(), state.b_g.copy(), state.b_a.copy()
     n = state.robot_dim
     out.cov[:n, :n] = state.cov[:n, :n]
-    out.cov[9:12, 9:12] = np.diag(np.broadcast_to(np.asarray(sigma_gyro_bias, dtype=float) ** 2, (3,)))
-    out.cov[12:15, 12:15] = np.eye(3) * sigma_accel_bias**2
+    out.cov[BG, BG] = np.diag(np.broadcast_to(np.asarray(sigma_gyro_bias, dtype=float) ** 2, (3,)))
+    out.cov[BA, BA] = np.eye(3) * sigma_accel_bias**2
     return out
 
 
@@ -112,10 +111,8 @@ class HeadingBank:
         for member in self.members:
             member.cov[YAW, YAW] = (0.5 * spacing) ** 2
             if velocity_sigma is not None:
-                var = np.maximum(np.diagonal(member.cov)[3:6], velocity_sigma**2)
-                member.cov[3:6, :] = 0.0
-                member.cov[:, 3:6] = 0.0
-                member.cov[3:6, 3:6] = np.diag(var)
+                var = np.maximum(covariance.block_variances(member.cov, V), velocity_sigma**2)
+                covariance.reinitialise(member.cov, V, np.diag(var))
         self.log_weights = np.full(n, -math.log(n))
         self.positioned = False
         self.fixes = 0

@@ -25,7 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
+from vtolpose.estimator.core.covariance import BA, P, TH, V
 from vtolpose.estimator.core.rotation import rot_to_quat, skew, so3_exp
+
+ATTITUDE_AND_BIASES = slice(TH.start, BA.stop)  # δθ, δb_g, δb_a: the fit's last nine parameters, in the state's order
 
 
 @dataclass(slots=True)
@@ -274,7 +277,7 @@ class MotionAligner:
         except np.linalg.LinAlgError:
             self.last_failure = "singular normal equations"
             return None
-        sigma_theta = np.sqrt(np.maximum(np.diag(cov)[6:9], 0.0)) * max(1.0, ratio)
+        sigma_theta = np.sqrt(np.maximum(np.diag(cov)[TH], 0.0)) * max(1.0, ratio)
         if ratio > opts.max_residual_ratio:
             self.last_failure = f"residuals {ratio:.1f}x the GPS noise"
             return None
@@ -290,11 +293,11 @@ class MotionAligner:
         R_end = R0 @ end.R[0]
         v_end = v0 + self.g_w * t_end + R0 @ (end.V[0] - end.MV[0] @ b_a)
         p_end = p0 + v0 * t_end + 0.5 * self.g_w * t_end**2 + R0 @ (end.S[0] - end.M[0] @ b_a)
-        out = np.zeros((15, 15))
-        out[0:3, 0:3] = np.diag(sig[-1] ** 2)
-        out[3:6, 3:6] = cov[3:6, 3:6] * max(1.0, ratio**2) + np.eye(3) * 0.02**2
+        out = np.zeros((BA.stop, BA.stop))
+        out[P, P] = np.diag(sig[-1] ** 2)
+        out[V, V] = cov[V, V] * max(1.0, ratio**2) + np.eye(3) * 0.02**2
         # A fit worse than the GPS noise is less certain than its normal equations say.
-        out[6:15, 6:15] = cov[6:15, 6:15] * max(1.0, ratio**2)
+        out[ATTITUDE_AND_BIASES, ATTITUDE_AND_BIASES] = cov[ATTITUDE_AND_BIASES, ATTITUDE_AND_BIASES] * max(1.0, ratio**2)
         self.last_failure = ""
         return MotionAlignment(
             t_ns=deltas[-1].t1_ns,

@@ -6,6 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
+from vtolpose.estimator.core.covariance import BA, BG, P, TH, V
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.gnss.gps_update import gps_sigmas
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions
@@ -27,11 +28,11 @@ def initial_covariance(layout: StateLayout, init: InitialAttitude, opts: InitOpt
     n = layout.robot_dim
     cov = np.zeros((n, n))
     sigma_v = opts.sigma_velocity_static if init.static else opts.sigma_velocity_moving
-    cov[0:3, 0:3] = np.eye(3) * 0.01**2
-    cov[3:6, 3:6] = np.eye(3) * sigma_v**2
-    cov[6:9, 6:9] = np.diag([init.sigma_roll_pitch**2, init.sigma_roll_pitch**2, sigma_yaw**2])
+    cov[P, P] = np.eye(3) * 0.01**2
+    cov[V, V] = np.eye(3) * sigma_v**2
+    cov[TH, TH] = np.diag([init.sigma_roll_pitch**2, init.sigma_roll_pitch**2, sigma_yaw**2])
     if layout.estimates_biases:
-        cov[9:12, 9:12] = np.eye(3) * init.sigma_gyro_bias**2
+        cov[BG, BG] = np.eye(3) * init.sigma_gyro_bias**2
         R = quat_to_rot(init.q)
         down_b = R.T @ np.array([0.0, 0.0, 1.0])
         along = np.outer(down_b, down_b)
@@ -40,10 +41,10 @@ def initial_covariance(layout: StateLayout, init: InitialAttitude, opts: InitOpt
         P_ba = opts.sigma_accel_bias**2 * (np.eye(3) - along) + sigma_along**2 * along
         if init.static:
             A = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]) @ R / init.gravity
-            cov[6:9, 6:9] += A @ P_ba @ A.T
-            cov[6:9, 12:15] = A @ P_ba
-            cov[12:15, 6:9] = cov[6:9, 12:15].T
-        cov[12:15, 12:15] = P_ba
+            cov[TH, TH] += A @ P_ba @ A.T
+            cov[TH, BA] = A @ P_ba
+            cov[BA, TH] = cov[TH, BA].T
+        cov[BA, BA] = P_ba
     return cov
 
 

@@ -26,6 +26,8 @@ import numpy as np
 
 from vtolpose.estimator.core.calibration import CameraCalibration, ImuNoise
 from vtolpose.estimator.core.rotation import euler_from_quat, rot_to_quat, so3_exp, so3_log
+from vtolpose.estimator.core import covariance
+from vtolpose.estimator.core.covariance import V
 from vtolpose.estimator.core.state import LANDMARK_DIM
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
 from vtolpose.estimator.inertial.motion_alignment import integrate
@@ -42,7 +44,7 @@ from vtolpose.estimator.init.window_solver import (
 from vtolpose.estimator.vision.association import AssociationOptions
 from vtolpose.estimator.vision.camera_model import CameraModel
 from vtolpose.estimator.vision.features import FrameFeatures
-from vtolpose.estimator.vision.landmarks import angles
+from vtolpose.estimator.vision.landmarks import INVERSE_DEPTH, angles
 
 ROBOT_DIM = 15
 
@@ -385,7 +387,7 @@ class VisualInertialInitializer:
         cov += G @ np.diag([opts.position_sigma_m**2] * 3 + [heading_sigma**2]) @ G.T
         cov = 0.5 * (cov + cov.T)
         rho = nominal[5][:, 5]
-        sigma_rho = np.sqrt(np.maximum(np.diagonal(cov)[15 + 5 :: LANDMARK_DIM], 0.0))
+        sigma_rho = np.sqrt(np.maximum(covariance.block_variances(cov, slice(ROBOT_DIM + INVERSE_DEPTH, None, LANDMARK_DIM)), 0.0))
         order = np.argsort(sigma_rho / rho)[: opts.max_landmarks]
         keep = np.concatenate([np.arange(ROBOT_DIM), ROBOT_DIM + (LANDMARK_DIM * order[:, None] + np.arange(LANDMARK_DIM)).ravel()])
         rows = np.array([r for _, r in seen], dtype=int)[order]
@@ -394,7 +396,7 @@ class VisualInertialInitializer:
             landmarks=nominal[5][order], cov=cov[np.ix_(keep, keep)], descriptors=last.descriptors[rows],
             binary=last.binary, window_s=float(problem.frame_t[-1]), n_frames=problem.n_frames,
             n_points=problem.n_points, residual_ratio=solution.residual_ratio, sigma_tilt_deg=tilt_deg,
-            sigma_velocity=float(np.sqrt(np.max(np.diagonal(cov)[3:6]))),
+            sigma_velocity=float(np.sqrt(np.max(covariance.block_variances(cov, V)))),
             depth_sigma_rel=float(np.median(sigma_rho[order] / rho[order])) if len(order) else math.inf,
         )
 

@@ -17,10 +17,13 @@ from __future__ import annotations
 import numpy as np
 
 from vtolpose.estimator.vision.camera_model import CameraModel
+from vtolpose.estimator.core import covariance
+from vtolpose.estimator.core.covariance import POSE
 from vtolpose.estimator.core.rotation import skew
 from vtolpose.estimator.core.state import LANDMARK_DIM, FilterState
 
-ROBOT_POSE_COLS = np.r_[0:3, 6:9]  # [δp, δθ] in every robot layout
+ROBOT_POSE_COLS = POSE  # [δp, δθ] in every robot layout
+INVERSE_DEPTH = 5  # ρ's place in a landmark's [a_N, a_E, a_D, θ, φ, ρ]
 
 
 def direction(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
@@ -132,7 +135,6 @@ def add_landmarks(state: FilterState, y: np.ndarray, J_x: np.ndarray, J_z: np.nd
     k = len(y)
     if k == 0:
         return
-    n = state.dim
     Jx = J_x.reshape(k * LANDMARK_DIM, 6)
     cols = ROBOT_POSE_COLS
     if extra_cols is not None and len(extra_cols):
@@ -144,12 +146,7 @@ def add_landmarks(state: FilterState, y: np.ndarray, J_x: np.ndarray, J_z: np.nd
     for i in range(k):
         s = slice(LANDMARK_DIM * i, LANDMARK_DIM * (i + 1))
         new_block[s, s] += noise[i]
-    cov = np.empty((n + k * LANDMARK_DIM, n + k * LANDMARK_DIM))
-    cov[:n, :n] = state.cov
-    cov[n:, :n] = cross
-    cov[:n, n:] = cross.T
-    cov[n:, n:] = 0.5 * (new_block + new_block.T)
-    state.cov = cov
+    state.cov = covariance.append_states(state.cov, cross, new_block)
     state.landmarks = np.vstack([state.landmarks, y])
 
 
@@ -202,5 +199,5 @@ def remove_landmarks(state: FilterState, remove: np.ndarray) -> None:
         return
     keep_state = np.ones(state.dim, dtype=bool)
     keep_state[state.robot_dim :] = ~np.repeat(remove, LANDMARK_DIM)
-    state.cov = state.cov[np.ix_(keep_state, keep_state)]
+    state.cov = covariance.keep_states(state.cov, keep_state)
     state.landmarks = state.landmarks[~remove]

@@ -41,6 +41,8 @@ from vtolpose.service.bench.rows import Row as BenchRow
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.euroc_import import import_euroc
+from vtolpose.drivers.files.euroc_truth import TRUTH_SOURCES
+from vtolpose.estimator.status import EventKind
 from vtolpose.estimator.core.rotation import quat_to_rot, rot_to_quat, rotation_angle
 from vtolpose.estimator.metrics import (
     chi2_band, gps_error_rmse, interpolate_poses, mean_world_rotation, motion_onset, nees, pose_errors_for_nees,
@@ -127,6 +129,12 @@ def find_flights(roots: list[Path]) -> list[Flight]:
     return sorted(found.values(), key=lambda f: f.name)
 
 
+def has_truth(flight: Flight) -> bool:
+    """The bench scores against a truth: a TUM file beside the flight, or one of EuRoC's reference folders."""
+    return flight.truth_file is not None or any((flight.source / "mav0" / source / "data.csv").is_file()
+                                           for source in TRUTH_SOURCES if source != "file")
+
+
 def score_poses(traj: Trajectory, cov: CovarianceSamples, dataset: Dataset, placed: int | None,
                 known_from_start: bool) -> PoseScore:
     """Position after a rigid alignment, attitude with the constant world rotation off (poses with a
@@ -168,7 +176,7 @@ def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str,
     est, traj, truth = result.estimator, result.trajectory, dataset.truth()
     point_b = dataset.calibration.truth_point_b
     t_from = int(truth.t_ns[0] + SCORE_FROM_S * 1e9)
-    placed = est.heading_placement["t_ns"] if est.heading_placement is not None else None
+    placed = est.heading_placement.t_ns if est.heading_placement is not None else None
     known = est.heading_aligned and placed is None
     filtered = score_poses(traj, result.covariances, dataset, placed, known)
     gps = dataset.gps()
@@ -176,7 +184,7 @@ def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str,
     gps_rmse = gps_error_rmse(type(gps)(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep]), truth,
                               dataset.calibration.gps.lever_arm_b, point_b)["rmse_m"]
     imu_t0 = int(dataset.imu_raw().t_ns[0])
-    positioned = next((t for t, message in est.events if message.startswith("position initialised")), None)
+    positioned = next((e.t_ns for e in est.events if e.kind is EventKind.POSITION_INITIALISED), None)
     onset = motion_onset(truth)
     sm = result.smoothing
     smoothed = fixed_lag = backward = None
@@ -272,6 +280,10 @@ def flights_or_skip(bench: str, echo: Callable[[str], None]) -> list:
     """The EuRoC flights under the data roots; none: a skip line that says where to put them."""
     roots = data_roots()
     flights = find_flights(roots)
+    untrue = [f.name for f in flights if not has_truth(f)]
+    if untrue:  # a recording without truth (a hand-held camera, say) cannot be scored here
+        echo(f"  {bench}: {', '.join(untrue)} left out: no truth to score against")
+        flights = [f for f in flights if has_truth(f)]
     if not flights:
         echo(f"  {bench}: skipped, no EuRoC flight (mav0/imu0/data.csv) under {', '.join(map(str, roots))}; "
              f"set {DATA_ENV} to the folder that holds them")

@@ -317,9 +317,8 @@ def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0, camer
         t_first = int(source.imu.t_ns[0])
 
         def sample(t_ns: int) -> None:
-            state = runtime.est.state
             samples.append(((t_ns - t_first) * 1e-9, resident_memory_mb() or float("nan"), len(runtime.history),
-                            runtime.history.capacity, runtime.fusion.buffered_imu, state.n_landmarks if state else 0))
+                            runtime.history.capacity, runtime.fusion.buffered_imu, runtime.est.status().landmarks))
 
         async def sampled() -> Any:
             next_t = t_first + int(60e9)  # from the first minute on: the filter is running by then
@@ -340,6 +339,7 @@ def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0, camer
     first, last = samples[0], samples[-1]
     what = "IMU+camera+GPS (ORB)" if camera else "IMU+GPS"
     failures = sum(f["failures"] for f in runtime.failures.report().values())
+    status = runtime.est.status()
     rows: list[Row] = [
         (f"{duration_s / 60:.0f}-minute {what} replay speed", summary.data_s / summary.wall_s, "x real time",
          f"{summary.wall_s:.1f} s wall, both outputs on"),
@@ -351,10 +351,10 @@ def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0, camer
         ("isolated failures (outputs, sources, handling)", float(failures), "", ", ".join(runtime.failures.report()) or "none"),
         ("errors logged", float(logs.counts["ERROR"] + logs.counts["CRITICAL"]), "records",
          f"{logs.counts['WARNING']} warnings; " + ("; ".join(logs.first) or "nothing logged")),
-        ("filter resets", float(runtime.est.reset_counter), "", ""),
+        ("filter resets", float(status.reset_counter), "", ""),
     ]
     if camera:
-        frames_used = runtime.est.counts["camera"].used if "camera" in runtime.est.counts else 0
+        frames_used = status.counts["camera"]["used"] if "camera" in status.counts else 0
         rows.append(("landmarks in the map (max over the run)", float(max(s[5] for s in samples)), "landmarks",
                      f"cap estimator.camera.max_landmarks = {cfg['estimator.camera.max_landmarks']}; "
                      f"{frames_used} frames used of {len(frames)}"))

@@ -41,7 +41,6 @@ from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.vision.camera_pipeline import FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
-from vtolpose.estimator.vision.landmarks import landmark_points
 from vtolpose.service.outputs.view_worker import ViewWorker
 
 log = logging.getLogger(__name__)
@@ -74,12 +73,7 @@ def estimator_landmarks(est: Estimator) -> tuple[np.ndarray, np.ndarray]:
     """Ids and NED points of the landmarks in the filter state (those with a positive inverse depth).
 
     Read on the runtime's loop, where the filter runs, so the state is never half updated."""
-    state, camera = est.state, est.camera
-    if state is None or camera is None or state.n_landmarks == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 3))
-    y = state.landmarks
-    ahead = y[:, 5] > 0.0
-    return camera.book.ids[ahead], landmark_points(y[ahead])
+    return est.map_points()
 
 
 def covariance_ellipsoid(cov_enu: np.ndarray, k2: float = CHI2_3DOF_95) -> tuple[np.ndarray, np.ndarray]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,7 +38,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
         "reset_counter": est.reset_counter,
         "sensors": est.counts_report(),
         "skipped_lines": dict(dataset.skipped),
-        "events": [{"t_s": round((t - result.data_t0_ns) * 1e-9, 3), "message": m} for t, m in est.events],
+        "events": [{"t_s": round((e.t_ns - result.data_t0_ns) * 1e-9, 3), "message": e.message} for e in est.events],
         "notes": list(result.notes),
     }
     if result.faults is not None:
@@ -47,7 +48,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
     if result.failures:
         report["failures"] = result.failures
     if est.heading_placement is not None:
-        placed = dict(est.heading_placement)
+        placed = dataclasses.asdict(est.heading_placement)
         t_placed = placed.pop("t_ns")
         report["heading_placement"] = {"t_s": round((t_placed - result.data_t0_ns) * 1e-9, 3), **placed}
     if est.state is not None:
@@ -91,7 +92,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
         report["attitude_rmse_deg"] = filtered["attitude_rmse_deg"]
         if est.heading_placement is not None:  # before it the outputs said the heading was unknown
             t_data = scoring_times(result, traj.t_ns[valid])
-            placed = t_data >= est.heading_placement["t_ns"]
+            placed = t_data >= est.heading_placement.t_ns
             if np.count_nonzero(placed) >= 2:
                 report["attitude_rmse_with_heading_deg"] = evaluate(
                     t_data[placed], align.points(traj.p[valid][placed]), align.attitudes(traj.q[valid][placed]), truth,

@@ -194,9 +194,7 @@ class Runtime:
             self._first_t = sample.t_ns
         imu_range = self.options.imu_range
         if imu_range is not None and imu_range.exceeded(sample.gyro, sample.accel):
-            counts = self.est.counts["imu"]  # the filter's IMU counts, so reports show it beside non_finite
-            counts.received += 1
-            counts.reject("out_of_range")
+            self.est.count_refused_imu("out_of_range")  # with the filter's, so reports show it beside non_finite
             return
         fusion = self.fusion
         if not fusion.add_imu(sample, fuse=False):
@@ -256,10 +254,7 @@ class Runtime:
         t_ns, gyro, accel = batch.t_ns, batch.gyro, batch.accel
         out, finite = screened(gyro, accel, self.options.imu_range)  # one pass: range and finiteness
         if out.any():
-            counts = self.est.counts["imu"]
-            refused = int(np.count_nonzero(out))
-            counts.received += refused
-            counts.reject("out_of_range", refused)
+            self.est.count_refused_imu("out_of_range", int(np.count_nonzero(out)))
             keep = ~out
             t_ns, gyro, accel, finite = t_ns[keep], gyro[keep], accel[keep], finite[keep]
         self.fusion.add_imu_batch(t_ns, gyro, accel, finite)

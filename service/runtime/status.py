@@ -191,18 +191,20 @@ class StatusTracker:
                 "total": s.total,
             }
             s.since_report = 0
-        state = est.state
-        health = est.health.report(state.t_ns if state is not None else None)
-        rejected = {name: c["rejected"] for name, c in est.counts_report().items() if c["rejected"]}
+        status = est.status()
+        health = dict(status.health)
+        rejected = {name: c["rejected"] for name, c in status.counts.items() if c["rejected"]}
         late = {name: c["rejected"] for name, c in fusion.counts_report().items() if c["rejected"]}
         doc = {
             "sensors": sensors,
-            "initialized": state is not None,
-            "initialising": state is None or est.initialising,  # no pose to use yet (quality −1)
-            "heading_aligned": est.heading_aligned,
-            "local_frame": est.initialized and est.local_position,  # position (and an unknown heading) the filter's own
-            "heading_sigma_deg": None if state is None else round(math.degrees(math.sqrt(est.published_cov9()[8, 8])), 3),
-            "landmarks": int(state.n_landmarks) if state is not None else 0,
+            "initialized": status.initialised,
+            "initialising": status.initialising,  # no pose to use yet (quality −1)
+            "mode": status.mode.value,
+            "heading": status.heading.value,
+            "heading_aligned": status.heading_aligned,
+            "local_frame": status.local_position,  # position (and an unknown heading) the filter's own
+            "heading_sigma_deg": None if status.heading_sigma_deg is None else round(status.heading_sigma_deg, 3),
+            "landmarks": status.landmarks,
             "rejected": rejected,
             "fusion": {
                 "rejected": late,
@@ -211,7 +213,7 @@ class StatusTracker:
                 "lag_s": None if fusion.fused_until_ns is None or fusion.newest_imu_t_ns is None
                 else round((fusion.newest_imu_t_ns - fusion.fused_until_ns) * 1e-9, 4),
             },
-            "filter_resets": est.reset_counter,
+            "filter_resets": status.reset_counter,
             "health": health,
             "events": dict(self.events),
             "cpu_percent": round(cpu_percent, 1),

@@ -1,0 +1,104 @@
+"""What the service may know of the estimator: one frozen snapshot, and typed events.
+
+The runtime, the replay report and the benches read the estimator only through
+:meth:`~vtolpose.estimator.filter.Estimator.status` (an :class:`EstimatorStatus`), never its
+attributes: the estimator's insides can change without breaking them, and nothing they hold can
+change the estimator. Events carry their kind and figures as fields, so nobody parses text.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from types import MappingProxyType
+from typing import Mapping
+
+from vtolpose.estimator.modes import FilterMode, HeadingMode
+
+
+class EventKind(Enum):
+    STARTED = "started"  # the filter's first state (IMU window, or the visual-inertial start)
+    VISUAL_START = "visual_start"  # an initialising estimate replaced by the visual-inertial start
+    POSITION_INITIALISED = "position_initialised"  # the position placed at a fix
+    GPS_JOINED = "gps_joined"  # a GPS joined a filter without a world frame
+    HEADING_PLACED = "heading_placed"  # the heading hypotheses placed the heading
+    RESET = "reset"  # reset_counter stepped: see ``reset_kind``
+
+
+@dataclass(frozen=True, slots=True)
+class EstimatorEvent:
+    """One event: when, what, the reset counter after it, its figures, and a sentence for people."""
+
+    t_ns: int
+    kind: EventKind
+    message: str
+    reset_counter: int
+    reset_kind: str | None = None  # for RESET: imu_gap, state_invalid, gps_rejected, camera_lost
+    figures: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+
+
+@dataclass(frozen=True, slots=True)
+class HeadingPlacement:
+    """How the heading hypotheses placed the heading."""
+
+    t_ns: int
+    heading_deg: float
+    sigma_deg: float
+    fixes: int
+    hypotheses: int
+    best_weight: float
+
+
+@dataclass(frozen=True, slots=True)
+class EstimatorStatus:
+    """A snapshot: the modes, the flags read off them, the published heading's sigma, counters, health."""
+
+    t_ns: int | None  # the filter state's time; None before the start
+    mode: FilterMode
+    heading: HeadingMode
+    reset_counter: int
+    heading_sigma_deg: float | None  # of the published heading (a heading anywhere on the circle while unknown)
+    heading_placement: HeadingPlacement | None
+    started_moving: bool
+    counts: Mapping[str, Mapping]  # per sensor: received, used, rejected by reason, flagged
+    health: Mapping  # estimator.health's report at t_ns
+    events: tuple[EstimatorEvent, ...]
+    gyro_bias: tuple[float, float, float] | None
+    accel_bias: tuple[float, float, float] | None
+    landmarks: int  # in the map now
+    landmarks_initialised: int  # over the run
+    landmarks_deleted: Mapping[str, int]  # over the run, by reason
+
+    @property
+    def initialised(self) -> bool:
+        return self.mode.initialised
+
+    @property
+    def initialising(self) -> bool:
+        """No pose to use yet: before the start, or on the accelerometer alone."""
+        return not self.mode.initialised or self.mode.initialising
+
+    @property
+    def local_position(self) -> bool:
+        return self.mode.local_position
+
+    @property
+    def position_initialized(self) -> bool:
+        return self.mode.position_from_gps
+
+    @property
+    def heading_aligned(self) -> bool:
+        return self.mode.initialised and self.heading.aligned
+
+    @property
+    def heading_source(self) -> str:
+        """Where the heading came from, in words."""
+        if self.heading_placement is not None:
+            return "heading bank"
+        if self.heading_aligned:
+            return "known"
+        return "own frame (visual-inertial start)" if self.local_position else "unknown"
+
+    def first(self, kind: EventKind) -> EstimatorEvent | None:
+        """The first event of ``kind``, if any."""
+        return next((e for e in self.events if e.kind is kind), None)
