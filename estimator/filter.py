@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import deque
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Callable
@@ -41,7 +40,7 @@ from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
 from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonitor, HealthOptions
 from vtolpose.estimator.inertial.imu_delta import DeltaRun, ImuDelta, ImuDownsampler
-from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
+from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts, readings_finite
 from vtolpose.estimator.inertial.heading_bank import (
@@ -49,18 +48,16 @@ from vtolpose.estimator.inertial.heading_bank import (
 )
 from vtolpose.estimator.core.rotation import quat_from_euler, yaw_of
 from vtolpose.estimator.inertial.propagator import ImuPropagator
-from vtolpose.estimator.inertial.startup import state_from_static, velocity_from_fixes
 from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator.start import StartCoordinator
 from vtolpose.estimator.modes import FilterMode, HeadingMode, ModeEvent, ModeMachine
 from vtolpose.estimator.status import EstimatorEvent, EstimatorStatus, EventKind, HeadingPlacement
-from vtolpose.estimator.init.visual_inertial import ROBOT_DIM as VI_ROBOT_DIM
-from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
+from vtolpose.estimator.init.visual_inertial import VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.smoothing.recorder import FilterRecorder
 from vtolpose.estimator.inertial.sample_kernel import level_run, plain_run
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
-VELOCITY_FIT_S = 1.0  # the fixes before the start that give its velocity (a constant acceleration holds that long)
 HEADING_WEAK_SIGMA_RAD = math.radians(5.0)  # a placed heading the camera waits for the GPS to narrow below this
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
 
@@ -127,14 +124,12 @@ class Estimator:
         self._heading_known = heading is not None  # configuration: the dataset's or the operator's heading
         # The modes (estimator.modes): changed only by self.modes.fire(event), where the conditions below hold.
         self.modes = ModeMachine(self._heading_known)
-        self._initializer = StaticInitializer(opts.init, calibration.imu.gravity, heading or 0.0)
         self._bank: HeadingBank | None = None  # heading hypotheses while the heading is unknown
         self._bank_gps = GpsUpdater(calibration.gps.lever_arm_b, None, opts.gps_sigma_floor_m)  # no gate: every fix weighs
         self._stillness = StillnessDetector(opts.still)
         self._leveller: GravityLeveller | None = None
         self._level_sum, self._level_n, self._level_t0 = np.zeros(3), 0, 0
         self._fixed_bias_var = np.zeros(3)  # thesis variant: variance of its calibrated gyro bias
-        self._fixes_before_start: deque[GpsFix] = deque(maxlen=64)  # the GPS heard while the IMU window fills
         self._last_fix: GpsFix | None = None  # the latest usable fix (a reset re-initialises from it)
         self._gps_reset_t: int | None = None  # the last reset for rejected fixes (a second one soon after re-aligns)
         self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
@@ -156,6 +151,8 @@ class Estimator:
         if cam is not None and opts.visual_inertial.enabled:
             self.visual_inertial = VisualInertialInitializer(cam, self.noise, calibration.imu.gravity, opts.camera.pixel_sigma,
                                                              opts.visual_inertial, opts.camera.association)
+        self._starter = StartCoordinator(self.layout, opts.init, calibration.imu.gravity, heading, self._heading_sigma,
+                                         opts.gps_sigma_floor_m, self.visual_inertial)
         # Sees every propagation (and, through the state, every update) for the smoother; None: off.
         self.recorder: FilterRecorder | None = None
 
@@ -229,7 +226,7 @@ class Estimator:
                 self.visual_inertial.add_delta(delta)
             # Not still within max_wait_s (rotors turning, carried, flying): start from the
             # accelerometer alone rather than wait for a rest or a manoeuvre that may never come.
-            init = self._initializer.add(t_ns, gyro, accel)
+            init = self._starter.initializer.add(t_ns, gyro, accel)
             if init is not None:
                 self._downsampler.flush()  # the filter starts at this sample
                 self._start(init)
@@ -499,107 +496,49 @@ class Estimator:
         self._event(state.t_ns, EventKind.STARTED, message)
 
     def _start(self, init: InitialAttitude) -> None:
-        """Start from the IMU window; the GPS heard meanwhile gives the velocity. A window that looks
-        still to the IMU is also what steady straight flight (or a steady turn) looks like: if the
-        fixes say the vehicle moves, it is no still start."""
-        opts = self.options
-        window = [f for f in self._fixes_before_start if init.t_ns - f.t_ns < VELOCITY_FIT_S * 1e9]
-        spread = self._fixes_moved(init.t_ns)
-        self._fixes_before_start.clear()
-        velocity = velocity_from_fixes(window, init.t_ns, opts.gps_sigma_floor_m)
-        moving = spread or (velocity is not None
-                            and chi2_gate(3, 0.999) < float(velocity[0] @ np.linalg.solve(velocity[1], velocity[0])))
-        seen = self._camera_sees_motion(init.t_ns)
-        if init.static and (moving or seen):
-            init = self._initializer.as_moving(init)
-        state = state_from_static(self.layout, init, opts.init, self._heading_sigma)
-        if velocity is not None and not init.static:
-            state.v = velocity[0]
-            covariance.reinitialise(state.cov, V, velocity[1])
-        self._fixed_bias_var = np.full(3, init.sigma_gyro_bias**2)
-        how = ("still" if init.static else "moving (GPS)" if moving else "moving (camera), from the mean specific force" if seen
-               else f"not still within {opts.init.max_wait_s:g} s: from the mean specific force")
+        """Adopt the start the IMU's window gives (estimator.start)."""
         camera = self.counts.get("camera")
-        placed = init.static and window and (init.t_ns - window[-1].t_ns) < 1e9  # the last fix places a still vehicle
-        if not init.static and not self._gps_seen and self.visual_inertial is not None and camera is not None and camera.received:
-            self.modes.fire(ModeEvent.START_BLIND)
-            how += "; initialising until the visual-inertial start"
-        else:
-            self.modes.fire(ModeEvent.START_PLACED if placed else ModeEvent.START_UNREFERENCED)
-        self._moving_start = not init.static
-        self._begin(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2")
+        start = self._starter.from_imu(init, camera is not None and camera.received > 0, self._gps_seen)
+        self.modes.fire(start.event)
+        self._fixed_bias_var = start.fixed_bias_var
+        self._moving_start = start.moving
+        self._begin(start.state, start.gravity, start.message)
         if not (self.heading_aligned or self.initialising):
-            self._bank = self._new_bank(state, None)
-        if placed:  # a moving vehicle waits for the next fix
-            self._init_position(window[-1])
-
-    def _fixes_moved(self, t_ns: int) -> bool:
-        """The fixes over the IMU's window lie further apart than their noise allows (5 σ): a cruise that a
-        noisy GPS's one-second velocity fit cannot tell from rest (1 m fixes, 8 m/s)."""
-        window_ns = int(self.options.init.static_window_s * 1e9)
-        fixes = [f for f in self._fixes_before_start if t_ns - f.t_ns <= window_ns]
-        if len(fixes) < 2:
-            return False
-        first, last = fixes[0], fixes[-1]
-        moved = float(np.linalg.norm((np.asarray(last.p_ned) - np.asarray(first.p_ned))[:2]))
-        return moved > 5.0 * math.hypot(first.sigma_h, last.sigma_h)
-
-    def _camera_sees_motion(self, t_ns: int) -> bool:
-        """The camera saw the scene move while the IMU's window filled: a steady cruise, not rest."""
-        return self.visual_inertial is not None and self.visual_inertial.image_moving(t_ns)
+            self._bank = self._new_bank(start.state, None)
+        if start.place_at is not None:  # a moving vehicle waits for the next fix
+            self._init_position(start.place_at)
 
     def _visual_start_pending(self) -> bool:
         """Whether the visual-inertial start is wanted: no GPS heard, and not started or still initialising."""
         return self.visual_inertial is not None and not self._gps_seen and (self.state is None or self.initialising)
 
-    def _gauge(self) -> Gauge:
-        """What a visual-inertial start cannot observe: the filter's position and heading, or the known heading."""
-        state = self.state
-        if state is not None:
-            p, heading = state.p.copy(), yaw_of(state.q)
-        else:
-            p, heading = np.zeros(3), self._initializer.heading_rad
-        return Gauge(p, heading, self._heading_sigma if self._heading_known else None)
-
-    def _apply_visual_start(self, start: VisualInertialStart) -> None:
+    def _apply_visual_start(self, window: VisualInertialStart) -> None:
         """Start (or restart) EKF-SLAM from a converged visual-inertial window, its landmarks included. An
         unknown heading stays unknown: the frame's yaw is a gauge (its variance zero, held by the camera)."""
-        state = FilterState(self.layout)
-        state.t_ns = start.t_ns
-        state.p, state.v, state.q, state.b_g = start.p.copy(), start.v.copy(), start.q.copy(), start.b_g.copy()
-        if self.layout.estimates_biases:
-            state.b_a = start.b_a.copy()
-        state.landmarks = start.landmarks.copy()
-        state.cov = covariance.robot_and_map(start.cov, VI_ROBOT_DIM, self.layout.robot_dim)
-        self._fixed_bias_var = covariance.block_variances(start.cov, BG)
-        message = start.describe()
+        start = self._starter.from_window(window)
+        state = start.state
+        self._fixed_bias_var = start.fixed_bias_var
         if self.state is None:
-            self._begin(state, self.calibration.imu.gravity, message)
+            self._begin(state, start.gravity, start.message)
         else:
             self.state = state
             self.reset_counter += 1  # the initialising estimate is replaced: a jump
-            self._event(state.t_ns, EventKind.VISUAL_START, message)
+            self._event(state.t_ns, EventKind.VISUAL_START, start.message)
         self.modes.fire(ModeEvent.VISUAL_START)
         if not self.heading_aligned:
             self._forget_heading()
-        self.camera.adopt(state, start.descriptors, covariance.landmark_sigmas(start.cov, VI_ROBOT_DIM, INVERSE_DEPTH))
+        self.camera.adopt(state, start.descriptors, start.landmark_sigmas)
         self.visual_inertial.reset()
 
     def _join_gps(self, fix: GpsFix) -> bool:
         """A GPS heard for the first time by a filter without a world frame (initialising, or in the camera's
-        own frame): its fixes are collected for ``VELOCITY_FIT_S``; then they give the velocity, the last
+        own frame): its fixes are collected for a second (estimator.start); then they give the velocity, the last
         one the position, the heading bank the heading — the moving start the GPS would have given. The
         map, placed in the old frame, goes. Returns True once joined."""
-        self._fixes_before_start.append(fix)
-        first = self._fixes_before_start[0]
-        if (fix.t_ns - first.t_ns) * 1e-9 < VELOCITY_FIT_S:
+        joined = self._starter.join(fix)
+        if joined is None:
             return False
-        fixes = list(self._fixes_before_start)
-        self._fixes_before_start.clear()
-        floor = self.options.gps_sigma_floor_m
-        recent = [f for f in fixes if fix.t_ns - f.t_ns <= VELOCITY_FIT_S * 1e9]
-        velocity = velocity_from_fixes(recent, fix.t_ns, floor) or velocity_from_fixes(fixes, fix.t_ns, floor)
-        state = self.state
+        velocity, state = joined.velocity, self.state
         if velocity is not None:
             state.v = velocity[0]
             covariance.reinitialise(state.cov, V, velocity[1])
@@ -612,9 +551,8 @@ class Estimator:
             self.visual_inertial.reset()
         self._init_position(fix)
         self.reset_counter += 1  # the frame jumps to the GPS's
-        used = len(recent if velocity is not None else fixes)
-        self._event(fix.t_ns, EventKind.GPS_JOINED, f"GPS joined: velocity from {used} fixes, position from the last; "
-                    f"reset #{self.reset_counter}", fixes=used)
+        self._event(fix.t_ns, EventKind.GPS_JOINED, f"GPS joined: velocity from {joined.fixes_used} fixes, position from "
+                    f"the last; reset #{self.reset_counter}", fixes=joined.fixes_used)
         if not self.heading_aligned:
             self._bank = self._new_bank(state, None)
             self._bank.update(fix)  # positions the hypotheses
@@ -662,7 +600,7 @@ class Estimator:
             return None
         if state is None:
             self._gps_seen = True
-            self._fixes_before_start.append(fix)
+            self._starter.hear(fix)
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)
@@ -837,7 +775,7 @@ class Estimator:
             for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
                 if delta is not None:
                     self.visual_inertial.add_delta(delta)
-        start = self.visual_inertial.add_frame(features, self._gauge())
+        start = self.visual_inertial.add_frame(features, self._starter.gauge(self.state))
         self.health.measured("camera", t_ns, used=True)  # alive and in use, by the start
         if start is None:
             counts.reject("initialising")
@@ -980,6 +918,22 @@ class Estimator:
             landmarks_initialised=camera.initialized_total if camera is not None else 0,
             landmarks_deleted=MappingProxyType(dict(sorted(camera.deleted_total.items())) if camera is not None else {}),
         )
+
+    def record_with(self, recorder: FilterRecorder) -> None:
+        """Let ``recorder`` (the smoother's) see every propagation and update. Only before the first sample: a
+        recorder that missed the start would smooth a trajectory it never saw begin."""
+        if self.state is not None:
+            raise RuntimeError("a recorder must be given before the filter starts")
+        self.recorder = recorder
+
+    def finish_recording(self) -> None:
+        """The end of the data: the recorder closes its last segment on the final state."""
+        if self.recorder is not None:
+            self.recorder.finish(self.state, self.heading_aligned)
+
+    def map_ids(self) -> np.ndarray:
+        """The ids of the map's landmarks, in the state's order."""
+        return self.camera.book.ids if self.camera is not None else np.zeros(0, np.int64)
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Ids and world points of the map's landmarks that lie ahead of their anchor (positive inverse depth)."""

@@ -143,7 +143,7 @@ def run_recorded(flight, variant: str, skip_imu_s: tuple[float, float] | None = 
     """Feed a flight through the estimator with a recorder; filtered poses after each IMU sample."""
     est = Estimator(flight.calibration, FilterOptions(variant=variant))
     steps: list[Step] = []
-    est.recorder = StepRecorder(steps.append)
+    est.record_with(StepRecorder(steps.append))
     fixes = [GpsFix(int(t), p, float(h), float(v)) for t, p, h, v in
              zip(flight.gps.t_ns, flight.gps.p_ned, flight.gps.sigma_h, flight.gps.sigma_v)]
     t0 = int(flight.imu.t_ns[0])

@@ -77,6 +77,43 @@ class PoseScore:
     nees_in_band: float
     alignment_deg: float
     world_rotation_deg: float
+    speed_bands: tuple[float | None, ...] = ()  # position RMSE per band of SPEED_BANDS_M_S (None: too few samples)
+    worst_window: tuple[float, float] | None = None  # the worst WINDOW_S window's position RMSE and its start [s]
+
+
+POSITION_TARGET = "<= 0.55"  # the default model's position over the GPS's error, on every real flight
+SPEED_BANDS_M_S = (0.5, 1.0, 1.5)  # the bands' edges: < 0.5, 0.5-1, 1-1.5, > 1.5 m/s
+WINDOW_S = 10.0  # the window of the worst stretch
+MIN_BAND_SAMPLES = 20  # fewer samples in a band: no figure
+
+
+def speed_band_rmse(t_ns: np.ndarray, p_true: np.ndarray, error: np.ndarray) -> tuple[float | None, ...]:
+    """Position RMSE where the truth's speed lies in each band of :data:`SPEED_BANDS_M_S`: whether the error
+    runs away with speed."""
+    speed = np.linalg.norm(np.gradient(p_true, t_ns * 1e-9, axis=0), axis=1) if len(t_ns) > 1 else np.zeros(len(t_ns))
+    band = np.searchsorted(np.asarray(SPEED_BANDS_M_S), speed, side="right")
+    squared = np.sum(error**2, axis=1)
+    out = []
+    for k in range(len(SPEED_BANDS_M_S) + 1):
+        inside = band == k
+        out.append(float(np.sqrt(np.mean(squared[inside]))) if np.count_nonzero(inside) >= MIN_BAND_SAMPLES else None)
+    return tuple(out)
+
+
+def worst_window(t_ns: np.ndarray, error: np.ndarray, t0_ns: int, window_s: float = WINDOW_S,
+                 step_s: float = 1.0) -> tuple[float, float] | None:
+    """The ``window_s`` stretch (starts ``step_s`` apart) with the largest position RMSE: (RMSE, its start after
+    ``t0_ns`` in seconds); None when the scored span is shorter than one window."""
+    if len(t_ns) < 2 or (t_ns[-1] - t_ns[0]) * 1e-9 < window_s:
+        return None
+    cumulative = np.concatenate([[0.0], np.cumsum(np.sum(error**2, axis=1))])
+    starts = np.arange(int(t_ns[0]), int(t_ns[-1] - window_s * 1e9) + 1, int(step_s * 1e9))
+    lo = np.searchsorted(t_ns, starts)
+    hi = np.searchsorted(t_ns, starts + int(window_s * 1e9))
+    count = np.maximum(hi - lo, 1)
+    rmse = np.sqrt((cumulative[hi] - cumulative[lo]) / count)
+    k = int(np.argmax(rmse))
+    return float(rmse[k]), (int(starts[k]) - t0_ns) * 1e-9
 
 
 @dataclass(frozen=True)
@@ -99,6 +136,8 @@ class FlightScore:
     smoothed: PoseScore | None = None
     fixed_lag: PoseScore | None = None
     backward_over_replay: float | None = None  # the backward pass's wall time over the plain replay's
+    speed_bands: tuple[float | None, ...] = ()  # the filtered position's RMSE per speed band (see PoseScore)
+    worst_window: tuple[float, float] | None = None
 
     @property
     def ratio(self) -> float:
@@ -166,7 +205,8 @@ def score_poses(traj: Trajectory, cov: CovarianceSamples, dataset: Dataset, plac
     values = nees(err, c_err)
     lo, hi = chi2_band(dof)
     return PoseScore(float(np.sqrt(np.mean(np.sum(error**2, axis=1)))), attitude, float(np.mean(values)), dof,
-                     float(np.mean((values >= lo) & (values <= hi))), _angle_deg(R_al), _angle_deg(world))
+                     float(np.mean((values >= lo) & (values <= hi))), _angle_deg(R_al), _angle_deg(world),
+                     speed_band_rmse(t, truth.p[inside], error), worst_window(t, error, int(truth.t_ns[0])))
 
 
 def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str,
@@ -202,6 +242,7 @@ def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str,
         est.reset_counter, (plain_wall_s and result.duration_s / plain_wall_s) or
         (result.duration_s / result.wall_s if result.wall_s > 0 else float("nan")),
         filtered.alignment_deg, filtered.world_rotation_deg, smoothed, fixed_lag, backward,
+        filtered.speed_bands, filtered.worst_window,
     )
 
 
@@ -247,6 +288,19 @@ def table_lines(scores: list[FlightScore]) -> list[str]:
             f"{_fmt(s.attitude_rms_deg, '.2f', '°')} | {s.nees_mean:.2f} ({s.nees_dof} dof, {100 * s.nees_in_band:.0f} %) | "
             f"{_fmt(s.first_pose_s, '.1f', ' s')} | {heading} | {s.resets} | {s.realtime_factor:.0f} |"
         )
+    return lines
+
+
+def speed_lines(scores: list[FlightScore]) -> list[str]:
+    """Where the filtered position's error lies (Markdown): its RMSE per band of the truth's speed, and the worst
+    10-s stretch with its start after the truth's first sample."""
+    edges = SPEED_BANDS_M_S
+    names = [f"< {edges[0]:g}"] + [f"{a:g}-{b:g}" for a, b in zip(edges, edges[1:])] + [f"> {edges[-1]:g} m/s"]
+    lines = ["| flight | model | " + " | ".join(names) + f" | worst {WINDOW_S:g} s |", "|---" * (len(names) + 3) + "|"]
+    for s in scores:
+        bands = " | ".join(_fmt(b, ".4f", " m") for b in s.speed_bands) if s.speed_bands else " | ".join("—" for _ in names)
+        worst = "—" if s.worst_window is None else f"{s.worst_window[0]:.4f} m from {s.worst_window[1]:.0f} s"
+        lines.append(f"| {s.flight} | {s.variant} | {bands} | {worst} |")
     return lines
 
 
@@ -300,11 +354,14 @@ def bench_euroc(echo: Callable[[str], None] = print) -> list[Row]:
     with tempfile.TemporaryDirectory() as tmp:
         for flight in flights:
             scores.extend(run_flight(flight, Path(tmp), smooth=True))
-    for line in table_lines(scores) + [""] + smoothing_lines(scores):
+    for line in table_lines(scores) + [""] + speed_lines(scores) + [""] + smoothing_lines(scores):
         echo("  " + line)
-    rows: list[Row] = [(f"{s.flight} {s.variant}: position / GPS", s.ratio, "ratio",
-                        f"attitude {_fmt(s.attitude_rms_deg, '.2f', ' deg')}, NEES {s.nees_mean:.2f}, {s.resets} resets")
+    rows: list[Row] = [BenchRow(f"{s.flight} {s.variant}: position / GPS", s.ratio, "ratio",
+                                f"attitude {_fmt(s.attitude_rms_deg, '.2f', ' deg')}, NEES {s.nees_mean:.2f}, {s.resets} resets",
+                                POSITION_TARGET if s.variant == "biases" else None)
                        for s in scores]
+    rows += [BenchRow(f"{s.flight} {s.variant}: worst {WINDOW_S:g} s / GPS", s.worst_window[0] / s.gps_rmse_m, "ratio",
+                      f"from {s.worst_window[1]:.0f} s") for s in scores if s.worst_window is not None]
     for s in scores:  # issue 13's targets, default variant
         if s.variant != "biases" or s.smoothed is None:
             continue

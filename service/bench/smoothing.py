@@ -105,13 +105,13 @@ def bench_smoothing_landmarks(duration_s: float = 40.0) -> list[Row]:
         held: dict = {}
 
         def prepare(runtime) -> None:
-            held["full"] = full = FullStateRecorder(lambda: runtime.est.camera.book.ids)
-            runtime.est.recorder = Recorders(StepRecorder(steps.append), full)
+            held["full"] = full = FullStateRecorder(runtime.est.map_ids)
+            runtime.est.record_with(Recorders(StepRecorder(steps.append), full))
 
         t0 = time.perf_counter()
         result = replay(dataset, load_config(), ["imu", "camera", "gps"], prepare=prepare)
         wall = time.perf_counter() - t0
-        result.estimator.recorder.finish(result.estimator.state)
+        result.estimator.finish_recording()
     block = smooth_steps(steps)
     t_full, x_full = held["full"].smooth()
     start = int(flight.imu.t_ns[0] + SCORE_FROM_S * 1e9)

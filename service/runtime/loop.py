@@ -282,14 +282,15 @@ class Runtime:
                     self.failures.record("smoothing step sink (stopped)", exc)
                     sinks.remove(sink)
 
-        self._step_recorder = self.est.recorder = StepRecorder(fan_out)
+        self._step_recorder = StepRecorder(fan_out)
+        self.est.record_with(self._step_recorder)
 
     def finish_smoothing(self) -> None:
         """End of the data, after the fusion flush: the last segment closes, the rest is smoothed (once)."""
         if self._smoothing_finished or self._step_recorder is None:
             return
         self._smoothing_finished = True
-        self._step_recorder.finish(self.est.state, self.est.heading_aligned)
+        self.est.finish_recording()
         if self.smoother is not None:
             smoothed = self.smoother.flush()
             if smoothed:
