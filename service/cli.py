@@ -15,8 +15,23 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from vtolpose.config import ConfigError
 
-# Subcommand name -> module in vtolpose.service.commands providing add_parser(subparsers) and run(args).
-COMMANDS = ("demo", "simulate", "import", "replay", "eval", "map", "export", "bench", "calibrate", "probe", "run")
+# Subcommand name -> its one-line help. Each has a module in vtolpose.service.commands providing
+# add_parser(subparsers) and run(args); only the one a command line names is imported (a subcommand's module
+# imports what its job needs, and `vtolpose --help` needs none of it). tests/test_cli.py holds these lines to
+# the modules' own.
+COMMANDS = {
+    "demo": "simulate a flight, replay it through the estimator, print the score",
+    "simulate": "make a simulated flight dataset (IMU, GPS, camera frames, truth)",
+    "import": "convert external data (EuRoC, ROS 2 bags) into a dataset",
+    "replay": "run the estimator over a dataset, write the trajectory and a report",
+    "eval": "score a trajectory against truth (RMSE, drift)",
+    "map": "map a dataset's LIDAR returns with a trajectory (or live poses) and score the map",
+    "export": "a TUM trajectory as a WGS84 flight path with time and quality per point (GeoJSON, KML)",
+    "bench": "speed figures on this machine (can it keep up?)",
+    "calibrate": "calibrate IMU, camera, IMU-camera and GPS timing, GPS lever arm",
+    "probe": "field check of one sensor: identity, rate, first samples, packet statistics",
+    "run": "the onboard daemon: sensors in, ODOMETRY (MAVLink) and poses (Zenoh) out",
+}
 
 DESCRIPTION = """\
 vtolpose: pose of a VTOL UAV from IMU, camera and GPS (EKF-SLAM), for the flight controller
@@ -31,14 +46,23 @@ Start here:
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_module(name: str):
+    """The module of subcommand ``name`` (``import`` lives in ``importer``: a module may not be called import)."""
+    return importlib.import_module(f"vtolpose.service.commands.{'importer' if name == 'import' else name}")
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; the subcommands ``argv`` names (all when None) in full, the others by their help line only."""
+    wanted = set(COMMANDS) if argv is None else {a for a in argv if a in COMMANDS}
     parser = argparse.ArgumentParser(prog="vtolpose", description=DESCRIPTION, formatter_class=HelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
-        module = importlib.import_module(f"vtolpose.service.commands.{name.replace('import', 'importer')}")
-        module.add_parser(sub)
+    for name, summary in COMMANDS.items():
+        if name in wanted:
+            command_module(name).add_parser(sub)
+        else:
+            sub.add_parser(name, help=summary, add_help=False)
     for command in sub.choices.values():
         finish_subcommand(command)
     return parser
@@ -64,7 +88,9 @@ def finish_subcommand(parser: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    first = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser([first] if first is not None else [])
     args = parser.parse_args(argv)
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")

@@ -30,6 +30,40 @@ def test_every_command_has_help_that_teaches(capsys):
     assert "vtolpose demo" in capsys.readouterr().out
 
 
+def test_the_listing_says_what_each_command_module_says():
+    """The top-level help lists the subcommands from cli.COMMANDS without importing them: its lines must be the
+    modules' own."""
+    import argparse
+
+    full = build_parser()
+    sub = next(a for a in full._actions if isinstance(a, argparse._SubParsersAction))
+    assert {c.dest: c.help for c in sub._choices_actions} == COMMANDS
+
+
+def test_top_level_help_imports_no_subcommand_and_nothing_heavy():
+    import subprocess
+    import sys
+
+    probe = ("import sys, contextlib, io\n"
+             "from vtolpose.service.cli import main\n"
+             "with contextlib.redirect_stdout(io.StringIO()):\n"
+             "    try: main(['--help'])\n"
+             "    except SystemExit: pass\n"
+             "print(' '.join(sorted(m for m in sys.modules if m.startswith('vtolpose.service.commands.')"
+             " or m in ('numpy', 'cv2', 'scipy', 'zenoh', 'pymavlink'))))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.split()
+    assert out == []
+
+
+def test_a_subcommand_line_builds_only_its_own_parser():
+    import argparse
+
+    parser = build_parser(["eval"])
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert any(a.dest == "truth" for a in sub.choices["eval"]._actions)
+    assert not any(a.dest == "sensors" for a in sub.choices["replay"]._actions)  # the stub: a help line only
+
+
 def test_simulate_writes_the_same_bytes_for_the_same_seed(book_dir, tmp_path):
     again = tmp_path / "again"
     main(["-q", "simulate", "--scenario", "book", "--duration", "40", "--seed", "2", "--out", str(again), "--no-camera"])
