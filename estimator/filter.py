@@ -89,21 +89,6 @@ class FilterOptions:
             raise ValueError(f"heading_source must be one of {', '.join(HEADING_SOURCES)}, got {self.heading_source!r}")
 
 
-@dataclass(frozen=True, slots=True)
-class PoseEstimate:
-    """What the outputs publish: pose, rates and uncertainty at ``t_ns``."""
-
-    t_ns: int
-    p: np.ndarray
-    v: np.ndarray
-    q: np.ndarray
-    omega_b: np.ndarray
-    pose_cov: np.ndarray  # 6 × 6, [δp, δθ] (world-frame attitude error)
-    vel_cov: np.ndarray  # 3 × 3, world-frame velocity
-    heading_aligned: bool
-    reset_counter: int
-
-
 class Estimator:
     def __init__(self, calibration: Calibration, options: FilterOptions | None = None) -> None:
         opts = options or FilterOptions()
@@ -876,22 +861,6 @@ class Estimator:
             self._fixed_bias_var = (1.0 - gain) * prior
 
     # ------------------------------------------------------------------------------ output
-    def pose(self) -> PoseEstimate | None:
-        state = self.state
-        if state is None:
-            return None
-        return PoseEstimate(
-            t_ns=state.t_ns,
-            p=state.p.copy(),
-            v=state.v.copy(),
-            q=state.q.copy(),
-            omega_b=self._gyro - state.b_g,
-            pose_cov=covariance.pose_block(self.published_cov9()),
-            vel_cov=state.cov[V, V].copy(),
-            heading_aligned=self.heading_aligned,
-            reset_counter=self.reset_counter,
-        )
-
     def _event(self, t_ns: int, kind: EventKind, message: str, reset_kind: str | None = None, **figures: float) -> None:
         self.events.append(EstimatorEvent(t_ns, kind, message, self.reset_counter, reset_kind, MappingProxyType(figures)))
 

@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from vtolpose.estimator.core.covariance import YAW
 from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, ImuCalibration, ImuNoise
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline
 from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
@@ -132,9 +133,9 @@ def test_unknown_heading_maps_in_the_frame_of_arbitrary_yaw():
     for k, t_ns in enumerate((3_000_000_000, 3_133_333_333)):
         assert est.process_features(extract_features(textured(5 + k), EPOCH + t_ns, FeatureOptions())).accepted
     assert est.state.n_landmarks > 0 and yaw_of(est.state.q) == pytest.approx(yaw, abs=1e-12)
-    assert est.local_position and est.pose().pose_cov[5, 5] < np.radians(5.0) ** 2
+    assert est.local_position and est.published_cov9()[YAW, YAW] < np.radians(5.0) ** 2
     est.process_gps(GpsFix(EPOCH + 3_200_000_000, np.zeros(3), 0.02, 0.03))
-    assert not est.local_position and est.pose().pose_cov[5, 5] == pytest.approx(np.pi**2 / 3)
+    assert not est.local_position and est.published_cov9()[YAW, YAW] == pytest.approx(np.pi**2 / 3)
 
 
 # --------------------------------------------------------------------------- map management

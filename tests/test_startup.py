@@ -20,6 +20,7 @@ from vtolpose.drivers.simulator.imu_model import ImuErrorModel, corrupt_imu
 from vtolpose.drivers.simulator.trajectory import AlongTrack, Hold, Segment, SegmentPath, SmoothMove, ThrustAlignedTrajectory, Turn
 from vtolpose.estimator.core.calibration import STANDARD_GRAVITY, Calibration, GpsCalibration, ImuCalibration
 from vtolpose.estimator.core.measurements import GpsFix
+from vtolpose.estimator.core.covariance import YAW
 from vtolpose.estimator.core.rotation import rotation_angle, yaw_of
 from vtolpose.estimator.filter import Estimator, FilterOptions
 from vtolpose.estimator.inertial.heading_bank import UNKNOWN_HEADING_VAR
@@ -68,9 +69,10 @@ def fly(segments: list[Segment], seed: int) -> Run:
             est.process_gps(GpsFix(int(t_gps[j]), fixes[j], GPS.sigma_h, GPS.sigma_v))
             j += 1
         est.process_imu(int(t), imu.gyro[k], imu.accel[k])
-        pose = est.pose()
-        if pose is not None:
-            rows.append((k, pose.heading_aligned, est.position_initialized, pose.p, pose.q, pose.pose_cov[5, 5]))
+        state = est.state
+        if state is not None:  # the pose as published: the heading's variance that of an unknown one until placed
+            rows.append((k, est.heading_aligned, est.position_initialized, state.p.copy(), state.q.copy(),
+                         est.published_cov9()[YAW, YAW]))
     k, aligned, positioned, p, q, var = (np.array(x) for x in zip(*rows))
     return Run((t_imu[k] - EPOCH) * 1e-9, aligned, positioned, p, q, var, est, at_imu.p[k], at_imu.q()[k])
 
