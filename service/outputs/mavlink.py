@@ -33,6 +33,7 @@ from vtolpose.drivers.links.mavlink_signing import SigningKeyError, read_signing
 from vtolpose.drivers.links.mavlink_transport import open_transport
 from vtolpose.drivers.links.mavlink_wire import mavutil
 from vtolpose.estimator.fusion import OutputPose
+from vtolpose.service.outputs.mavlink_frame import PublishedFrame
 from vtolpose.service.outputs.mavlink_odometry import (
     ODOMETRY_CRC_EXTRA, ODOMETRY_ID, PROFILES, Profile, euler_jacobian, odometry_covariances, odometry_fields,
     odometry_payload, upper_triangle,
@@ -207,6 +208,8 @@ class MavlinkOutput:
         self._chunk_id = 0
         self._active = False
         self._loop: asyncio.AbstractEventLoop | None = None
+        # Per autopilot profile: the frame it is told, the steps it gets (PX4's FRD, ArduPilot's yaw).
+        self.frames = {name: PublishedFrame(name) for name in dict.fromkeys(e.profile.name for e in self.endpoints)}
 
     @classmethod
     def from_config(cls, cfg: dict[str, Any]) -> "MavlinkOutput":
@@ -249,6 +252,8 @@ class MavlinkOutput:
         It runs for every IMU sample: each profile's payload is packed once, and framed per endpoint
         without pymavlink's message objects (:meth:`Endpoint.send_packed`)."""
         self.clock.follow(pose.t_ns)
+        for frame in self.frames.values():
+            frame.follow(pose)
         payloads: dict[str, tuple[bytes, int]] = {}
         sent = False
         for endpoint in self.endpoints:
@@ -257,7 +262,8 @@ class MavlinkOutput:
             try:
                 profile = endpoint.profile
                 if profile.name not in payloads:
-                    f = odometry_fields(pose, profile)
+                    shown, frame_id, resets = self.frames[profile.name].present(pose)
+                    f = odometry_fields(shown, profile, frame_id, resets)
                     payloads[profile.name] = odometry_payload(f), f["quality"]
                 payload, quality = payloads[profile.name]
                 endpoint.send_packed(ODOMETRY_ID, ODOMETRY_CRC_EXTRA, payload, "odometry_sent")
@@ -351,7 +357,7 @@ class MavlinkOutput:
         totals = {key: sum(r.get(key, 0) for r in reports.values())
                   for key in ("odometry_sent", "heartbeats_sent", "statustext_sent", "received", "bad_data")}
         return {**totals, "statustext_held_back": self.limiter.suppressed_total if self.limiter else 0,
-                "endpoints": reports}
+                "frames": {name: frame.report() for name, frame in self.frames.items()}, "endpoints": reports}
 
     async def serve(self, stop: asyncio.Event) -> None:
         """HEARTBEAT every second; UDP read when readable, serial and TCP polled; links kept open."""
