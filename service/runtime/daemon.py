@@ -11,6 +11,7 @@ import logging
 import math
 import os
 import signal
+import time
 from pathlib import Path
 from typing import Any, AsyncIterator, Callable, Sequence
 
@@ -88,11 +89,13 @@ def build_runtime(
     measure_latency: bool = False,
     live: bool = False,
     on_fused: Callable[[OutputPose], None] | None = None,
+    sensor_now: Callable[[], int | None] | None = None,
 ) -> Runtime:
     """The estimator, fusion core, history and the outputs enabled in ``outputs.*``.
 
     ``live``: apply ``run.realtime_priority`` (never to a replay, which would hog a core at it); live sensor
-    stamps are on the monotonic clock (ROS 2 stamps and TIMESYNC answers follow from it).
+    stamps are on the monotonic clock (ROS 2 stamps and TIMESYNC answers follow from it). ``sensor_now``:
+    the sensor clock now, when it is not the monotonic one (a paced replay's); TIMESYNC answers on it.
     """
     calibration = calibration_with_overrides(cfg, calibration)
     estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
@@ -107,10 +110,11 @@ def build_runtime(
                       trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused)
     runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
     if cfg["outputs.mavlink.enabled"]:
-        from vtolpose.service.outputs.mavlink import MavlinkOutput
+        from vtolpose.service.outputs.mavlink import MavlinkOutput, SensorClock
 
+        now = sensor_now if sensor_now is not None else time.monotonic_ns if live else None
         try:
-            runtime.outputs.append(MavlinkOutput.from_config(cfg))
+            runtime.outputs.append(MavlinkOutput.from_config(cfg, SensorClock(now=now)))
         except ValueError as exc:  # an unusable signing key file: the message names its key
             raise ConfigError(str(exc)) from None
     if cfg["outputs.zenoh.enabled"]:
