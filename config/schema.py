@@ -244,7 +244,7 @@ SCHEMA: dict[str, Field] = {
     "outputs.ros2.map_frame": Field("str"),
     "outputs.ros2.odom_frame": Field("str", nullable=True),
     "outputs.ros2.base_frame": Field("str"),
-    "outputs.ros2.stamp": Field("str", choices=("estimator", "system")),
+    "outputs.ros2.stamp": Field("str", choices=("auto", "estimator", "system")),
     "outputs.foxglove.enabled": Field("bool"),
     "outputs.foxglove.host": Field("str"),
     "outputs.foxglove.port": Field("int", minimum=0, maximum=65535),

@@ -206,8 +206,8 @@ def test_tls_files_with_plain_endpoints_are_refused_or_warned(tmp_path, caplog):
     tls = {"root_ca_certificate": str(tmp_path / "ca.pem"), "certificate": str(tmp_path / "node.pem"),
            "private_key": str(tmp_path / "node.key")}
     with pytest.raises(ConfigError, match=r"command line: key 'outputs.zenoh.tls.root_ca_certificate': TLS is configured "
-                                          r"but no endpoint is tls/ or quic/ \(tcp/127.0.0.1:7447\)"):
+                                          r"but no endpoint is tls/ or quic/ \(tcp/127.0.0.1:7448\)"):
         load_config(None, {"outputs": {"zenoh": {"enabled": True, "tls": tls}}})
     with caplog.at_level(logging.WARNING):
-        load_config(None, {"outputs": {"zenoh": {"enabled": True, "tls": tls, "connect": ["tls/localhost:7448"]}}})
-    assert "tcp/127.0.0.1:7447 is plain text" in caplog.text
+        load_config(None, {"outputs": {"zenoh": {"enabled": True, "tls": tls, "connect": ["tls/localhost:7449"]}}})
+    assert "tcp/127.0.0.1:7448 is plain text" in caplog.text

@@ -5,6 +5,7 @@ TIMESYNC round trip maps ``time_usec`` onto the autopilot's clock; an injected G
 filter reaches the ground station as STATUSTEXT."""
 
 import asyncio
+import math
 import socket
 import threading
 import time
@@ -215,3 +216,29 @@ def test_a_gps_jump_reset_reaches_the_ground_station_as_statustext(tmp_path, cap
     assert {m.frame_id for m in gcs.of("ODOMETRY")} == {mav.MAV_FRAME_LOCAL_NED}
     resets_seen = {m.reset_counter for m in fc.of("ODOMETRY")}
     assert len(resets_seen) >= 2  # reset_counter moved on at the reset
+
+
+def yaw_deg(msg) -> float:
+    w, x, y, z = msg.q
+    return math.degrees(math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
+def test_ardupilot_sees_no_yaw_step_when_a_gps_reset_places_the_heading_again(tmp_path, capsys):
+    """A heading found from GPS, then a GPS jump that resets the filter and has the heading searched for
+    again: the estimator's yaw steps by 10-26° at its resets (seen without the absorbing frame); what
+    ArduPilot receives goes on smoothly, and its reset_counter moves at each reset."""
+    root = tmp_path / "landfill"
+    write_flight(simulate_flight("landfill", 70.0, 3), root)
+    fc = Collector()
+    try:
+        code = main(["run", "--replay", str(root), "--speed", "0", "--fault", "gps-jump:30:20,0,0:15",
+                     "--mavlink", f"udpout:127.0.0.1:{fc.port}", "--set", "outputs.mavlink.autopilot=ardupilot",
+                     "--set", "estimator.heading.source=gps"])
+    finally:
+        fc.close()
+    assert code == 0, capsys.readouterr().err
+    odometry = [m for m in fc.of("ODOMETRY") if all(map(math.isfinite, m.q))]
+    at_resets = [abs((yaw_deg(b) - yaw_deg(a) + 180.0) % 360.0 - 180.0)
+                 for a, b in zip(odometry, odometry[1:]) if a.reset_counter != b.reset_counter]
+    print(f"{len(odometry)} ODOMETRY, yaw change at the {len(at_resets)} reset steps: {[round(d, 2) for d in at_resets]} deg")
+    assert len(at_resets) >= 3 and max(at_resets) < 1.0

@@ -22,6 +22,7 @@ from vtolpose.service.outputs import mavlink as mavlink_output
 from vtolpose.service.outputs.mavlink import (
     COMPONENT_ID, Endpoint, MavlinkOutput, euler_jacobian, mavutil, odometry_covariances, odometry_fields,
 )
+from vtolpose.service.outputs.mavlink_frame import PublishedFrame
 from vtolpose.service.outputs.mavlink_odometry import ODOMETRY_CRC_EXTRA, ODOMETRY_ID, PROFILES, odometry_payload
 
 mav = mavutil.mavlink
@@ -244,13 +245,16 @@ def test_the_output_sends_pymavlinks_bytes_and_keeps_the_links_sequence_and_sign
         odometry = [f for f, m in zip(frames, msgs) if m.get_type() == "ODOMETRY"]
         assert len(odometry) == len(poses)
         profile = PROFILES["ardupilot"] if signed else PROFILES["generic"]  # a ground station gets the generic fields
+        published = PublishedFrame(profile.name)  # the frame the profile is told (ArduPilot's yaw held across steps)
         for frame, pose in zip(odometry, poses):
+            published.follow(pose)
             ref = mav.MAVLink(Frames(), srcSystem=42, srcComponent=COMPONENT_ID)
             ref.seq = frame[4]
             if signed:
                 ref.signing.secret_key, ref.signing.sign_outgoing = KEY, True
                 ref.signing.link_id, ref.signing.timestamp = frame[-13], int.from_bytes(frame[-12:-6], "little")
-            ref.send(mav.MAVLink_odometry_message(**odometry_fields(pose, profile)))
+            shown, frame_id, resets = published.present(pose)
+            ref.send(mav.MAVLink_odometry_message(**odometry_fields(shown, profile, frame_id, resets)))
             assert frame == ref.file.written[0]
 
 

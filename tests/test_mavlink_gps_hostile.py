@@ -470,3 +470,66 @@ def test_the_gps_may_repeat_the_shared_links_signing_settings(tmp_path):
                                                  "signing_key_file": key, "require_signing": True}},
                              "outputs": {"mavlink": link}})
     assert cfg["sensors.gps.require_signing"] and cfg["outputs.mavlink.require_signing"]
+
+
+def test_with_signing_required_nothing_unsigned_or_forged_is_decoded(monkeypatch):
+    """The signature is checked on the frame's bytes first: the decoder never sees a refused frame."""
+    port = free_udp_port()
+    gps = gps_link(port, signing_key=KEY, require_signing=True)
+    decoded = []
+    decode = gps.inbound._decoder.decode
+    monkeypatch.setattr(gps.inbound._decoder, "decode", lambda buf: decoded.append(bytes(buf)) or decode(buf))
+    autopilot, imposter = signed_peer(port), signed_peer(port, WRONG_KEY)
+    plain = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    try:
+        for k in range(3):
+            imposter.mav.send(gps_raw(k, lat_deg=10.0, step_deg=0.0))
+            plain.mav.send(gps_raw(k, lat_deg=20.0, step_deg=0.0))
+        time.sleep(0.1)
+        autopilot.mav.send(gps_raw(5))
+        readings = read_until(gps, lambda r: r)
+    finally:
+        for conn in (autopilot, imposter, plain):
+            conn.close()
+        gps.close()
+    assert [fix_number(r) for r in readings] == [5]
+    assert (gps.counts["refused_bad_signature"], gps.counts["refused_unsigned"]) == (3, 3)
+    assert len(decoded) == 1 and decoded[0][-13] == autopilot.mav.signing.link_id  # the autopilot's frame only
+
+
+def test_the_gps_links_counters_are_in_the_status_document():
+    from vtolpose.config import load_config
+    from vtolpose.drivers.simulator import simulate_flight
+    from vtolpose.service.runtime.daemon import build_runtime, serve
+
+    port = free_udp_port()
+    gps = gps_link(port, signing_key=KEY, require_signing=True)
+    source = ThreadedSource("gps", gps, lambda reading: reading.fix)
+    runtime = build_runtime(load_config(), simulate_flight("landfill", 2.0, 1).calibration)
+    autopilot, imposter = signed_peer(port), signed_peer(port, WRONG_KEY)
+    plain = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+
+    async def feed():
+        await asyncio.sleep(0.2)
+        for k in range(3):
+            autopilot.mav.send(gps_raw(k))
+        imposter.mav.send(gps_raw(7, lat_deg=10.0, step_deg=0.0))
+        for k in range(2):
+            plain.mav.send(gps_raw(8 + k, lat_deg=20.0, step_deg=0.0))
+        await asyncio.sleep(0.5)
+
+    async def main():
+        task = asyncio.create_task(serve(runtime, [source], duration_s=1.0, handle_signals=False))
+        await feed()
+        return await task
+
+    try:
+        summary = asyncio.run(main())
+    finally:
+        for conn in (autopilot, imposter, plain):
+            conn.close()
+        gps.close()
+    link = summary.status["inputs"]["gps"]
+    assert (link["received"], link["refused"], link["unsigned"]) == (3, 3, 2), link
+    assert link["signing"] == "required" and link["counters"]["refused_bad_signature"] == 1
+    assert link["url"] == f"udpin:127.0.0.1:{port}"

@@ -174,7 +174,7 @@ def test_liveliness_tokens_put_the_node_into_the_ros_graph(shared):
     zid = node[0].split("/")[2]  # the Zenoh session id in hex, as Zenoh writes it (no leading zeros: up to 32 digits)
     assert node[0].startswith("@ros2_lv/0/") and 1 <= len(zid) <= 32 and int(zid, 16) > 0
     odom_hash = ROS.hash_rihs01("nav_msgs/msg/Odometry")
-    assert any(p.endswith(f"/MP/%/%vtol1/vtolpose/%vtol1%odom/nav_msgs::msg::dds_::Odometry_/{odom_hash}/::,:,:,:,,")
+    assert any(p.endswith(f"/MP/%/%vtol1/vtolpose/%vtol1%odom/nav_msgs::msg::dds_::Odometry_/{odom_hash}/::,10:,:,:,,")
                for p in pubs)
     assert any(p.endswith("/MP/%/%vtol1/vtolpose/%tf/tf2_msgs::msg::dds_::TFMessage_/"
                           f"{ROS.hash_rihs01('tf2_msgs/msg/TFMessage')}/::,100:,:,:,,") for p in pubs)

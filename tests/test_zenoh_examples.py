@@ -1,6 +1,6 @@
 """The Zenoh examples a user copies, run as written: the README's local example (issue 15) and the TLS
 and access-control example of docs/zenoh.md, with the daemon and the clients as separate processes on
-loopback. Only the port changes (7447 → a free one), so that parallel test runs cannot collide."""
+loopback. Only the port changes (7448 → a free one), so that parallel test runs cannot collide."""
 
 import os
 import re
@@ -74,7 +74,7 @@ def test_the_readme_local_example_works_as_written(tmp_path):
     port = free_port()
     daemon = Daemon(command(run) + ["--set", f"outputs.zenoh.listen=[tcp/127.0.0.1:{port}]"], tmp_path)
     try:
-        client = run_python(example["python"].replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{port}"), tmp_path)
+        client = run_python(example["python"].replace("tcp/127.0.0.1:7448", f"tcp/127.0.0.1:{port}"), tmp_path)
         code, out, err = daemon.stop()
     finally:
         daemon.kill()
@@ -98,9 +98,9 @@ def test_the_tls_and_access_control_example_of_the_docs(tmp_path):
     subprocess.run(["bash", "-e", "-c", blocks(docs, "example: certificates")["sh"]], cwd=tmp_path, check=True,
                    capture_output=True, timeout=120)
     (tmp_path / "pki" / "acl.json5").write_text(blocks(docs, "example: acl")["json5"])
-    (tmp_path / "vehicle-tls.yaml").write_text(blocks(docs, "example: vehicle")["yaml"].replace("7447", port))
+    (tmp_path / "vehicle-tls.yaml").write_text(blocks(docs, "example: vehicle")["yaml"].replace("7448", port))
     write_flight(simulate_flight("landfill", 60.0, 1), tmp_path / "demo-landfill")
-    mapper = blocks(docs, "example: mapper")["python"].replace("7447", port)
+    mapper = blocks(docs, "example: mapper")["python"].replace("7448", port)
     daemon = Daemon(command("vtolpose run --replay demo-landfill --config vehicle-tls.yaml --hold"), tmp_path)
     try:
         allowed = run_python(mapper, tmp_path)

@@ -207,6 +207,18 @@ class MavlinkGps:
             self._transport.confirm_peer(peer)
         return reading
 
+    def link_stats(self) -> dict[str, Any]:
+        """The link's counters for the status document: ``received`` (frames that passed every check),
+        ``refused`` (all ``refused_*``), ``unsigned`` (refused for it, or let through without signing
+        required), the signing rule, and every counter by name."""
+        counts = dict(self.counts)  # a copy: the reader thread goes on counting
+        signing = "required" if self.inbound.require_signing else "checked" if self.inbound.check is not None else "off"
+        return {"url": self.config.url, "status": self.status, "signing": signing,
+                "received": counts.get("received", 0),
+                "refused": sum(n for name, n in counts.items() if name.startswith("refused_")),
+                "unsigned": counts.get("refused_unsigned", 0) + counts.get("unsigned_accepted", 0),
+                "counters": counts}
+
     def _log_new_refusals(self) -> None:
         """The first time each kind of refusal or loss happens, say so; the counters keep the totals."""
         for name, count in list(self.counts.items()):

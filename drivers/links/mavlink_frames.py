@@ -2,7 +2,7 @@
 
 Nothing a link delivers is used before it passes :class:`Inbound`: a whole frame of a message id
 this dialect knows, with a correct checksum, and, when a signing key is set, signed with that key
-(unsigned frames only when signing is not required). What fails is counted under its reason and
+(unsigned frames only when signing is not required); a signature is checked before the frame is decoded. What fails is counted under its reason and
 dropped; a message id the dialect does not know is never counted as received, and is refused when
 signing is required (its checksum cannot be verified, and it cannot be let past the signature rule).
 """
@@ -114,7 +114,10 @@ class Inbound:
         self.counts: Counter[str] = Counter()
 
     def accept(self, frame: bytes) -> object | None:
-        """The decoded message when ``frame`` may be used, else None (counted)."""
+        """The decoded message when ``frame`` may be used, else None (counted).
+
+        With a key, a signed frame's signature is checked before anything in it is decoded: a forged
+        frame costs a hash, never the decoder's work, and none of its fields is ever looked at."""
         msg_id, system, component, signed = frame_header(frame)
         if self.require_signing and not signed:
             self.counts["refused_unsigned"] += 1
@@ -122,19 +125,17 @@ class Inbound:
         if msg_id not in mav.mavlink_map:
             self.counts["refused_unknown_id" if self.require_signing else "unknown_id"] += 1
             return None
+        if self.check is not None and signed:
+            problem = self.check.problem(frame, system, component)
+            if problem is not None:
+                self.counts[f"refused_{problem}"] += 1
+                return None
         try:
             msg = self._decoder.decode(bytearray(frame))
         except mav.MAVError:
             self.counts["bad_data"] += 1
             return None
         if self.check is not None:
-            if signed:
-                problem = self.check.problem(frame, system, component)
-                if problem is not None:
-                    self.counts[f"refused_{problem}"] += 1
-                    return None
-                self.counts["signed"] += 1
-            else:
-                self.counts["unsigned_accepted"] += 1
+            self.counts["signed" if signed else "unsigned_accepted"] += 1
         self.counts["received"] += 1
         return msg

@@ -33,7 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "  vtolpose map data/landfill --trajectory traj.txt --explain   (what position, attitude and timing cost)\n"
         "  vtolpose map data/landfill --true-poses\n"
         "  vtolpose run --replay data/landfill --zenoh --hold &\n"
-        "  vtolpose map --zenoh --connect tcp/127.0.0.1:7447 --lidar-from data/landfill --kind smoothed",
+        "  vtolpose map --zenoh --connect tcp/127.0.0.1:7448 --lidar-from data/landfill --kind smoothed",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("dataset", nargs="?", metavar="DATASET", help="dataset with mav0/lidar0")
@@ -56,7 +56,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "attitude alone, and true poses taken once per scan, to show what each costs")
     z = p.add_argument_group("Zenoh (with --zenoh)")
     z.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="the service's endpoint, e.g. tcp/192.168.1.10:7447 (repeatable)")
+                   help="the service's endpoint, e.g. tcp/192.168.1.10:7448 (repeatable)")
     z.add_argument("--prefix", default="vtolpose/vtol1", help="the service's key prefix (default vtolpose/vtol1)")
     z.add_argument("--wait", type=float, default=10.0, metavar="S",
                    help="how long to wait for the service to reach a scan before stopping (default 10 s)")

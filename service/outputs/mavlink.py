@@ -13,15 +13,18 @@ the estimator's loop longer than one slice (a fraction of an IMU period), and a 
 takes at most a fixed share of it; what it crowds out is dropped by the kernel, not queued here.
 
 TIMESYNC: a request (``tc1 = 0``) is answered at once with ``tc1`` = now on the clock ``time_usec`` is
-in (the sensor clock, followed from the poses; a live run stamps the IMU on the host's monotonic
-clock). PX4 asks first and, once its filter converges, maps ``time_usec`` onto its own clock; until a
-first pose there is no sensor clock and requests are counted, not answered.
+in (:class:`SensorClock`: live, the host's monotonic clock the IMU is stamped on; a paced replay, the
+replay's clock). PX4 asks first and, once its filter converges, maps ``time_usec`` onto its own clock
+exactly. Without the clock itself, the answer follows the poses and lags by their age; until a first
+pose there is then no clock and requests are counted, not answered. The age of each pose sent (IMU
+stamp to send) is measured and reported with the delay parameter it suggests (``link_stats``).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from collections import Counter
 from typing import Any, Callable, Sequence
@@ -33,12 +36,13 @@ from vtolpose.drivers.links.mavlink_signing import SigningKeyError, read_signing
 from vtolpose.drivers.links.mavlink_transport import open_transport
 from vtolpose.drivers.links.mavlink_wire import mavutil
 from vtolpose.estimator.fusion import OutputPose
+from vtolpose.service.outputs.mavlink_frame import PublishedFrame
 from vtolpose.service.outputs.mavlink_odometry import (
     ODOMETRY_CRC_EXTRA, ODOMETRY_ID, PROFILES, Profile, euler_jacobian, odometry_covariances, odometry_fields,
     odometry_payload, upper_triangle,
 )
 from vtolpose.service.outputs.mavlink_status import StatusEvents, TextLimiter, statustext_chunks
-from vtolpose.service.runtime.status import FailureBook, stopped_within
+from vtolpose.service.runtime.status import FailureBook, LatencyProbe, stopped_within
 
 __all__ = ["COMPONENT_ID", "Endpoint", "MavlinkOutput", "SensorClock", "SigningKeyError", "OdometrySchedule",
            "euler_jacobian", "mavutil", "odometry_covariances", "odometry_fields", "read_signing_key", "upper_triangle"]
@@ -51,14 +55,23 @@ READ_BUDGET_S = 0.0005
 READ_COOLDOWN_S = 0.004
 READ_BATCH = 4  # datagrams (or stream reads) between two looks at the clock
 STREAM_POLL_S = 0.005
+POSE_AGE_WINDOW = 3000  # ODOMETRY whose age the status figures cover (a minute at 50 Hz)
 AUTOPILOT_NAMES = {mav.MAV_AUTOPILOT_PX4: "px4", mav.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot"}
 
 
 class SensorClock:
-    """The sensor clock (``time_usec``'s) now, followed from the poses as they are published."""
+    """The sensor clock (``time_usec``'s) now.
 
-    def __init__(self, clock: Callable[[], int] = time.monotonic_ns) -> None:
+    ``now``: that clock itself (live: the monotonic clock the IMU is stamped on; a paced replay: the
+    replay's clock), the one TIMESYNC must answer on. Without it (or while it has no reading), the
+    clock is followed from the poses as they are published: the pose's time plus the time since,
+    which is late by the pose's age at publication. The age of each pose sent is measured against
+    ``now`` (:meth:`age_ns`).
+    """
+
+    def __init__(self, clock: Callable[[], int] = time.monotonic_ns, now: Callable[[], int | None] | None = None) -> None:
         self._clock = clock
+        self.now = now
         self._pose_t: int | None = None
         self._at = 0
 
@@ -66,7 +79,16 @@ class SensorClock:
         self._pose_t, self._at = t_ns, self._clock()
 
     def now_ns(self) -> int | None:
+        if self.now is not None:
+            exact = self.now()
+            if exact is not None:
+                return exact
         return None if self._pose_t is None else self._pose_t + (self._clock() - self._at)
+
+    def age_ns(self, t_ns: int) -> int | None:
+        """How long ago ``t_ns`` was on the sensor clock; None without the clock itself."""
+        exact = self.now() if self.now is not None else None
+        return None if exact is None else exact - t_ns
 
 
 class OdometrySchedule:
@@ -207,9 +229,12 @@ class MavlinkOutput:
         self._chunk_id = 0
         self._active = False
         self._loop: asyncio.AbstractEventLoop | None = None
+        # Per autopilot profile: the frame it is told, the steps it gets (PX4's FRD, ArduPilot's yaw).
+        self.frames = {name: PublishedFrame(name) for name in dict.fromkeys(e.profile.name for e in self.endpoints)}
+        self.pose_age = LatencyProbe(POSE_AGE_WINDOW)  # IMU stamp to ODOMETRY sent, on the sensor clock
 
     @classmethod
-    def from_config(cls, cfg: dict[str, Any]) -> "MavlinkOutput":
+    def from_config(cls, cfg: dict[str, Any], clock: SensorClock | None = None) -> "MavlinkOutput":
         """Endpoints from ``outputs.mavlink.*``; ValueError naming the key of an unusable signing key."""
         profile = PROFILES[cfg["outputs.mavlink.autopilot"]]
         endpoints = []
@@ -222,7 +247,7 @@ class MavlinkOutput:
                     raise ValueError(f"key '{spec.key}.signing_key_file': {exc}") from None
             endpoints.append(Endpoint(spec, key, profile, cfg["vehicle.system_id"], cfg["outputs.mavlink.component_id"],
                                       cfg["outputs.mavlink.max_udp_peers"], cfg["outputs.mavlink.udp_peer_timeout_s"]))
-        return cls(endpoints, cfg["outputs.mavlink.autopilot"], cfg["outputs.mavlink.statustext_per_minute"])
+        return cls(endpoints, cfg["outputs.mavlink.autopilot"], cfg["outputs.mavlink.statustext_per_minute"], clock)
 
     # ------------------------------------------------------------------------------ lifetime
     def open(self) -> None:
@@ -249,6 +274,8 @@ class MavlinkOutput:
         It runs for every IMU sample: each profile's payload is packed once, and framed per endpoint
         without pymavlink's message objects (:meth:`Endpoint.send_packed`)."""
         self.clock.follow(pose.t_ns)
+        for frame in self.frames.values():
+            frame.follow(pose)
         payloads: dict[str, tuple[bytes, int]] = {}
         sent = False
         for endpoint in self.endpoints:
@@ -257,10 +284,15 @@ class MavlinkOutput:
             try:
                 profile = endpoint.profile
                 if profile.name not in payloads:
-                    f = odometry_fields(pose, profile)
+                    shown, frame_id, resets = self.frames[profile.name].present(pose)
+                    f = odometry_fields(shown, profile, frame_id, resets)
                     payloads[profile.name] = odometry_payload(f), f["quality"]
                 payload, quality = payloads[profile.name]
                 endpoint.send_packed(ODOMETRY_ID, ODOMETRY_CRC_EXTRA, payload, "odometry_sent")
+                if not sent:
+                    age = self.clock.age_ns(pose.t_ns)
+                    if age is not None:
+                        self.pose_age.add(age)
                 sent = True
                 if endpoint is self._primary:
                     self._active = quality > 0
@@ -350,8 +382,16 @@ class MavlinkOutput:
         reports = {e.name: e.report() for e in self.endpoints}
         totals = {key: sum(r.get(key, 0) for r in reports.values())
                   for key in ("odometry_sent", "heartbeats_sent", "statustext_sent", "received", "bad_data")}
-        return {**totals, "statustext_held_back": self.limiter.suppressed_total if self.limiter else 0,
-                "endpoints": reports}
+        doc = {**totals, "statustext_held_back": self.limiter.suppressed_total if self.limiter else 0,
+               "frames": {name: frame.report() for name, frame in self.frames.items()}}
+        if len(self.pose_age):
+            p50, p99, pmax = self.pose_age.percentiles_ms(50, 99, 100)
+            # The autopilot's delay parameter (VISO_DELAY_MS; EKF2_EV_DELAY where PX4 stamps on arrival):
+            # the pose's usual age when it leaves, whole milliseconds up; the link's transfer time comes on top.
+            doc["pose_age_ms"] = {"p50": round(p50, 3), "p99": round(p99, 3), "max": round(pmax, 3)}
+            doc["delay_to_configure_ms"] = max(0, math.ceil(p50))
+        doc["endpoints"] = reports
+        return doc
 
     async def serve(self, stop: asyncio.Event) -> None:
         """HEARTBEAT every second; UDP read when readable, serial and TCP polled; links kept open."""

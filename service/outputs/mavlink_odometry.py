@@ -5,8 +5,9 @@ upper-triangle covariances, the estimator's ``reset_counter``, ``MAV_ESTIMATOR_T
 What differs per autopilot (docs/mavlink.md has the sources):
 
 - ``frame_id``: ArduPilot takes ODOMETRY only with ``MAV_FRAME_LOCAL_FRD`` (its MAVLink backend feeds
-  the position to EKF3 unrotated, so a north-aligned FRD frame is our NED); PX4 and generic
-  receivers get ``MAV_FRAME_LOCAL_NED``.
+  the position to EKF3 unrotated); PX4 gets ``MAV_FRAME_LOCAL_NED`` while the heading is
+  north-referenced, else ``MAV_FRAME_LOCAL_FRD``; generic receivers ``MAV_FRAME_LOCAL_NED``. The frame
+  (and ArduPilot's yaw continuity) is :mod:`.mavlink_frame`'s.
 - A pose that must not be used (:func:`pose_problem`) always has ``quality = -1`` ("failed"). ArduPilot
   drops it below ``VISO_QUAL_MIN`` (default 0). PX4 ignores the quality unless ``EKF2_EV_QMIN`` > 0,
   so the PX4 profile also sends position, attitude and velocity as NaN: EKF2 takes no part of an
@@ -47,7 +48,7 @@ class Profile:
     min_spacing_ns: int = 0  # never two ODOMETRY closer than this (ArduPilot's EKF3 drops them)
 
 
-PROFILES = {
+PROFILES = {  # frame_id: the north-referenced one (PX4's is FRD while the heading is not placed)
     "px4": Profile("px4", mav.MAV_FRAME_LOCAL_NED, True),
     "ardupilot": Profile("ardupilot", mav.MAV_FRAME_LOCAL_FRD, False, min_spacing_ns=21_000_000),
     "generic": Profile("generic", mav.MAV_FRAME_LOCAL_NED, False),
@@ -144,16 +145,18 @@ def upper_triangle(cov: np.ndarray) -> list[float]:
     return _known(cov.take(_TRIU_FLAT).tolist())
 
 
-def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"]) -> dict[str, Any]:
-    """Keyword arguments of ``odometry_encode`` for ``pose`` as ``profile``'s autopilot reads them.
+def odometry_fields(pose: OutputPose, profile: Profile = PROFILES["generic"], frame_id: int | None = None,
+                    reset_counter: int | None = None) -> dict[str, Any]:
+    """Keyword arguments of ``odometry_encode`` for ``pose`` as ``profile``'s autopilot reads them;
+    ``frame_id`` and ``reset_counter``, when given, as :class:`~.mavlink_frame.PublishedFrame` says.
 
     It runs for every pose sent, so it works on plain floats around one numpy product."""
     quality = odometry_quality(pose)
     fields: dict[str, Any] = dict(
         time_usec=pose.t_ns // 1000,
-        frame_id=profile.frame_id,
+        frame_id=profile.frame_id if frame_id is None else frame_id,
         child_frame_id=mav.MAV_FRAME_BODY_FRD,
-        reset_counter=pose.reset_counter % 256,
+        reset_counter=(pose.reset_counter if reset_counter is None else reset_counter) % 256,
         estimator_type=mav.MAV_ESTIMATOR_TYPE_VIO,
         quality=quality,
     )

@@ -8,7 +8,7 @@ clock in integer nanoseconds (``t_ns`` of the published poses). Each pose says i
 ``predicted`` (ahead of the fusion horizon), ``filtered``, or ``smoothed`` (once the service's
 fixed lag has passed: it also used the measurements after its time).
 
-    with PoseClient("vtolpose/vtol1", connect=["tcp/192.168.1.10:7447"]) as client:
+    with PoseClient("vtolpose/vtol1", connect=["tcp/192.168.1.10:7448"]) as client:
         sub = client.subscribe(lambda pose: print(pose.t_ns, pose.p))
         pose = client.pose_at(t_ns)
         window = client.trajectory(t_first_ns, t_last_ns)
@@ -111,7 +111,7 @@ class PoseClient:
             raise ServiceUnreachable(
                 f"cannot open a Zenoh session ({self.settings.endpoints_text()}): {str(exc).split(' at ')[0]}. Is "
                 "`vtolpose run ... --zenoh` running, and listening on that endpoint? It logs where it listens "
-                "(outputs.zenoh.listen, default tcp/127.0.0.1:7447)") from None
+                "(outputs.zenoh.listen, default tcp/127.0.0.1:7448)") from None
         self.pinned_service_id = service_id
         self.ignored = {"replies": 0, "samples": 0}  # from sessions that are not the service
         self._services: set[str] = set()

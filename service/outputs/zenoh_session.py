@@ -13,7 +13,7 @@ from typing import Any
 
 import zenoh
 
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"  # outputs.zenoh.listen's default: loopback only
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7448"  # outputs.zenoh.listen's default: loopback only
 
 
 @dataclass(slots=True)

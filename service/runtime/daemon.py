@@ -11,6 +11,7 @@ import logging
 import math
 import os
 import signal
+import time
 from pathlib import Path
 from typing import Any, AsyncIterator, Callable, Sequence
 
@@ -88,10 +89,13 @@ def build_runtime(
     measure_latency: bool = False,
     live: bool = False,
     on_fused: Callable[[OutputPose], None] | None = None,
+    sensor_now: Callable[[], int | None] | None = None,
 ) -> Runtime:
     """The estimator, fusion core, history and the outputs enabled in ``outputs.*``.
 
-    ``live``: apply ``run.realtime_priority`` (never to a replay, which would hog a core at it).
+    ``live``: apply ``run.realtime_priority`` (never to a replay, which would hog a core at it); live sensor
+    stamps are on the monotonic clock (ROS 2 stamps and TIMESYNC answers follow from it). ``sensor_now``:
+    the sensor clock now, when it is not the monotonic one (a paced replay's); TIMESYNC answers on it.
     """
     calibration = calibration_with_overrides(cfg, calibration)
     estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
@@ -106,10 +110,11 @@ def build_runtime(
                       trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused)
     runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
     if cfg["outputs.mavlink.enabled"]:
-        from vtolpose.service.outputs.mavlink import MavlinkOutput
+        from vtolpose.service.outputs.mavlink import MavlinkOutput, SensorClock
 
+        now = sensor_now if sensor_now is not None else time.monotonic_ns if live else None
         try:
-            runtime.outputs.append(MavlinkOutput.from_config(cfg))
+            runtime.outputs.append(MavlinkOutput.from_config(cfg, SensorClock(now=now)))
         except ValueError as exc:  # an unusable signing key file: the message names its key
             raise ConfigError(str(exc)) from None
     if cfg["outputs.zenoh.enabled"]:
@@ -121,12 +126,13 @@ def build_runtime(
         # The history is read by mappers: keep it smoothed after the configured lag.
         runtime.enable_smoothing(cfg["smoothing.fixed_lag_s"], cfg["smoothing.steps_per_sample"],
                                  cfg["smoothing.max_window_s"])
-    add_interop_outputs(runtime, cfg, camera_processor)
+    add_interop_outputs(runtime, cfg, camera_processor, live)
     load_compiled_kernels(runs=runtime.fuses_runs)  # now, not on the first IMU step or fix
     return runtime
 
 
-def add_interop_outputs(runtime: Runtime, cfg: dict[str, Any], camera_processor: CameraProcessor | None) -> None:
+def add_interop_outputs(runtime: Runtime, cfg: dict[str, Any], camera_processor: CameraProcessor | None,
+                        live: bool = False) -> None:
     """ROS 2 over Zenoh, the Foxglove view and the MCAP recording (``outputs.ros2|foxglove|mcap``); the
     latter two also see raw samples (``Runtime.sample_taps``) and camera frames (the processor's ``on_frame``)."""
     origin = lambda: runtime.origin()  # noqa: E731 - read late: a live GPS fixes its origin at its first fix
@@ -136,7 +142,8 @@ def add_interop_outputs(runtime: Runtime, cfg: dict[str, Any], camera_processor:
 
         zenoh_out = next((o for o in runtime.outputs if o.name == "zenoh"), None)  # opened before this one
         runtime.outputs.append(Ros2Output(cfg, ZenohSettings.from_config(cfg),
-                                          lambda: zenoh_out.session if zenoh_out is not None else None))
+                                          lambda: zenoh_out.session if zenoh_out is not None else None,
+                                          live=live))
     viewers: list[Any] = []
     if cfg["outputs.foxglove.enabled"] or cfg["outputs.mcap.file"]:
         from vtolpose.service.outputs.foxglove import FoxgloveOutput, estimator_landmarks

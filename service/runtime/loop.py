@@ -391,6 +391,11 @@ class Runtime:
             "pose_problem": pose_problem(self.last_pose) if self.last_pose is not None else "no pose yet",
             "failures": self.failures.report(),  # isolated failures of outputs, sources, the trajectory file
         }
+        # Input links with their own counters (the GPS over MAVLink on a link of its own), beside the outputs'.
+        inputs = {getattr(src, "name", str(i)): src.driver.link_stats() for i, src in enumerate(self._sources)
+                  if hasattr(getattr(src, "driver", None), "link_stats")}
+        if inputs:
+            extra["inputs"] = inputs
         if self.recorder is not None:  # a live run's flight recording (its own status, never an error here)
             extra["recording"] = {"status": self.recorder.status, "rows": dict(self.recorder.rows)}
         return self.status.snapshot(self.est, self.fusion, extra)

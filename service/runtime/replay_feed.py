@@ -75,7 +75,8 @@ async def replay_async(
         frames, load = dataset.camera_frames(), dataset.load_frame
         if not frames:
             log.warning("%s: no camera frames in the dataset; replaying IMU and GPS", dataset.root)
-    source = ReplaySource(dataset, sensors, ReplayClock(speed), stop_after_data_s, frames, load, on_progress, start_at_s)
+    clock = ReplayClock(speed)
+    source = ReplaySource(dataset, sensors, clock, stop_after_data_s, frames, load, on_progress, start_at_s)
     origin = source.gps.origin_lla if source.gps is not None else dataset.calibration.gps.origin_lla
     calibration = dataset.calibration
     if start_at_s:
@@ -84,6 +85,7 @@ async def replay_async(
     runtime = build_runtime(
         cfg, calibration, origin=lambda: origin, trajectory_path=trajectory_path,
         camera_processor=camera_processor, lockstep=speed == 0.0, measure_latency=measure_latency, on_fused=on_fused,
+        sensor_now=clock.now_ns,
     )
     if prepare is not None:
         prepare(runtime)

@@ -37,6 +37,13 @@ class ReplayClock:
         self._origin: tuple[int, float] | None = None
         self._n = 0
 
+    def now_ns(self) -> int | None:
+        """Dataset time now (paced replays, once started); None as fast as possible or before the first sample."""
+        if self.speed == 0.0 or self._origin is None:
+            return None
+        t0, wall0 = self._origin
+        return t0 + int((time.perf_counter() - wall0) * self.speed * 1e9)
+
     async def wait_until(self, t_ns: int, samples: int = 1) -> None:
         """Wait for ``t_ns``; ``samples``: how many samples are handed out at it (a batch counts each)."""
         n = self._n
