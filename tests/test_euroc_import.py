@@ -349,3 +349,18 @@ def test_a_recording_without_truth_and_with_jpeg_frames(tmp_path: Path, caplog: 
     for _, path in frames:
         grey = ds.load_frame(path)
         assert grey is not None and grey.shape == (36, 64)
+
+
+def test_the_euroc_bench_takes_only_recordings_with_a_truth(tmp_path: Path) -> None:
+    """A recording of a user's own (no truth) lying beside the EuRoC flights is no bench flight."""
+    from vtolpose.service.bench.euroc import find_flights
+
+    with_leica = tiny_euroc(tmp_path / "data" / "euroc_tiny")
+    without = tiny_euroc(tmp_path / "data" / "handheld")
+    (without / "mav0/leica0/data.csv").unlink()
+    with_tum = tiny_euroc(tmp_path / "data" / "euroc_dev" / "V9")
+    (with_tum / "mav0/leica0/data.csv").unlink()
+    (with_tum / "truth.tum").write_text("0 0 0 0\n")
+    flights = find_flights([tmp_path / "data"])
+    assert [(f.name, f.source) for f in flights] == [("TINY", with_leica), ("V9", with_tum)]
+    assert flights[1].truth_file == with_tum / "truth.tum"

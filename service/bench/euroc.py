@@ -40,7 +40,7 @@ import vtolpose
 from vtolpose.service.bench.rows import Row as BenchRow
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.files.euroc_import import import_euroc
+from vtolpose.drivers.files.euroc_import import TRUTH_FOLDERS, import_euroc
 from vtolpose.estimator.core.rotation import quat_to_rot, rot_to_quat, rotation_angle
 from vtolpose.estimator.metrics import (
     chi2_band, gps_error_rmse, interpolate_poses, mean_world_rotation, motion_onset, nees, pose_errors_for_nees,
@@ -112,7 +112,9 @@ def data_roots() -> list[Path]:
 
 
 def find_flights(roots: list[Path]) -> list[Flight]:
-    """Every folder under ``roots`` (three levels deep at most) that holds a EuRoC IMU, by name."""
+    """Every folder under ``roots`` (three levels deep at most) that holds a EuRoC IMU and a truth to score
+    against (``truth.tum`` beside ``mav0``, or one of EuRoC's truth folders), by name. A recording without
+    one (a hand-held recording of a user's own) is no bench flight."""
     found: dict[str, Flight] = {}
     for root in roots:
         if not root.is_dir():
@@ -122,6 +124,8 @@ def find_flights(roots: list[Path]) -> list[Flight]:
             if len(folder.relative_to(root).parts) > 3:
                 continue
             truth = folder / "truth.tum"
+            if not (truth.is_file() or any((folder / "mav0" / t / "data.csv").is_file() for t in TRUTH_FOLDERS)):
+                continue
             name = folder.name.removeprefix("euroc_").upper()
             found.setdefault(name, Flight(name, folder, truth if truth.is_file() else None))
     return sorted(found.values(), key=lambda f: f.name)
