@@ -109,7 +109,14 @@ class Layout:
 
 
 class WindowFailure(Exception):
-    """The window does not determine the start (too little motion, too few points, no convergence)."""
+    """The window does not determine the start (too little motion, too few points, no convergence).
+
+    ``check`` names the test that failed in one word (``tracks``, ``motion``, ``information``,
+    ``scale``, ...): what a status line and an operator's text can group by."""
+
+    def __init__(self, message: str, check: str) -> None:
+        super().__init__(message)
+        self.check = check
 
 
 def tangent_basis(u: np.ndarray) -> np.ndarray:
@@ -194,7 +201,7 @@ def linear_guess(problem: WindowProblem, b_g: np.ndarray | None = None) -> tuple
     ints = _integrals(problem, problem.bias_g if b_g is None else b_g)
     pairs = pair_directions(problem, ints.R)
     if len(pairs) < 3:
-        raise WindowFailure(f"{len(pairs)} pairs of frames share enough points")
+        raise WindowFailure(f"{len(pairs)} pairs of frames share enough points", "tracks")
     rows, rhs = _alignment_rows(problem, ints, pairs, with_gravity=True)
     sol, *_ = np.linalg.lstsq(rows, rhs, rcond=None)
     return sol[0:3], sol[3:6], sol[6:]
@@ -215,23 +222,32 @@ def _alignment_rows(problem: WindowProblem, ints, pairs, with_gravity: bool) -> 
     return rows, rhs
 
 
-def scale_given_gravity(problem: WindowProblem, g_dir: np.ndarray,
-                        b_g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(v0, gravity direction, baselines)`` with ``|g|`` held at gravity's magnitude.
+def scale_given_gravity(problem: WindowProblem, g_dir: np.ndarray, b_g: np.ndarray | None = None,
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(v0, gravity direction, baselines, b_a)`` with ``|g|`` held at gravity's magnitude.
 
     Over a short window a steady acceleration (a turn) looks like a tilted gravity; only the
     magnitude of gravity tells them apart, so the alignment is repeated with ``|g|`` fixed, its
-    direction found by Gauss–Newton on the sphere (``v0`` and the baselines solved exactly for
-    each direction), starting from ``g_dir``.
+    direction found by Gauss–Newton on the sphere (``v0``, ``b_a`` and the baselines solved
+    exactly for each direction), starting from ``g_dir``. The accelerometer bias is in it because
+    with ``|g|`` fixed nothing else can take a consumer accelerometer's error along gravity (a
+    few tenths of m/s²: metres over a window, more than a gentle path moves); its prior
+    (``sigma_bias_a``, weighed as a centimetre of misfit per sigma) holds the directions in which a
+    window that barely turns cannot tell it from the tilt.
     """
     ints = _integrals(problem, problem.bias_g if b_g is None else b_g)
     pairs = pair_directions(problem, ints.R)
-    rows, base = _alignment_rows(problem, ints, pairs, with_gravity=False)
+    motion, base = _alignment_rows(problem, ints, pairs, with_gravity=False)
+    n = len(pairs)
+    bias_cols = np.vstack([ints.M[b] - ints.M[a] for a, b, _ in pairs])  # p carries −M b_a
+    prior = np.eye(3) * (0.01 / max(problem.sigma_bias_a, 1e-6))
+    rows = np.vstack([np.hstack([motion[:, :3], bias_cols, motion[:, 3:]]), np.hstack([np.zeros((3, 3)), prior, np.zeros((3, n))])])
+    base = np.concatenate([base, np.zeros(3)])
     tau = problem.frame_t
-    half = np.concatenate([np.full(3, 0.5 * (tau[b] ** 2 - tau[a] ** 2)) for a, b, _ in pairs])
+    half = np.concatenate([np.concatenate([np.full(3, 0.5 * (tau[b] ** 2 - tau[a] ** 2)) for a, b, _ in pairs]), np.zeros(3)])
 
     def fit(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rhs = base + half * np.tile(problem.gravity * direction, len(pairs))
+        rhs = base + half * np.tile(problem.gravity * direction, n + 1)
         sol, *_ = np.linalg.lstsq(rows, rhs, rcond=None)
         return sol, rows @ sol - rhs
 
@@ -248,7 +264,7 @@ def scale_given_gravity(problem: WindowProblem, g_dir: np.ndarray,
         direction, sol, r = candidate, new_sol, new_r
         if np.linalg.norm(step) < 1e-9:
             break
-    return sol[0:3], direction, sol[3:]
+    return sol[0:3], direction, sol[6:], sol[3:6]
 
 
 def triangulate(problem: WindowProblem, R: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -476,21 +492,21 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     """
     K, M = problem.n_frames, problem.n_points
     if K < 3 or M < 6:
-        raise WindowFailure(f"{K} frames and {M} tracked points: too few")
+        raise WindowFailure(f"{K} frames and {M} tracked points: too few", "tracks")
     b_g = problem.bias_g.copy()
     v0, g_lin, _ = linear_guess(problem, b_g)
     g_norm = float(np.linalg.norm(g_lin))
     if not (math.isfinite(g_norm) and abs(g_norm / problem.gravity - 1.0) <= max_gravity_error):
-        raise WindowFailure(f"|g| {g_norm:.2f} m/s^2 from the linear guess: too little motion to fix the scale")
-    v0, g_dir, baselines = scale_given_gravity(problem, g_lin, b_g)
+        raise WindowFailure(f"|g| {g_norm:.2f} m/s^2 from the linear guess: too little motion to fix the scale", "motion")
+    v0, g_dir, baselines, b_a = scale_given_gravity(problem, g_lin, b_g)
     if np.sum(baselines < 0.0) > 0.25 * len(baselines):
-        raise WindowFailure("the camera moves against the directions the images say")
+        raise WindowFailure("the camera moves against the directions the images say", "motion")
     ints = _integrals(problem, b_g)
     tau = problem.frame_t
-    p = np.outer(tau, v0) + 0.5 * np.outer(tau * tau, problem.gravity * g_dir) + ints.S
-    v = v0 + np.outer(tau, problem.gravity * g_dir) + ints.V
+    p = np.outer(tau, v0) + 0.5 * np.outer(tau * tau, problem.gravity * g_dir) + ints.S - ints.M @ b_a
+    v = v0 + np.outer(tau, problem.gravity * g_dir) + ints.V - ints.MV @ b_a
     model = _Residuals(problem, np.ones(len(problem.obs_frame), dtype=bool))
-    first = _Estimate(g_dir, b_g.copy(), np.zeros(3), p - p[0], v, triangulate(problem, ints.R, p - p[0] + ints.R @ problem.t_BC))
+    first = _Estimate(g_dir, b_g.copy(), b_a, p - p[0], v, triangulate(problem, ints.R, p - p[0] + ints.R @ problem.t_BC))
     first, used = _refine(model, first, iterations, robust=2.0)
     fits = [(_robust(model, model.evaluate(first, tangent_basis(first.g_dir), False), 2.0)[0], first)]
     for factor in rescales:
@@ -506,7 +522,7 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     inliers &= counts[problem.obs_point] >= 2  # a point seen once says nothing, and would leave H singular
     counts = np.bincount(problem.obs_point[inliers], minlength=M)
     if np.sum(counts >= 2) < 6 or np.mean(inliers) < 0.5:
-        raise WindowFailure("too few points consistent with the motion")
+        raise WindowFailure("too few points consistent with the motion", "tracks")
     model = _Residuals(problem, inliers)
     est, more = _refine(model, est, iterations)
     used += more
@@ -518,10 +534,10 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     try:
         cov = _covariance(H_cc, H_cf, H_ff)
     except np.linalg.LinAlgError:
-        raise WindowFailure("singular information matrix") from None
+        raise WindowFailure("singular information matrix", "information") from None
     n_c = len(H_cc)
     if not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov[:n_c, :n_c]).min() <= 0.0:
-        raise WindowFailure("information matrix too ill-conditioned for a covariance")
+        raise WindowFailure("information matrix too ill-conditioned for a covariance", "information")
     r2 = float(np.sum(lin.r_pix**2) + lin.r_dense @ lin.r_dense)
     ratio = math.sqrt(r2 / max(2 * len(lin.frame) + len(lin.r_dense) - Layout(K, M).size, 1))
     cov *= max(1.0, ratio**2)
@@ -530,9 +546,28 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     sigma_v = math.sqrt(max(float(np.trace(cov[lay.v(0), lay.v(0)])), 0.0))
     for other_cost, other in fits:
         if other_cost <= cost + 4.0 and np.linalg.norm(other.v[0] - est.v[0]) > 3.0 * sigma_v + 1e-3:
-            raise WindowFailure("two scales fit the window about equally well")
+            raise WindowFailure("two scales fit the window about equally well", "scale")
     return WindowSolution(est.g_dir, est.b_g, est.b_a, est.p, est.v, _integrals(problem, est.b_g).R, est.f,
                           cov, tangent, ratio, g_norm, inliers, used)
+
+
+def scale_sigma(problem: WindowProblem, solution: WindowSolution) -> float:
+    """The relative sigma of the window's scale, from the window's own information.
+
+    The scale is the common stretch ``s`` of the IMU's positions about frame 0 (the origin):
+    ``p̂_k (1 + s)`` fits them best for ``s = Σ p̂_kᵀ δp_k / Σ |p̂_k|²``, a linear function of
+    the position errors, so its variance is ``wᵀ P w`` over their covariance. A window that
+    barely moves, or whose acceleration is drowned by the accelerometer's noise, leaves it
+    large; a lively one makes it small whatever the excitation's RMS.
+    """
+    lay = Layout(problem.n_frames, problem.n_points)
+    cols = slice(lay.p(1).start, lay.v(0).start)
+    p = solution.p[1:].reshape(-1)
+    norm = float(p @ p)
+    if norm <= 0.0:
+        return math.inf
+    w = p / norm
+    return math.sqrt(max(float(w @ solution.cov[cols, cols] @ w), 0.0))
 
 
 def _robust(model: _Residuals, lin: _Linearised, robust: float | None) -> tuple[float, np.ndarray]:
