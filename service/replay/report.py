@@ -342,10 +342,11 @@ def visual_start_lines(report: dict) -> list[str]:
     if "still_waiting" in vs:
         w = vs["still_waiting"]
         return [f"  visual-inertial start: not started after {vs['attempts']} attempts; at {w['t_s']:.1f} s {w['text']}"]
-    if not vs["waited"]:
+    held = [w for w in vs["waited"] if w["check"] not in ("window", "confirming")]  # what held it, not the wait to agree
+    if not held:
         return []
-    w = vs["waited"][-1]
-    return [f"  visual-inertial start: after {vs['attempts']} attempts; the last wait, from {w['t_s']:.1f} s: {w['text']}"]
+    w = held[-1]
+    return [f"  visual-inertial start: after {vs['attempts']} attempts; the last hold, from {w['t_s']:.1f} s: {w['text']}"]
 
 
 def score_lines(report: dict, fmt) -> list[str]:
