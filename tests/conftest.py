@@ -16,6 +16,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
 EUROC_MH01 = SHARED / "data" / "euroc_mh01"
 EUROC_DEV = SHARED / "data" / "euroc_dev"
+REALSENSE_HANDHELD = SHARED / "data" / "realsense_handheld"
 
 
 @pytest.fixture(scope="session")
@@ -24,6 +25,14 @@ def euroc_mh01() -> Path:
     if not (EUROC_MH01 / "mav0" / "imu0" / "data.csv").is_file():
         pytest.skip(f"needs the shared flight data at {EUROC_MH01} (present in CI, absent in a plain clone)")
     return EUROC_MH01
+
+
+@pytest.fixture(scope="session")
+def realsense_handheld() -> Path:
+    """40 s of a real hand-held RealSense recording (JPEG frames, IMU, no truth); skipped without ../shared."""
+    if not (REALSENSE_HANDHELD / "mav0" / "cam0" / "data.csv").is_file():
+        pytest.skip(f"needs the shared hand-held recording at {REALSENSE_HANDHELD} (present in CI, absent in a plain clone)")
+    return REALSENSE_HANDHELD
 
 
 @pytest.fixture(scope="session")

@@ -205,8 +205,8 @@ def test_leica_stamps_are_moved_onto_the_imu_clock(imported, euroc_mh01: Path) -
 
 def test_missing_source_files_are_named(tmp_path: Path) -> None:
     src = tiny_euroc(tmp_path / "src")
-    (src / "mav0/leica0/data.csv").unlink()
-    with pytest.raises(FileNotFoundError, match=r"leica0/data\.csv"):
+    (src / "mav0/leica0/sensor.yaml").unlink()
+    with pytest.raises(FileNotFoundError, match=r"leica0/sensor\.yaml"):
         import_euroc(src, tmp_path / "out")
     (src / "mav0/imu0/sensor.yaml").write_text(IMU_YAML.replace("rate_hz: 200\n", ""))
     with pytest.raises(ValueError, match=r"imu0/sensor\.yaml: rate_hz: missing"):
@@ -270,8 +270,10 @@ def test_vicon_marker_pose_is_moved_to_the_imu(tmp_path: Path) -> None:
 def test_a_tum_truth_file_and_a_missing_truth(tmp_path: Path) -> None:
     src = tiny_euroc(tmp_path / "src")
     (src / "mav0/leica0/data.csv").unlink()
-    with pytest.raises(FileNotFoundError, match="no truth found.*--truth"):
-        import_euroc(src, tmp_path / "out")
+    with pytest.raises(ValueError, match="GPS from the truth.*has none"):
+        import_euroc(src, tmp_path / "out", gps_rate_hz=10.0)
+    with pytest.raises(FileNotFoundError, match="trajectory file not found"):
+        import_euroc(src, tmp_path / "out", truth_file=tmp_path / "nowhere.tum")
     tum = tmp_path / "truth.tum"
     tum.write_text("# t x y z qx qy qz qw\n" + "".join(
         f"{(1403636579758560000 + 50_000_000 * i) / 1e9:.9f} {0.1 * i} 2.0 1.0 0 0 0 1\n" for i in range(40)))
@@ -305,3 +307,60 @@ def test_v101_truth_and_camera(euroc_dev: Path, tmp_path: Path) -> None:
     frames = ds.camera_frames()
     assert len(frames) == 95 and frames[0][0] == 1403715273262142976
     assert frames[0][1].read_bytes() == (src / "mav0/cam0/data/1403715273262142976.png").read_bytes()
+
+
+CAM_YAML = """T_BS: {cols: 4, rows: 4, data: [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}
+rate_hz: 17
+resolution: [64, 36]
+camera_model: pinhole
+intrinsics: [45.0, 45.0, 32.0, 18.0]
+distortion_model: radial-tangential
+distortion_coefficients: [0.0, 0.0, 0.0, 0.0]
+"""
+
+
+def test_a_recording_without_truth_and_with_jpeg_frames(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A user's own recording: no truth at all, frames in JPEG (one a PNG named .jpg, one no image)."""
+    import cv2
+
+    src = tiny_euroc(tmp_path / "src")
+    (src / "mav0/leica0/data.csv").unlink()
+    cam = src / "mav0/cam0"
+    (cam / "data").mkdir(parents=True)
+    (cam / "sensor.yaml").write_text(CAM_YAML)
+    image = (np.arange(64 * 36).reshape(36, 64) % 251).astype(np.uint8)
+    t = [1403636579758560000 + 60_000_000 * i for i in range(4)]
+    (cam / "data" / f"{t[0]}.jpg").write_bytes(cv2.imencode(".jpg", image)[1].tobytes())
+    (cam / "data" / f"{t[1]}.jpg").write_bytes(cv2.imencode(".png", image)[1].tobytes())  # a PNG, whatever its name
+    (cam / "data" / f"{t[2]}.jpeg").write_bytes(cv2.imencode(".jpg", image)[1].tobytes())
+    (cam / "data" / f"{t[3]}.jpg").write_text("not an image")
+    (cam / "data.csv").write_text("#timestamp [ns],filename\n" + "".join(
+        f"{ti},{ti}{ext}\n" for ti, ext in zip(t, (".jpg", ".jpg", ".jpeg", ".jpg"))))
+    with caplog.at_level(logging.WARNING):
+        summary = import_euroc(src, tmp_path / "out")
+    assert summary["truth_source"] == "none" and "truth_samples" not in summary
+    assert summary["camera_frames"] == 3 and summary["camera_frames_skipped"] == 1
+    assert any(f"{t[3]}.jpg: not a PNG or JPEG by its header" in m for m in caplog.messages)
+    ds = Dataset.open(tmp_path / "out")
+    assert ds.truth() is None and "no truth" in ds.meta["description"]
+    frames = ds.camera_frames()
+    assert [p.name for _, p in frames] == [f"{t[0]}.jpg", f"{t[1]}.png", f"{t[2]}.jpg"]
+    assert frames[0][1].read_bytes() == (cam / "data" / f"{t[0]}.jpg").read_bytes()  # not re-encoded
+    for _, path in frames:
+        grey = ds.load_frame(path)
+        assert grey is not None and grey.shape == (36, 64)
+
+
+def test_the_euroc_bench_takes_only_recordings_with_a_truth(tmp_path: Path) -> None:
+    """A recording of a user's own (no truth) lying beside the EuRoC flights is no bench flight."""
+    from vtolpose.service.bench.euroc import find_flights
+
+    with_leica = tiny_euroc(tmp_path / "data" / "euroc_tiny")
+    without = tiny_euroc(tmp_path / "data" / "handheld")
+    (without / "mav0/leica0/data.csv").unlink()
+    with_tum = tiny_euroc(tmp_path / "data" / "euroc_dev" / "V9")
+    (with_tum / "mav0/leica0/data.csv").unlink()
+    (with_tum / "truth.tum").write_text("0 0 0 0\n")
+    flights = find_flights([tmp_path / "data"])
+    assert [(f.name, f.source) for f in flights] == [("TINY", with_leica), ("V9", with_tum)]
+    assert flights[1].truth_file == with_tum / "truth.tum"

@@ -288,6 +288,29 @@ def test_long_statustext_is_chunked_and_the_rate_is_limited():
         gcs.close()
 
 
+def test_why_the_visual_inertial_start_waits_goes_out_once_per_check():
+    """While the start waits the operator hears why, with what it measured; a new figure under the same
+    check is not news (it changes every half second), a new check is, and nothing once it has started."""
+    port = free_udp_port()
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
+    out = MavlinkOutput([endpoint(f"udpout:127.0.0.1:{port}", role="ground_station")], statustext_per_minute=60)
+    out.open()
+    try:
+        doc = {"heading_aligned": False, "filter_resets": 0, "health": {"sensors": {}}}
+        scale = "initialising: 0.14 m/s^2 RMS over 5.0 s, scale sigma 40 %, scale not yet known (sigma over 25 %)"
+        for text, check in ((scale, "scale"), (scale.replace("40 %", "31 %"), "scale"),
+                            ("initialising: 0.16 m/s^2 RMS over 5.0 s, the camera moves against ...", "motion")):
+            out.publish_status({**doc, "visual_start": {"check": check, "text": text}})
+        out.publish_status(dict(doc))  # started: the status document no longer carries it
+        chunks = [m for m in iter(lambda: gcs.recv_match(type="STATUSTEXT", blocking=True, timeout=0.3), None)]
+        texts = "".join(m.text for m in chunks).split("vtolpose: ")[1:]
+        assert texts == [scale, "initialising: 0.16 m/s^2 RMS over 5.0 s, the camera moves against ..."]
+        assert {m.severity for m in chunks} == {mav.MAV_SEVERITY_INFO}
+    finally:
+        out.close()
+        gcs.close()
+
+
 # ------------------------------------------------------------------------------------- signing
 
 

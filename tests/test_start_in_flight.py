@@ -10,6 +10,7 @@ a filter whose innovations say it is lost caps its quality, resets and says why.
 from __future__ import annotations
 
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -33,7 +34,7 @@ from vtolpose.service.replay.report import build_report, start_alignment  # noqa
 from vtolpose.service.replay.session import replay  # noqa: E402
 from vtolpose.service.outputs.mavlink_odometry import odometry_quality  # noqa: E402
 from vtolpose.service.outputs.zenoh import pose_status  # noqa: E402
-from vtolpose.service.runtime.status import pose_problem, pose_quality  # noqa: E402
+from vtolpose.service.runtime.status import StatusTracker, pose_problem, pose_quality  # noqa: E402
 from vtolpose.service.runtime.wiring import feature_options, filter_options  # noqa: E402
 
 ORB = {"features": {"detector": "orb"}}
@@ -99,6 +100,7 @@ def test_imu_camera_in_flight_starts_within_10_s_and_never_says_nonsense(book):
     assert all(initialising(p) for p in poses if (p.t_ns - t_first) * 1e-9 < start)  # never before
     assert any("visual-inertial start" in e.message for e in result.estimator.events)
     assert report["heading_source"] == "own frame (visual-inertial start)"
+    assert report["position_reference"]["heading_aligned"] and "heading_note" in report["position_reference"]
     assert report["position_rmse_m"] < 0.02 and report["attitude_rmse_deg"] < 1.0
     assert report["nees"]["mean_in_band"]
     off = sigmas_off(result, book, poses)
@@ -118,6 +120,8 @@ def test_imu_camera_in_a_steady_cruise_stays_initialising(landfill):
         assert start <= 10.0 and sigmas_off(result, landfill, poses)[-1] < 5.0
     else:
         assert report.get("never_valid") and result.estimator.initialising
+        waiting = report["visual_start"]["still_waiting"]  # and it says why, with what it measured
+        assert waiting["check"] in ("motion", "scale") and waiting["text"].startswith("initialising: ")
 
 
 @pytest.fixture(scope="module")
@@ -143,9 +147,12 @@ def test_imu_gps_in_flight_has_its_heading_within_20_s_and_stays_within_5_sigma(
     assert sigmas_off(result, dataset, poses)[-1] < 5.0  # the flight does not end in confident nonsense
 
 
-def test_a_lost_filter_caps_its_quality_resets_and_says_why(book):
+def test_a_lost_filter_caps_its_quality_resets_and_says_why(book, caplog):
     """Turn the attitude 20° and the velocity 0.3 m/s away mid-flight: the camera's innovations leave their
-    band, the quality is capped within a second, the filter resets and starts again from the images."""
+    band, the quality is capped within a second, the filter resets and starts again from the images. While
+    the visual-inertial start waits, the status document and the log say why, with what it measured."""
+    tracker = StatusTracker()
+    waiting: list[dict] = []
     cfg = load_config(None, ORB)
     cal = book.calibration
     est = Estimator(cal, filter_options(cfg, cal.imu.noise))
@@ -165,6 +172,9 @@ def test_a_lost_filter_caps_its_quality_resets_and_says_why(book):
         else:
             features = extract_features(book.load_frame(frames[t]), t, options, (cal.camera.height, cal.camera.width))
             fusion.add_measurement(t, lambda e, f=features: e.process_features(f), "camera")
+        if not waiting and est.initialising and est.visual_inertial.progress is not None:
+            with caplog.at_level(logging.INFO, logger="vtolpose.service.runtime.status"):
+                waiting.append(tracker.snapshot(est, fusion))
         if not kicked and est.state is not None and not est.initialising and t >= kick_ns:
             est.state.q = quat_mul(quat_exp(np.radians([0.0, 5.0, 20.0])), est.state.q)
             est.state.v = est.state.v + np.array([0.3, 0.0, 0.0])
@@ -177,6 +187,10 @@ def test_a_lost_filter_caps_its_quality_resets_and_says_why(book):
         if not out:
             out_of_band_since = None
     fusion.flush()
+    said = waiting[0]["visual_start"]
+    assert said["text"].startswith("initialising: ") and said["check"] in ("window", "tracks", "motion", "scale")
+    assert any(m.startswith("visual-inertial start waiting: initialising: ") for m in caplog.messages)
+    assert "visual_start" not in tracker.snapshot(est, fusion)  # started (again): nothing waits
     resets = [r for r in est.health.resets if r.kind == "camera_lost"]
     assert kicked and len(resets) == 1 and resets[0].t_ns > kick_ns
     assert "re-observed" in resets[0].reason or "churn" in resets[0].reason or "NIS" in resets[0].reason

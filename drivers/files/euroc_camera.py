@@ -22,12 +22,13 @@ import numpy as np
 from vtolpose.drivers.files.calibration_yaml import YamlReader, load_yaml_file
 from vtolpose.drivers.files.dataset import CAM_CSV, CAM_DIR
 from vtolpose.drivers.files.euroc_truth import Frames, read_mount
-from vtolpose.drivers.files.frames_csv import read_frame_index, write_frame_index
+from vtolpose.drivers.files.frames_csv import image_kind, read_frame_index, write_frame_index
 from vtolpose.estimator.core.calibration import CameraCalibration
 
 log = logging.getLogger(__name__)
 
 RADTAN_NAMES = ("radial-tangential", "radtan")
+IMPORTED_SUFFIX = {"png": ".png", "jpeg": ".jpg"}  # formats kept as they are, by what their header says
 
 
 def camera_calibration(sensor_yaml: Path, frames: Frames) -> CameraCalibration:
@@ -68,24 +69,30 @@ def _pair(y: YamlReader, value: object) -> list:
 
 
 def copy_frames(cam_dir: Path, out: Path) -> tuple[int, int]:
-    """The images listed in ``cam_dir/data.csv`` into dataset ``out`` as ``<t_ns>.png`` (hard-linked
-    where the file system allows, else copied: the bytes stay EuRoC's). Returns (frames, skipped)."""
+    """The images listed in ``cam_dir/data.csv`` into dataset ``out`` as ``<t_ns>.png`` or ``<t_ns>.jpg``
+    (hard-linked where the file system allows, else copied: the bytes stay the recording's, a JPEG is not
+    re-encoded). Any resolution; a file that is no PNG or JPEG by its header is skipped with a warning
+    naming it and what it is. Returns (frames, skipped)."""
     frames, skipped = read_frame_index(cam_dir / "data.csv", cam_dir / "data")
     target = out / CAM_DIR
     if target.exists():
         shutil.rmtree(target)
     target.mkdir(parents=True)
-    times = []
+    times, suffixes = [], []
     for t_ns, path in frames:
-        if path.suffix.lower() != ".png" or not path.is_file():
-            log.warning("%s: %s, frame skipped", path, "missing" if not path.exists() else "not a PNG")
+        kind = image_kind(path) if path.is_file() else None
+        if kind not in IMPORTED_SUFFIX:
+            why = "missing" if not path.exists() else "not a file" if not path.is_file() else \
+                f"not a PNG or JPEG by its header ({kind or 'unknown format'})"
+            log.warning("%s: %s, frame skipped", path, why)
             skipped += 1
             continue
-        dest = target / f"{t_ns}.png"
+        dest = target / f"{t_ns}{IMPORTED_SUFFIX[kind]}"
         try:
             os.link(path, dest)
         except OSError:
             shutil.copyfile(path, dest)
         times.append(t_ns)
-    write_frame_index(out / CAM_CSV, times)
+        suffixes.append(dest.suffix)
+    write_frame_index(out / CAM_CSV, times, suffixes)
     return len(times), skipped

@@ -26,12 +26,13 @@ from vtolpose.drivers.files.dataset import (
     TruthSeries,
 )
 from vtolpose.drivers.files.euroc_camera import camera_calibration, copy_frames
-from vtolpose.drivers.files.euroc_truth import Frames, read_mount, read_truth
+from vtolpose.drivers.files.euroc_truth import EurocTruth, Frames, read_mount, read_truth
 from vtolpose.drivers.simulator.gps_model import GpsErrorModel, gps_errors
 from vtolpose.estimator.core.calibration import Calibration, GpsCalibration, ImuCalibration, ImuNoise
 from vtolpose.estimator.metrics import gps_error_rmse
 
 DEFAULT_MOUNTING_NAME = "euroc_vi_sensor.yaml"
+TRUTH_FOLDERS = ("state_groundtruth_estimate0", "leica0", "vicon0")
 _EUROC_NOISE_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk",
                      "accelerometer_noise_density", "accelerometer_random_walk")
 
@@ -118,6 +119,14 @@ def within(gps: GpsSeries, imu_t_ns: np.ndarray) -> GpsSeries:
     return GpsSeries(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep], gps.origin_lla)
 
 
+def _optional_truth(mav: Path, frames: Frames, leica_offset_s: float, truth_file: Path | None) -> EurocTruth | None:
+    """The flight's truth, or None when the recording has none (a user's own flight); a truth that is
+    there but broken, or a ``--truth`` file that is missing, is still an error."""
+    if truth_file is None and not any((mav / name / "data.csv").is_file() for name in TRUTH_FOLDERS):
+        return None
+    return read_truth(mav, frames, leica_offset_s, truth_file)
+
+
 def import_euroc(
     src: str | Path,
     out: str | Path,
@@ -152,8 +161,12 @@ def import_euroc(
     if imu.t_ns.size < 2:
         raise ValueError(f"{mav / 'imu0' / 'data.csv'}: fewer than 2 valid samples")
     frames = Frames(setup.R_BI, setup.R_WL, read_mount(mav / "imu0" / "sensor.yaml"))
-    found = read_truth(mav, frames, setup.leica_time_offset_s, Path(truth_file) if truth_file is not None else None)
-    truth, point_b = found.series, found.point_b
+    found = _optional_truth(mav, frames, setup.leica_time_offset_s, Path(truth_file) if truth_file is not None else None)
+    truth = found.series if found is not None else None
+    point_b = found.point_b if found is not None else np.zeros(3)
+    if gps_rate_hz is not None and truth is None:
+        raise ValueError(f"{mav}: --gps-rate makes the GPS from the truth, and this recording has none "
+                         "(state_groundtruth_estimate0, leica0, vicon0); give one with --truth, or import without --gps-rate")
     gps = None if gps_rate_hz is None else within(simulated_gps(truth, gps_rate_hz, gps_sigma_m, seed), imu.t_ns)
     cam_dir = mav / "cam0"
     use_camera = camera and (cam_dir / "data.csv").is_file() and (cam_dir / "sensor.yaml").is_file()
@@ -166,10 +179,14 @@ def import_euroc(
     )
     gps_text = (f"GPS = truth track subsampled to {gps_rate_hz:g} Hz + Gaussian noise sigma_xy={gps_sigma_m:g} m, "
                 f"sigma_z=sqrt(2) sigma_xy, seed {seed}, kept within the IMU recording" if gps is not None else "no GPS")
-    shift = f" shifted by {found.time_offset_s * 1e3:+.0f} ms onto the IMU clock" if found.time_offset_s else ""
+    if found is None:
+        truth_text = "no truth (the recording has none: a replay reports no scores)"
+    else:
+        shift = f" shifted by {found.time_offset_s * 1e3:+.0f} ms onto the IMU clock" if found.time_offset_s else ""
+        truth_text = (f"truth from {found.path.name if found.source == 'file' else found.source}{shift} "
+                      f"({'pose' if truth.q is not None else 'position'}, NED)")
     description = (f"EuRoC {src.name} imported by vtolpose (vtolpose.drivers.files.euroc_import): real IMU in sensor axes, "
-                   f"truth from {found.path.name if found.source == 'file' else found.source}{shift} "
-                   f"({'pose' if truth.q is not None else 'position'}, NED), mounting from {mounting_path.name}; IMU noise "
+                   f"{truth_text}, mounting from {mounting_path.name}; IMU noise "
                    f"{'in flight, from ' + mounting_path.name if setup.in_flight_noise is not None else 'from imu0/sensor.yaml'}; "
                    f"{gps_text}{'; cam0 images' if use_camera else ''}")
     writer = DatasetWriter(out)
@@ -180,7 +197,8 @@ def import_euroc(
     name = src.name if "euroc" in src.name.lower() else f"euroc-{src.name}"
     writer.write_calibration(calibration, name, description)
     writer.write_imu(ImuSeries(imu.t_ns, imu.values[:, :3], imu.values[:, 3:]))
-    writer.write_truth(truth)
+    if truth is not None:
+        writer.write_truth(truth)
     if gps is not None:
         writer.write_gps(gps)
 
@@ -189,17 +207,15 @@ def import_euroc(
         "imu_samples": int(imu.t_ns.size),
         "imu_lines_skipped": imu.skipped,
         "imu_rate_hz_measured": float(NS_PER_S / np.median(np.diff(imu.t_ns))),
-        "truth_source": found.source,
-        "truth_file": str(found.path),
-        "truth_samples": int(truth.t_ns.size),
-        "truth_lines_skipped": found.skipped,
-        "truth_has_attitude": truth.q is not None,
-        "truth_time_offset_s": found.time_offset_s,
+        "truth_source": found.source if found is not None else "none",
         "duration_s": float((imu.t_ns[-1] - imu.t_ns[0]) * 1e-9),
-        "truth_point_b": point_b.tolist(),
         "gps_fixes": 0,
         "camera_frames": 0,
     }
+    if found is not None:
+        summary.update(truth_file=str(found.path), truth_samples=int(truth.t_ns.size), truth_lines_skipped=found.skipped,
+                       truth_has_attitude=truth.q is not None, truth_time_offset_s=found.time_offset_s,
+                       truth_point_b=point_b.tolist())
     if use_camera:
         summary["camera_frames"], summary["camera_frames_skipped"] = copy_frames(cam_dir, out)
     if gps is not None:

@@ -79,6 +79,19 @@ def _jpeg_size(f) -> tuple[int, int] | None:
         f.seek(length - 2, 1)
 
 
+def image_kind(path: Path) -> str | None:
+    """``"png"``, ``"jpeg"``, ``"bmp"`` or ``"pnm"`` by the file's first bytes (not its name), else None."""
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if head.startswith(_PNG_SIGNATURE):
+        return "png"
+    if head.startswith(b"\xff\xd8"):
+        return "jpeg"
+    if head.startswith(b"BM"):
+        return "bmp"
+    return "pnm" if head[:2] in (b"P5", b"P6") else None
+
+
 def image_size(path: Path) -> tuple[int, int] | None:
     """``(width, height)`` read from the header of a PNG, JPEG, BMP or binary PGM/PPM file, without
     decoding it; None for any other format or a header that does not parse."""
@@ -134,10 +147,13 @@ def load_grey(path: Path, max_pixels: int = MAX_FRAME_PIXELS) -> np.ndarray | No
     return image
 
 
-def write_frame_index(csv_path: Path, t_ns: list[int]) -> None:
-    """The index of images written as ``<t_ns>.png`` in the folder beside it."""
+def write_frame_index(csv_path: Path, t_ns: list[int], suffixes: list[str] | None = None) -> None:
+    """The index of images written as ``<t_ns><suffix>`` in the folder beside it (``.png`` unless told)."""
     csv_path.parent.mkdir(parents=True, exist_ok=True)
-    lines = [FRAMES_HEADER, *(f"{t},{t}.png" for t in t_ns)]
+    suffixes = suffixes if suffixes is not None else [".png"] * len(t_ns)
+    if len(suffixes) != len(t_ns):
+        raise ValueError(f"write_frame_index: {len(t_ns)} times but {len(suffixes)} suffixes")
+    lines = [FRAMES_HEADER, *(f"{t},{t}{x}" for t, x in zip(t_ns, suffixes))]
     csv_path.write_text("\n".join(lines) + "\n", encoding="utf-8", newline="\n")
 
 

@@ -38,6 +38,7 @@ from vtolpose.estimator.init.window_solver import (
     WindowProblem,
     WindowSolution,
     acceleration_spread,
+    scale_sigma,
     solve_window,
     tangent_basis,
 )
@@ -60,13 +61,13 @@ class VisualInertialOptions:
     min_frame_rays: int = 8  # a frame with fewer tracked points is left out
     min_points: int = 20
     max_points: int = 80  # tracks taken into the solve, which grows with their number
-    min_excitation: float = 0.25  # m/s², RMS of the acceleration about its mean: a steady cruise hides the scale
     max_gravity_error: float = 0.1  # |g| of the linear guess within this fraction of gravity: scale observable
     max_residual_ratio: float = 2.0  # RMS whitened residual: the model fits the measurements
-    max_tilt_sigma_deg: float = 1.5
+    max_tilt_sigma_deg: float = 1.5  # gravity's direction, from the window's information
+    max_scale_sigma_rel: float = 0.25  # the scale, from the window's information (a steady cruise leaves it wide)
     max_velocity_sigma: float = 0.1  # m/s, plus max_velocity_sigma_rel of the speed
     max_velocity_sigma_rel: float = 0.05
-    max_depth_sigma_rel: float = 0.1  # median σ_ρ/ρ of the landmarks handed over: the scale is known
+    max_depth_sigma_rel: float = 0.25  # median σ_ρ/ρ of the landmarks handed over (the EKF carries the rest)
     min_landmarks: int = 10
     max_landmarks: int = 30  # handed to the EKF (seen in the last frame, best depth first)
     still_flow_px: float = 2.0  # features moving more than this between frames: the vehicle is not at rest,
@@ -101,14 +102,64 @@ class VisualInertialStart:
     n_points: int
     residual_ratio: float
     sigma_tilt_deg: float
+    sigma_scale_rel: float
     sigma_velocity: float
     depth_sigma_rel: float
 
     def describe(self) -> str:
         return (f"visual-inertial start from {self.n_frames} frames over {self.window_s:.1f} s, {self.n_points} tracked "
-                f"points, {len(self.landmarks)} landmarks: tilt sigma {self.sigma_tilt_deg:.2f} deg, velocity sigma "
+                f"points, {len(self.landmarks)} landmarks: tilt sigma {self.sigma_tilt_deg:.2f} deg, scale sigma "
+                f"{100 * self.sigma_scale_rel:.1f} %, velocity sigma "
                 f"{self.sigma_velocity:.3f} m/s, depth sigma {100 * self.depth_sigma_rel:.1f} %, residuals "
                 f"{self.residual_ratio:.2f}x the noise")
+
+
+@dataclass(frozen=True, slots=True)
+class VisualStartProgress:
+    """Why the visual-inertial start has not started yet, with what its last attempt measured.
+
+    ``check`` names the test that failed in one word (``window``, ``tracks``, ``motion``,
+    ``residuals``, ``gravity``, ``scale``, ``velocity``, ``landmarks``, ``depth``,
+    ``information``, or ``confirming`` while a passed window waits for the next to agree); the
+    figures are None where the attempt stopped before measuring them."""
+
+    t_ns: int
+    check: str
+    reason: str
+    attempts: int
+    frames: int = 0
+    window_s: float = 0.0
+    tracks: int = 0  # points tracked over the window's frames, taken into the solve
+    excitation: float | None = None  # m/s², RMS of the acceleration about its mean over the window
+    scale_sigma_rel: float | None = None
+    gravity_sigma_deg: float | None = None
+    depth_sigma_rel: float | None = None
+
+    def describe(self) -> str:
+        """One ASCII line (a STATUSTEXT carries no more) for a log or an operator, e.g.
+        ``initialising: 0.14 m/s^2 RMS over 5.0 s, scale sigma 40 %, ..., <reason>``."""
+        parts = []
+        if self.excitation is not None:
+            parts.append(f"{self.excitation:.2f} m/s^2 RMS over {self.window_s:.1f} s")
+        elif self.frames:
+            parts.append(f"{self.frames} frames over {self.window_s:.1f} s")
+        if self.scale_sigma_rel is not None:
+            parts.append(f"scale sigma {100 * self.scale_sigma_rel:.0f} %")
+        if self.gravity_sigma_deg is not None:
+            parts.append(f"gravity sigma {self.gravity_sigma_deg:.1f} deg")
+        if self.depth_sigma_rel is not None:
+            parts.append(f"depth sigma {100 * self.depth_sigma_rel:.0f} %")
+        if self.tracks:
+            parts.append(f"{self.tracks} tracks")
+        return "initialising: " + ", ".join(parts + [self.reason])
+
+    def as_dict(self) -> dict:
+        def r(x: float | None, digits: int) -> float | None:
+            return None if x is None or not math.isfinite(x) else round(float(x), digits)
+        return {"check": self.check, "reason": self.reason, "attempts": self.attempts, "frames": self.frames,
+                "window_s": round(self.window_s, 3), "tracks": self.tracks, "excitation_m_s2": r(self.excitation, 3),
+                "scale_sigma_rel": r(self.scale_sigma_rel, 4), "gravity_sigma_deg": r(self.gravity_sigma_deg, 3),
+                "depth_sigma_rel": r(self.depth_sigma_rel, 4), "text": self.describe()}
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,16 +190,22 @@ class VisualInertialInitializer:
         self._deltas: deque[ImuDelta] = deque()
         self.bias_prior = (np.zeros(3), 0.01, 0.1)  # b_g, σ_bg [rad/s], σ_ba [m/s²]
         self.attempts = 0
-        self.last_failure = ""
+        self.progress: VisualStartProgress | None = None  # why it has not started yet (None before any frame)
+        self.history: deque[VisualStartProgress] = deque(maxlen=50)  # each change of the failing check, in order
+        self._measured: dict = {}
         self._passed_before = False
         self._last_solve_ns: int | None = None
+
+    @property
+    def last_failure(self) -> str:
+        return "" if self.progress is None else self.progress.reason
 
     def reset(self) -> None:
         """Start over (after a filter reset, or once the start was taken)."""
         self.tracker.clear()
         self._deltas.clear()
         self._passed_before = False
-        self.last_failure = ""
+        self.progress = None
         self._last_solve_ns = None
 
     def set_bias_prior(self, b_g: np.ndarray, sigma_g: float, sigma_a: float) -> None:
@@ -176,21 +233,31 @@ class VisualInertialInitializer:
         opts = self.options
         self.tracker.add(features)
         frames = self._usable_frames()
-        if len(frames) < 3 or (frames[-1].t_ns - frames[0].t_ns) * 1e-9 < opts.min_window_s:
-            self.last_failure = "window too short"
+        span_s = (frames[-1].t_ns - frames[0].t_ns) * 1e-9 if frames else 0.0
+        if len(frames) < 3 or span_s < opts.min_window_s:
+            self._record(features.t_ns, "window", f"window too short ({len(frames)} frames over {span_s:.1f} s, "
+                         f"{opts.min_window_s:g} s needed)", {"frames": len(frames), "window_s": span_s})
             return None
         if self._last_solve_ns is not None and (features.t_ns - self._last_solve_ns) * 1e-9 < opts.solve_every_s:
             return None
         self._last_solve_ns = features.t_ns
         self.attempts += 1
+        self._measured = {"frames": len(frames), "window_s": span_s}
         try:
             start = self._solve(frames, gauge)
         except WindowFailure as why:
-            self.last_failure = str(why)
+            self._record(features.t_ns, why.check, str(why), self._measured)
             self._passed_before = False
             return None
         passed, self._passed_before = self._passed_before, True
+        if not passed:
+            self._record(features.t_ns, "confirming", "the window passed; waiting for the next to agree", self._measured)
         return start if passed else None
+
+    def _record(self, t_ns: int, check: str, reason: str, measured: dict) -> None:
+        self.progress = VisualStartProgress(t_ns, check, reason, self.attempts, **measured)
+        if not self.history or self.history[-1].check != check:
+            self.history.append(self.progress)
 
     # ---------------------------------------------------------------------------- window
     def _usable_frames(self) -> list[TrackedFrame]:
@@ -263,39 +330,44 @@ class VisualInertialInitializer:
         thin = np.flatnonzero(coverage < opts.min_frame_rays)
         first = int(thin[-1]) + 1 if len(thin) and thin[-1] < len(frames) - 1 else 0
         if len(thin) and thin[-1] == len(frames) - 1:
-            raise WindowFailure("the last frame shares too few tracked points with the window")
+            raise WindowFailure("the last frame shares too few tracked points with the window", "tracks")
         frames = frames[first:]
         keep = set().union(*(per_frame[first:]))
         chosen = [t for t in chosen if t in keep and sum(t in ids_k for ids_k in per_frame[first:]) >= opts.min_observations]
         if len(chosen) < opts.min_points or len(frames) < 3:
-            raise WindowFailure(f"{len(chosen)} points tracked over {opts.min_observations} frames (need {opts.min_points})")
+            raise WindowFailure(f"{len(chosen)} points tracked over {opts.min_observations} frames (need {opts.min_points})",
+                                "tracks")
         return np.array(chosen, dtype=np.int64), frames
 
     def _solve(self, frames: list[TrackedFrame], gauge: Gauge) -> VisualInertialStart:
         opts = self.options
         problem, chosen, frames = self._problem(frames)
-        excitation = acceleration_spread(problem)
-        if excitation < opts.min_excitation:
-            raise WindowFailure(f"acceleration varies by {excitation:.2f} m/s^2 RMS: too little to fix the scale")
+        measured = self._measured
+        measured.update(frames=problem.n_frames, window_s=float(problem.frame_t[-1]), tracks=problem.n_points,
+                        excitation=acceleration_spread(problem))
         solution = solve_window(problem, opts.max_gravity_error)
-        if solution.residual_ratio > opts.max_residual_ratio:
-            raise WindowFailure(f"residuals {solution.residual_ratio:.2f}x the noise")
         lay = Layout(problem.n_frames, problem.n_points)
         tilt = math.degrees(math.sqrt(max(np.linalg.eigvalsh(solution.cov[lay.G, lay.G]).max(), 0.0)))
+        measured.update(scale_sigma_rel=scale_sigma(problem, solution), gravity_sigma_deg=tilt)
+        if solution.residual_ratio > opts.max_residual_ratio:
+            raise WindowFailure(f"residuals {solution.residual_ratio:.2f}x the noise", "residuals")
         if tilt > opts.max_tilt_sigma_deg:
-            raise WindowFailure(f"tilt sigma {tilt:.2f} deg")
+            raise WindowFailure(f"gravity's direction not yet known (sigma over {opts.max_tilt_sigma_deg:g} deg)", "gravity")
+        if measured["scale_sigma_rel"] > opts.max_scale_sigma_rel:
+            raise WindowFailure(f"scale not yet known (sigma over {100 * opts.max_scale_sigma_rel:g} %)", "scale")
         last = frames[-1]
         seen = self._landmark_points(problem, solution, chosen, last)
-        start = self._to_filter(problem, solution, seen, last, gauge, tilt)
+        start = self._to_filter(problem, solution, seen, last, gauge, tilt, measured["scale_sigma_rel"])
         if not (np.all(np.isfinite(start.cov)) and np.all(np.diagonal(start.cov) > 0.0)):
-            raise WindowFailure("the start's covariance is not positive")
+            raise WindowFailure("the start's covariance is not positive", "information")
+        measured["depth_sigma_rel"] = start.depth_sigma_rel
         v_limit = opts.max_velocity_sigma + opts.max_velocity_sigma_rel * float(np.linalg.norm(start.v))
         if start.sigma_velocity > v_limit:
-            raise WindowFailure(f"velocity sigma {start.sigma_velocity:.3f} m/s")
+            raise WindowFailure(f"velocity sigma {start.sigma_velocity:.3f} m/s", "velocity")
         if len(start.landmarks) < opts.min_landmarks:
-            raise WindowFailure(f"{len(start.landmarks)} landmarks with a known depth in the last frame")
+            raise WindowFailure(f"{len(start.landmarks)} landmarks with a known depth in the last frame", "landmarks")
         if start.depth_sigma_rel > opts.max_depth_sigma_rel:
-            raise WindowFailure(f"depth sigma {100 * start.depth_sigma_rel:.1f} %: scale not yet known")
+            raise WindowFailure(f"landmarks' depths not yet known (median sigma over {100 * opts.max_depth_sigma_rel:g} %)", "depth")
         return start
 
     def _landmark_points(self, problem: WindowProblem, solution: WindowSolution, chosen: np.ndarray,
@@ -314,7 +386,7 @@ class VisualInertialInitializer:
 
     # -------------------------------------------------------------------- to the filter
     def _to_filter(self, problem: WindowProblem, solution: WindowSolution, seen: list[tuple[int, int]],
-                   last: TrackedFrame, gauge: Gauge, tilt_deg: float) -> VisualInertialStart:
+                   last: TrackedFrame, gauge: Gauge, tilt_deg: float, scale_sigma_rel: float) -> VisualInertialStart:
         """Nominal state at the last frame and its covariance, by first-order change of variables."""
         opts = self.options
         lay = Layout(problem.n_frames, problem.n_points)
@@ -396,6 +468,7 @@ class VisualInertialInitializer:
             landmarks=nominal[5][order], cov=cov[np.ix_(keep, keep)], descriptors=last.descriptors[rows],
             binary=last.binary, window_s=float(problem.frame_t[-1]), n_frames=problem.n_frames,
             n_points=problem.n_points, residual_ratio=solution.residual_ratio, sigma_tilt_deg=tilt_deg,
+            sigma_scale_rel=scale_sigma_rel,
             sigma_velocity=float(np.sqrt(np.max(covariance.block_variances(cov, V)))),
             depth_sigma_rel=float(np.median(sigma_rho[order] / rho[order])) if len(order) else math.inf,
         )
@@ -411,4 +484,5 @@ def _levelling(g_dir: np.ndarray) -> np.ndarray:
     return so3_exp(axis / s * math.atan2(s, c))
 
 
-__all__ = ["Gauge", "VisualInertialInitializer", "VisualInertialOptions", "VisualInertialStart", "tangent_basis"]
+__all__ = ["Gauge", "VisualInertialInitializer", "VisualInertialOptions", "VisualInertialStart", "VisualStartProgress",
+           "tangent_basis"]

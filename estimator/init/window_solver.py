@@ -109,7 +109,14 @@ class Layout:
 
 
 class WindowFailure(Exception):
-    """The window does not determine the start (too little motion, too few points, no convergence)."""
+    """The window does not determine the start (too little motion, too few points, no convergence).
+
+    ``check`` names the test that failed in one word (``tracks``, ``motion``, ``information``,
+    ``scale``, ...): what a status line and an operator's text can group by."""
+
+    def __init__(self, message: str, check: str) -> None:
+        super().__init__(message)
+        self.check = check
 
 
 def tangent_basis(u: np.ndarray) -> np.ndarray:
@@ -194,7 +201,7 @@ def linear_guess(problem: WindowProblem, b_g: np.ndarray | None = None) -> tuple
     ints = _integrals(problem, problem.bias_g if b_g is None else b_g)
     pairs = pair_directions(problem, ints.R)
     if len(pairs) < 3:
-        raise WindowFailure(f"{len(pairs)} pairs of frames share enough points")
+        raise WindowFailure(f"{len(pairs)} pairs of frames share enough points", "tracks")
     rows, rhs = _alignment_rows(problem, ints, pairs, with_gravity=True)
     sol, *_ = np.linalg.lstsq(rows, rhs, rcond=None)
     return sol[0:3], sol[3:6], sol[6:]
@@ -215,23 +222,32 @@ def _alignment_rows(problem: WindowProblem, ints, pairs, with_gravity: bool) -> 
     return rows, rhs
 
 
-def scale_given_gravity(problem: WindowProblem, g_dir: np.ndarray,
-                        b_g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(v0, gravity direction, baselines)`` with ``|g|`` held at gravity's magnitude.
+def scale_given_gravity(problem: WindowProblem, g_dir: np.ndarray, b_g: np.ndarray | None = None,
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(v0, gravity direction, baselines, b_a)`` with ``|g|`` held at gravity's magnitude.
 
     Over a short window a steady acceleration (a turn) looks like a tilted gravity; only the
     magnitude of gravity tells them apart, so the alignment is repeated with ``|g|`` fixed, its
-    direction found by Gauss–Newton on the sphere (``v0`` and the baselines solved exactly for
-    each direction), starting from ``g_dir``.
+    direction found by Gauss–Newton on the sphere (``v0``, ``b_a`` and the baselines solved
+    exactly for each direction), starting from ``g_dir``. The accelerometer bias is in it because
+    with ``|g|`` fixed nothing else can take a consumer accelerometer's error along gravity (a
+    few tenths of m/s²: metres over a window, more than a gentle path moves); its prior
+    (``sigma_bias_a``, weighed as a centimetre of misfit per sigma) holds the directions in which a
+    window that barely turns cannot tell it from the tilt.
     """
     ints = _integrals(problem, problem.bias_g if b_g is None else b_g)
     pairs = pair_directions(problem, ints.R)
-    rows, base = _alignment_rows(problem, ints, pairs, with_gravity=False)
+    motion, base = _alignment_rows(problem, ints, pairs, with_gravity=False)
+    n = len(pairs)
+    bias_cols = np.vstack([ints.M[b] - ints.M[a] for a, b, _ in pairs])  # p carries −M b_a
+    prior = np.eye(3) * (0.01 / max(problem.sigma_bias_a, 1e-6))
+    rows = np.vstack([np.hstack([motion[:, :3], bias_cols, motion[:, 3:]]), np.hstack([np.zeros((3, 3)), prior, np.zeros((3, n))])])
+    base = np.concatenate([base, np.zeros(3)])
     tau = problem.frame_t
-    half = np.concatenate([np.full(3, 0.5 * (tau[b] ** 2 - tau[a] ** 2)) for a, b, _ in pairs])
+    half = np.concatenate([np.concatenate([np.full(3, 0.5 * (tau[b] ** 2 - tau[a] ** 2)) for a, b, _ in pairs]), np.zeros(3)])
 
     def fit(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rhs = base + half * np.tile(problem.gravity * direction, len(pairs))
+        rhs = base + half * np.tile(problem.gravity * direction, n + 1)
         sol, *_ = np.linalg.lstsq(rows, rhs, rcond=None)
         return sol, rows @ sol - rhs
 
@@ -248,119 +264,7 @@ def scale_given_gravity(problem: WindowProblem, g_dir: np.ndarray,
         direction, sol, r = candidate, new_sol, new_r
         if np.linalg.norm(step) < 1e-9:
             break
-    return sol[0:3], direction, sol[3:]
-
-
-@dataclass(frozen=True, slots=True)
-class _Pairs:
-    """Points seen in two frames a < b (at most ``max_gap`` apart): body-frame unit rays in each."""
-
-    a: np.ndarray  # (P,) frame index of each correspondence
-    b: np.ndarray
-    ua: np.ndarray  # (P, 3)
-    ub: np.ndarray
-
-
-def _pairs(problem: WindowProblem, max_gap: int = 3) -> _Pairs:
-    rays = np.column_stack([problem.obs_xn, np.ones(len(problem.obs_xn))]) @ problem.R_BC.T
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    frames = [dict(zip(problem.obs_point[problem.obs_frame == k].tolist(), rays[problem.obs_frame == k]))
-              for k in range(problem.n_frames)]
-    a, b, ua, ub = [], [], [], []
-    for i in range(problem.n_frames):
-        for j in range(i + 1, min(i + max_gap, problem.n_frames - 1) + 1):
-            for point in set(frames[i]) & set(frames[j]):
-                a.append(i)
-                b.append(j)
-                ua.append(frames[i][point])
-                ub.append(frames[j][point])
-    return _Pairs(np.array(a, dtype=int), np.array(b, dtype=int), np.array(ua).reshape(-1, 3), np.array(ub).reshape(-1, 3))
-
-
-def epipolar_alignment(problem: WindowProblem, iterations: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """``(v0, gravity direction, b_g, rms)`` that best put the IMU's camera path on the images' epipolar planes.
-
-    For a point seen in frames a and b, the camera's displacement ``t_ab`` lies in the plane of
-    its two rays: ``(w_a × w_b) · t_ab / |t_ab| = 0``, the sine of the angle between them. The
-    IMU gives ``t_ab`` from ``(v0, g)``; the gyro bias turns the rays (over a few seconds at
-    altitude its turn-on value misturns them by as much as the parallax). Normalised by ``|t|``
-    the residual cannot shrink with the scale, as an algebraic one would, and no structure is
-    involved. Damped Gauss–Newton over ``[v0, tilt of g, b_g]`` (``|g|`` fixed, ``b_a = 0``) from
-    speeds spread over two decades along the images' first motion direction; the best fit wins.
-    """
-    pairs = _pairs(problem)
-    if len(pairs.a) < 20:
-        raise WindowFailure(f"{len(pairs.a)} point correspondences between frames")
-    tau = problem.frame_t
-    b0 = problem.bias_g
-
-    def residual(v0: np.ndarray, g_dir: np.ndarray, b_g: np.ndarray) -> np.ndarray:
-        ints = integrate(problem.imu_t, problem.dtheta, problem.dvel, b_g, tau)
-        c = np.outer(tau, v0) + 0.5 * np.outer(tau * tau, problem.gravity * g_dir) + ints.S + ints.R @ problem.t_BC
-        t = c[pairs.b] - c[pairs.a]
-        t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-        wa = np.einsum("nab,nb->na", ints.R[pairs.a], pairs.ua)
-        wb = np.einsum("nab,nb->na", ints.R[pairs.b], pairs.ub)
-        # Sampson-like: divided by how much ray noise moves it, so that neither a small parallax
-        # nor a rotation that lines the rays up can hide a misfit.
-        spread = np.sqrt(np.sum(np.cross(wb, t) ** 2, axis=1) + np.sum(np.cross(wa, t) ** 2, axis=1)) + 1e-9
-        epipolar = np.einsum("na,na->n", np.cross(wa, wb), t) / spread / (problem.pixel_sigma / problem.focal_px)
-        return np.concatenate([epipolar, (b_g - b0) / problem.sigma_bias_g])
-
-    ints0 = integrate(problem.imu_t, problem.dtheta, problem.dvel, b0, tau)
-    # Gravity first guess: the mean specific force over the window, in B0, points up.
-    f_mean = ints0.V[-1] / tau[-1]
-    g0 = -f_mean / np.linalg.norm(f_mean)
-    # Motion direction of the first pair from the images (rotations from the gyro).
-    first = pairs.a == pairs.a.min()
-    first &= pairs.b == pairs.b[first].min()
-    n = np.cross(np.einsum("ab,nb->na", ints0.R[pairs.a[first][0]], pairs.ua[first]),
-                 np.einsum("ab,nb->na", ints0.R[pairs.b[first][0]], pairs.ub[first]))
-    direction = np.linalg.eigh(n.T @ n)[1][:, 0]
-    best = None
-    for speed in (0.3, 3.0, 30.0):
-        for sign in (1.0, -1.0):
-            # The displacement of the first pair is mostly v0 Δτ: start v0 so that it points along ±direction.
-            dt = tau[pairs.b[first][0]] - tau[pairs.a[first][0]]
-            v0 = sign * speed * direction
-            x = _gauss_newton_epipolar(residual, v0, g0, b0.copy(), dt, iterations)
-            if best is None or x[3] < best[3]:
-                best = x
-    v0, g_dir, b_g, cost = best
-    r = residual(v0, g_dir, b_g)
-    return v0, g_dir, b_g, float(np.sqrt(np.mean(r[:-3] ** 2)))
-
-
-def _gauss_newton_epipolar(residual, v0: np.ndarray, g_dir: np.ndarray, b_g: np.ndarray, dt: float,
-                           iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    eps = 1e-6
-    lam = 1e-3
-
-    def unpack(x, base):
-        v, gd, b = base
-        return v + x[0:3], so3_exp(tangent_basis(gd) @ x[3:5]) @ gd, b + x[5:8]
-
-    state = (v0, g_dir, b_g)
-    r = residual(*state)
-    cost = float(r @ r)
-    for _ in range(iterations):
-        J = np.column_stack([(residual(*unpack(np.eye(8)[i] * eps, state)) - r) / eps for i in range(8)])
-        H = J.T @ J
-        grad = J.T @ r
-        improved = False
-        for _ in range(6):
-            step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), grad)
-            candidate = unpack(step, state)
-            r_new = residual(*candidate)
-            if float(r_new @ r_new) < cost:
-                state, r, improved = candidate, r_new, True
-                old, cost = cost, float(r_new @ r_new)
-                lam = max(lam * 0.2, 1e-9)
-                break
-            lam *= 10.0
-        if not improved or old - cost < 1e-9 * old:
-            break
-    return state[0], state[1], state[2], cost
+    return sol[0:3], direction, sol[6:], sol[3:6]
 
 
 def triangulate(problem: WindowProblem, R: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -588,21 +492,21 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     """
     K, M = problem.n_frames, problem.n_points
     if K < 3 or M < 6:
-        raise WindowFailure(f"{K} frames and {M} tracked points: too few")
+        raise WindowFailure(f"{K} frames and {M} tracked points: too few", "tracks")
     b_g = problem.bias_g.copy()
     v0, g_lin, _ = linear_guess(problem, b_g)
     g_norm = float(np.linalg.norm(g_lin))
     if not (math.isfinite(g_norm) and abs(g_norm / problem.gravity - 1.0) <= max_gravity_error):
-        raise WindowFailure(f"|g| {g_norm:.2f} m/s^2 from the linear guess: too little motion to fix the scale")
-    v0, g_dir, baselines = scale_given_gravity(problem, g_lin, b_g)
+        raise WindowFailure(f"|g| {g_norm:.2f} m/s^2 from the linear guess: too little motion to fix the scale", "motion")
+    v0, g_dir, baselines, b_a = scale_given_gravity(problem, g_lin, b_g)
     if np.sum(baselines < 0.0) > 0.25 * len(baselines):
-        raise WindowFailure("the camera moves against the directions the images say")
+        raise WindowFailure("the camera moves against the directions the images say", "motion")
     ints = _integrals(problem, b_g)
     tau = problem.frame_t
-    p = np.outer(tau, v0) + 0.5 * np.outer(tau * tau, problem.gravity * g_dir) + ints.S
-    v = v0 + np.outer(tau, problem.gravity * g_dir) + ints.V
+    p = np.outer(tau, v0) + 0.5 * np.outer(tau * tau, problem.gravity * g_dir) + ints.S - ints.M @ b_a
+    v = v0 + np.outer(tau, problem.gravity * g_dir) + ints.V - ints.MV @ b_a
     model = _Residuals(problem, np.ones(len(problem.obs_frame), dtype=bool))
-    first = _Estimate(g_dir, b_g.copy(), np.zeros(3), p - p[0], v, triangulate(problem, ints.R, p - p[0] + ints.R @ problem.t_BC))
+    first = _Estimate(g_dir, b_g.copy(), b_a, p - p[0], v, triangulate(problem, ints.R, p - p[0] + ints.R @ problem.t_BC))
     first, used = _refine(model, first, iterations, robust=2.0)
     fits = [(_robust(model, model.evaluate(first, tangent_basis(first.g_dir), False), 2.0)[0], first)]
     for factor in rescales:
@@ -618,7 +522,7 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     inliers &= counts[problem.obs_point] >= 2  # a point seen once says nothing, and would leave H singular
     counts = np.bincount(problem.obs_point[inliers], minlength=M)
     if np.sum(counts >= 2) < 6 or np.mean(inliers) < 0.5:
-        raise WindowFailure("too few points consistent with the motion")
+        raise WindowFailure("too few points consistent with the motion", "tracks")
     model = _Residuals(problem, inliers)
     est, more = _refine(model, est, iterations)
     used += more
@@ -630,10 +534,10 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     try:
         cov = _covariance(H_cc, H_cf, H_ff)
     except np.linalg.LinAlgError:
-        raise WindowFailure("singular information matrix") from None
+        raise WindowFailure("singular information matrix", "information") from None
     n_c = len(H_cc)
     if not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov[:n_c, :n_c]).min() <= 0.0:
-        raise WindowFailure("information matrix too ill-conditioned for a covariance")
+        raise WindowFailure("information matrix too ill-conditioned for a covariance", "information")
     r2 = float(np.sum(lin.r_pix**2) + lin.r_dense @ lin.r_dense)
     ratio = math.sqrt(r2 / max(2 * len(lin.frame) + len(lin.r_dense) - Layout(K, M).size, 1))
     cov *= max(1.0, ratio**2)
@@ -642,9 +546,28 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     sigma_v = math.sqrt(max(float(np.trace(cov[lay.v(0), lay.v(0)])), 0.0))
     for other_cost, other in fits:
         if other_cost <= cost + 4.0 and np.linalg.norm(other.v[0] - est.v[0]) > 3.0 * sigma_v + 1e-3:
-            raise WindowFailure("two scales fit the window about equally well")
+            raise WindowFailure("two scales fit the window about equally well", "scale")
     return WindowSolution(est.g_dir, est.b_g, est.b_a, est.p, est.v, _integrals(problem, est.b_g).R, est.f,
                           cov, tangent, ratio, g_norm, inliers, used)
+
+
+def scale_sigma(problem: WindowProblem, solution: WindowSolution) -> float:
+    """The relative sigma of the window's scale, from the window's own information.
+
+    The scale is the common stretch ``s`` of the IMU's positions about frame 0 (the origin):
+    ``p̂_k (1 + s)`` fits them best for ``s = Σ p̂_kᵀ δp_k / Σ |p̂_k|²``, a linear function of
+    the position errors, so its variance is ``wᵀ P w`` over their covariance. A window that
+    barely moves, or whose acceleration is drowned by the accelerometer's noise, leaves it
+    large; a lively one makes it small whatever the excitation's RMS.
+    """
+    lay = Layout(problem.n_frames, problem.n_points)
+    cols = slice(lay.p(1).start, lay.v(0).start)
+    p = solution.p[1:].reshape(-1)
+    norm = float(p @ p)
+    if norm <= 0.0:
+        return math.inf
+    w = p / norm
+    return math.sqrt(max(float(w @ solution.cov[cols, cols] @ w), 0.0))
 
 
 def _robust(model: _Residuals, lin: _Linearised, robust: float | None) -> tuple[float, np.ndarray]:

@@ -40,8 +40,7 @@ import vtolpose
 from vtolpose.service.bench.rows import Row as BenchRow
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.files.euroc_import import import_euroc
-from vtolpose.drivers.files.euroc_truth import TRUTH_SOURCES
+from vtolpose.drivers.files.euroc_import import TRUTH_FOLDERS, import_euroc
 from vtolpose.estimator.status import EventKind
 from vtolpose.estimator.core.rotation import quat_to_rot, rot_to_quat, rotation_angle
 from vtolpose.estimator.metrics import (
@@ -153,7 +152,9 @@ def data_roots() -> list[Path]:
 
 
 def find_flights(roots: list[Path]) -> list[Flight]:
-    """Every folder under ``roots`` (three levels deep at most) that holds a EuRoC IMU, by name."""
+    """Every folder under ``roots`` (three levels deep at most) that holds a EuRoC IMU and a truth to score
+    against (``truth.tum`` beside ``mav0``, or one of EuRoC's truth folders), by name. A recording without
+    one (a hand-held recording of a user's own) is no bench flight."""
     found: dict[str, Flight] = {}
     for root in roots:
         if not root.is_dir():
@@ -163,15 +164,11 @@ def find_flights(roots: list[Path]) -> list[Flight]:
             if len(folder.relative_to(root).parts) > 3:
                 continue
             truth = folder / "truth.tum"
+            if not (truth.is_file() or any((folder / "mav0" / t / "data.csv").is_file() for t in TRUTH_FOLDERS)):
+                continue
             name = folder.name.removeprefix("euroc_").upper()
             found.setdefault(name, Flight(name, folder, truth if truth.is_file() else None))
     return sorted(found.values(), key=lambda f: f.name)
-
-
-def has_truth(flight: Flight) -> bool:
-    """The bench scores against a truth: a TUM file beside the flight, or one of EuRoC's reference folders."""
-    return flight.truth_file is not None or any((flight.source / "mav0" / source / "data.csv").is_file()
-                                           for source in TRUTH_SOURCES if source != "file")
 
 
 def score_poses(traj: Trajectory, cov: CovarianceSamples, dataset: Dataset, placed: int | None,
@@ -334,10 +331,6 @@ def flights_or_skip(bench: str, echo: Callable[[str], None]) -> list:
     """The EuRoC flights under the data roots; none: a skip line that says where to put them."""
     roots = data_roots()
     flights = find_flights(roots)
-    untrue = [f.name for f in flights if not has_truth(f)]
-    if untrue:  # a recording without truth (a hand-held camera, say) cannot be scored here
-        echo(f"  {bench}: {', '.join(untrue)} left out: no truth to score against")
-        flights = [f for f in flights if has_truth(f)]
     if not flights:
         echo(f"  {bench}: skipped, no EuRoC flight (mav0/imu0/data.csv) under {', '.join(map(str, roots))}; "
              f"set {DATA_ENV} to the folder that holds them")

@@ -14,11 +14,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "import",
         help="convert external data (EuRoC, ROS 2 bags) into a dataset",
         description="Convert an external recording into the dataset layout that `replay` reads.\n\n"
-        "euroc: an ASL/EuRoC folder (mav0/imu0 and a truth). The truth is --truth FILE (TUM or EuRoC CSV:\n"
-        "the IMU's pose on the IMU clock) or the first of mav0/state_groundtruth_estimate0, leica0, vicon0;\n"
-        "with --gps-rate a GPS is made from it the way the thesis made its GPS (subsampled, Gaussian\n"
-        "noise with sigma_z^2 = 2 sigma_xy^2). mav0/cam0 (images, intrinsics, distortion, mounting) comes\n"
-        "along unless --no-camera. The IMU mounting comes from --mounting, the same file for every flight.\n"
+        "euroc: an ASL/EuRoC folder (mav0/imu0, a truth if it has one). The truth is --truth FILE (TUM or\n"
+        "EuRoC CSV: the IMU's pose on the IMU clock) or the first of mav0/state_groundtruth_estimate0,\n"
+        "leica0, vicon0; a recording with none (a flight of your own) imports without, and its replays\n"
+        "report no scores. With --gps-rate a GPS is made from the truth the way the thesis made its GPS\n"
+        "(subsampled, Gaussian noise with sigma_z^2 = 2 sigma_xy^2). mav0/cam0 (PNG or JPEG images at any\n"
+        "resolution, kept as they are; intrinsics, distortion, mounting) comes along unless --no-camera.\n"
+        "The IMU mounting comes from --mounting, the same file for every flight of one rig.\n"
         "--truth FILE takes the truth from a TUM file instead (the IMU's pose on the IMU clock).\n\n"
         "rosbag: a ROS 2 bag (rosbag2 folder with sqlite3 or MCAP storage, or a .mcap file): --imu\n"
         "(sensor_msgs/Imu) and --gps (NavSatFix), optionally --image (Image or CompressedImage, needs\n"

@@ -2,7 +2,8 @@
 
 Once a second the runtime hands the outputs its status document; :class:`StatusEvents` compares it
 with the previous one and names what an operator must know: a filter reset (and why), a sensor going
-stale or coming back, the heading placed (or lost). :class:`TextLimiter` lets at most ``per_minute``
+stale or coming back, the heading placed (or lost), and while the visual-inertial start waits, why
+(once per change of the check that holds it, with what it measured). :class:`TextLimiter` lets at most ``per_minute``
 texts out (a short burst allowed), and says how many it held back once it lets one out again, so a
 flapping sensor cannot flood a radio link. Long texts are split into chunks that share an ``id``
 (the MAVLink 2 extension ground stations reassemble); at most four chunks, the rest cut.
@@ -31,6 +32,7 @@ class StatusEvents:
         self._aligned = False
         self._resets = 0
         self._stale: set[str] = set()
+        self._waiting: str | None = None  # the check holding the visual-inertial start, last said
 
     def changes(self, doc: dict[str, Any]) -> list[tuple[int, str]]:
         health = doc.get("health") or {}
@@ -47,7 +49,11 @@ class StatusEvents:
                        else (mav.MAV_SEVERITY_WARNING, "heading not aligned, pose not usable"))
         out += [(mav.MAV_SEVERITY_WARNING, f"{name} stale") for name in sorted(stale - self._stale)]
         out += [(mav.MAV_SEVERITY_INFO, f"{name} back") for name in sorted(self._stale - stale)]
+        waiting = doc.get("visual_start") or {}
+        if waiting.get("check") != self._waiting and waiting.get("text"):
+            out.append((mav.MAV_SEVERITY_INFO, waiting["text"]))
         self._aligned, self._resets, self._stale = aligned, resets, stale
+        self._waiting = waiting.get("check")
         return out
 
 

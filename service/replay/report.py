@@ -56,15 +56,21 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
     camera = camera_summary(result)
     if camera is not None:
         report["camera"] = camera
+    waited = visual_start_report(result)
+    if waited is not None:
+        report["visual_start"] = waited
     truth = dataset.truth()
     if truth is None or len(traj.t_ns) < 2:
         report["truth"] = None
+        report["no_scores"] = ("the dataset has no truth: nothing to score against" if truth is None
+                               else "fewer than two poses: nothing to score")
         return report
     point_b = dataset.calibration.truth_point_b
     valid = traj.valid
     if not np.any(valid):
         report["truth"] = None
         report["never_valid"] = "no pose could be scored: every one was initialising (not to be used) or had no position"
+        report["no_scores"] = report["never_valid"]
         return report
     if not np.all(valid):
         first = int(np.argmax(valid))
@@ -78,8 +84,14 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
                     "pose before scoring",
             "offset_m": (align.target - align.pivot).tolist(),
             "heading_deg": float(np.degrees(so3_log(align.rotation)[2])),
+            "heading_aligned": align.heading_aligned,
         }
-    align = align or StartAlignment(np.eye(3), np.zeros(3), np.zeros(3))
+        if align.heading_aligned:
+            report["position_reference"]["heading_note"] = (
+                "a camera-only frame cannot know the world's heading: it is turned onto the truth's at that pose, "
+                "and the NEES covers what the frame can know (the pose relative to its start: position, tilt and the "
+                "heading's drift), its covariance the filter's in its own frame")
+    align = align or StartAlignment(np.eye(3), np.zeros(3), np.zeros(3), False)
     if score_from_s > 0.0:
         truth = truth_from(truth, int(truth.t_ns[0] + round(score_from_s * 1e9)))
         report["score_from_s"] = score_from_s
@@ -178,6 +190,7 @@ class StartAlignment:
     rotation: np.ndarray
     pivot: np.ndarray
     target: np.ndarray
+    heading_aligned: bool  # the turn takes off a heading the estimate's frame could not know
 
     def points(self, p: np.ndarray) -> np.ndarray:
         return self.target + (np.asarray(p) - self.pivot) @ self.rotation.T
@@ -193,8 +206,10 @@ class StartAlignment:
 
 
 def start_alignment(result: ReplayResult, truth, point_b: np.ndarray) -> StartAlignment | None:
-    """For runs that never had an absolute position: the shift (and, when the heading was the
-    visual-inertial start's own, the turn) that puts the first valid estimated pose on the truth."""
+    """For runs that never had an absolute position: the shift (and, when the heading was the frame's own,
+    the turn) that puts the first valid estimated pose on the truth. A camera-only run (``local_position``)
+    is always turned: even a heading it was given at the start is carried, in a start in motion, through
+    the seconds before the visual-inertial start by a propagation it cannot correct."""
     est, traj = result.estimator, result.trajectory
     if est.position_initialized or len(traj.t_ns) == 0:
         return None
@@ -207,9 +222,25 @@ def start_alignment(result: ReplayResult, truth, point_b: np.ndarray) -> StartAl
         return None
     p_true, q_true = interpolate_poses(np.array([traj.t_ns[k]]), truth.t_ns, truth.p, truth.q)
     rotation = np.eye(3)
-    if not est.heading_aligned and q_true is not None:
+    turn = (not est.heading_aligned or est.local_position) and q_true is not None
+    if turn:
         rotation = so3_exp(np.array([0.0, 0.0, float(yaw_of(q_true[0]) - yaw_of(traj.q[k]))]))
-    return StartAlignment(rotation, traj.p[k] + quat_to_rot(traj.q[k]) @ point_b, p_true[0])
+    return StartAlignment(rotation, traj.p[k] + quat_to_rot(traj.q[k]) @ point_b, p_true[0], turn)
+
+
+def visual_start_report(result: ReplayResult) -> dict | None:
+    """Why the visual-inertial start waited, each change of the check that held it with what it measured
+    (``VisualStartProgress``), and, if it never started, where it stood at the end; None without one."""
+    est = result.estimator
+    init = est.visual_inertial
+    if init is None or (not init.history and init.progress is None):
+        return None
+    def entry(p) -> dict:
+        return {"t_s": round((p.t_ns - result.data_t0_ns) * 1e-9, 3), **p.as_dict()}
+    out: dict[str, Any] = {"attempts": init.attempts, "waited": [entry(p) for p in init.history]}
+    if init.progress is not None and (est.state is None or est.initialising):
+        out["still_waiting"] = entry(init.progress)
+    return out
 
 
 def _stats(values: list[float] | np.ndarray, digits: int = 3) -> dict:
@@ -295,8 +326,33 @@ def summary_lines(report: dict) -> list[str]:
         value = report.get(key)
         return "n/a" if value is None else f"{value * scale:.{digits}f}{unit}"
 
+    head = f"dataset {report['dataset']}  variant {report['variant']}  sensors {','.join(report['sensor_set'])}"
+    if "no_scores" in report:
+        lines = [head, f"  no scores: {report['no_scores']}"]
+    else:
+        lines = [head] + score_lines(report, fmt)
+    lines += visual_start_lines(report)
+    return lines + count_lines(report)
+
+
+def visual_start_lines(report: dict) -> list[str]:
+    """Why the visual-inertial start waited (the last reason before it started), or still waits."""
+    vs = report.get("visual_start")
+    if not vs:
+        return []
+    if "still_waiting" in vs:
+        w = vs["still_waiting"]
+        return [f"  visual-inertial start: not started after {vs['attempts']} attempts; at {w['t_s']:.1f} s {w['text']}"]
+    held = [w for w in vs["waited"] if w["check"] not in ("window", "confirming")]  # what held it, not the wait to agree
+    if not held:
+        return []
+    w = held[-1]
+    return [f"  visual-inertial start: after {vs['attempts']} attempts; the last hold, from {w['t_s']:.1f} s: {w['text']}"]
+
+
+def score_lines(report: dict, fmt) -> list[str]:
+    """Accuracy and consistency against the truth."""
     lines = [
-        f"dataset {report['dataset']}  variant {report['variant']}  sensors {','.join(report['sensor_set'])}",
         f"  position RMSE {fmt('position_rmse_m', ' m')}   GPS RMSE {fmt('gps_rmse_m', ' m')}   ratio {fmt('position_rmse_over_gps', '', 1, 3)}",
         f"  attitude RMSE {fmt('attitude_rmse_deg', ' deg', 1, 3)}"
         + (f" ({fmt('attitude_rmse_with_heading_deg', ' deg', 1, 3)} once the heading is placed)"
@@ -311,7 +367,14 @@ def summary_lines(report: dict) -> list[str]:
         verdict = "inside" if n["mean_in_band"] else "OUTSIDE"
         lines.append(f"  NEES mean {n['nees_mean']:.2f} ({n['dof']} dof; 95% band {lo:.2f}-{hi:.2f}: {verdict}; {100 * n['fraction_in_band']:.0f}% of samples in band)")
     if "position_reference" in report:
-        lines.append("  (no absolute position: scored with the start put on the truth)")
+        turned = " and its heading turned onto the truth's" if report["position_reference"].get("heading_aligned") else ""
+        lines.append(f"  (no absolute position: scored with the start put on the truth{turned})")
+    return lines
+
+
+def count_lines(report: dict) -> list[str]:
+    """Camera, smoothing, speed, counts, faults and resets."""
+    lines: list[str] = []
     cam = report.get("camera")
     if cam is not None:
         t = cam["timing_ms"]

@@ -83,6 +83,15 @@ def _score(sigma: float, good: float, decades: float) -> float:
     return 1.0 - min(max(math.log10(max(sigma, 1e-12) / good) / decades, 0.0), 1.0)
 
 
+def visual_start_waiting(est: Estimator) -> dict[str, Any] | None:
+    """Why the visual-inertial start has not started yet, with what it measured (``VisualStartProgress``),
+    while the filter waits for it; None when it is not wanted or has not tried."""
+    init = est.visual_inertial
+    if init is None or init.progress is None or est.position_initialized or not (est.state is None or est.initialising):
+        return None
+    return init.progress.as_dict()
+
+
 def resident_memory_mb() -> float | None:
     """Current resident set size of this process [MB] (Linux /proc), None where unavailable."""
     try:
@@ -166,6 +175,7 @@ class StatusTracker:
     def __post_init__(self) -> None:
         self._last_wall = self.clock()
         self._last_cpu = time.process_time()
+        self._logged_wait: str | None = None  # the visual-inertial start's last logged reason (logged on change)
 
     def saw(self, sensor: str, n: int = 1) -> None:
         s = self.sensors.get(sensor)
@@ -220,6 +230,13 @@ class StatusTracker:
             "load_average": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
             "memory_mb": None if (rss := resident_memory_mb()) is None else round(rss, 1),
         }
+        waiting = visual_start_waiting(est)
+        if waiting is not None:
+            doc["visual_start"] = waiting
+        if (waiting and waiting["check"]) != self._logged_wait:
+            if waiting is not None:
+                log.info("visual-inertial start waiting: %s", waiting["text"])
+            self._logged_wait = waiting and waiting["check"]
         if extra:
             doc.update(extra)
         return doc
