@@ -7,7 +7,9 @@ import pytest
 
 from vtolpose.estimator.core.calibration import ImuNoise
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
-from vtolpose.estimator.inertial.propagator import ImuPropagator, error_transition, integrate_nominal, process_noise
+from vtolpose.estimator.inertial.propagator import ImuPropagator, process_noise
+
+from propagation_oracle import error_transition, integrate_nominal
 from vtolpose.estimator.core.rotation import quat_conj, quat_exp, quat_from_euler, quat_log, quat_mul
 from vtolpose.estimator.core.state import FilterState, StateLayout
 

@@ -15,7 +15,8 @@ import math
 import numba
 import numpy as np
 
-from vtolpose.estimator.core.rotation import _SMALL_ANGLE
+from vtolpose.estimator.core.rotation import compiled_quat_exp_of as quat_exp_of
+from vtolpose.estimator.core.rotation import compiled_quat_product as quat_product
 
 
 @numba.njit(cache=True, nogil=True)
@@ -114,16 +115,8 @@ def apply_error(x: np.ndarray, dx: np.ndarray, n: int) -> np.ndarray:
     out = x.copy()
     for i in range(6):
         out[i] += dx[i]
-    rx, ry, rz = dx[6], dx[7], dx[8]
-    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
-    half = 0.5 * angle
-    k = math.sin(half) / max(angle, _SMALL_ANGLE) if angle > _SMALL_ANGLE else 0.5 - angle**2 / 48.0
-    pw, px, py, pz = math.cos(half), k * rx, k * ry, k * rz
-    qw, qx, qy, qz = x[6], x[7], x[8], x[9]
-    w = pw * qw - px * qx - py * qy - pz * qz
-    a = pw * qx + px * qw + py * qz - pz * qy
-    b = pw * qy - px * qz + py * qw + pz * qx
-    c = pw * qz + px * qy - py * qx + pz * qw
+    pw, px, py, pz = quat_exp_of(dx[6], dx[7], dx[8])
+    w, a, b, c = quat_product(pw, px, py, pz, x[6], x[7], x[8], x[9])
     norm = math.sqrt(w * w + a * a + b * b + c * c)
     out[6], out[7], out[8], out[9] = w / norm, a / norm, b / norm, c / norm
     if n > 9:
