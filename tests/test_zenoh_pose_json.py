@@ -1,6 +1,7 @@
 """The pose message written straight from the pose (PoseJson) is, byte for byte, ``json.dumps(pose_message(...))``:
 the wire format of ``<prefix>/pose`` is an interface (INTERFACES.md) that mappers parse."""
 
+import dataclasses
 import itertools
 import json
 import math
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from vtolpose.estimator.core.rotation import quat_from_euler
+from vtolpose.estimator.core.rotation import quat_exp, quat_from_euler
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.pose_history import PoseHistory
 from vtolpose.service.outputs.pose_json import PoseJson, pose_message
@@ -131,3 +132,18 @@ def test_a_pose_with_a_number_that_is_not_finite_is_written_with_null(value):
     pose.p[1] = value
     text = PoseJson()(pose, 1, None)
     assert text == json.dumps(pose_message(pose, 1, None)) and json.loads(text)["p"][1] is None
+
+
+def test_the_attitude_is_written_scalar_first_as_the_pose_holds_it():
+    """``q`` is [w, x, y, z], body→NED (INTERFACES.md): for a turn of 2.4 rad about a tilted axis the document
+    holds cos(θ/2) first, then sin(θ/2) times the axis, in both writers (a mapper reading x, y, z, w would
+    place every LIDAR return with the wrong attitude)."""
+    axis = np.array([0.36, -0.48, 0.8])
+    angle = 2.4
+    pose = random_pose(np.random.default_rng(3), dict.fromkeys(FLAGS, True), 100, None)
+    pose = dataclasses.replace(pose, q=quat_exp(angle * axis))
+    expected = [math.cos(angle / 2), *(math.sin(angle / 2) * axis)]
+    for text in (PoseJson()(pose, 1, None), json.dumps(pose_message(pose, 1, None))):
+        q = json.loads(text)["q"]
+        np.testing.assert_allclose(q, expected, rtol=0, atol=1e-15)
+        assert q == pose.q.tolist()
