@@ -4,8 +4,8 @@ The backward pass walks every filter step from the newest to the oldest, two sma
 products each; in numpy those products' Python wrappers cost more than their arithmetic, and
 since the replay itself became faster the backward pass was the slower half of ``replay
 --smooth``. Compiled with numba the same products run through the same BLAS routines in the
-same order: the result is bit for bit that of ``rts.recursion``, its numpy reference (a test
-holds them together). Cached and loaded as ``inertial.propagation_kernel``.
+same order: the result is bit for bit that of the same recursion written in numpy (tests/rts_oracle.py,
+the oracle a test holds it to). Cached and loaded as ``inertial.propagation_kernel``.
 """
 
 from __future__ import annotations
@@ -22,8 +22,10 @@ from vtolpose.estimator.core.rotation import compiled_quat_product as quat_produ
 @numba.njit(cache=True, nogil=True)
 def recursion(C: np.ndarray, D: np.ndarray, u: np.ndarray, P: np.ndarray, transition: np.ndarray,
               e: np.ndarray, Ps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """See ``rts.recursion``; ``e``/``Ps`` are zeros when there is no later step (the newest step then
-    has no transition and restarts the recursion before they are read)."""
+    """The linear heart of the pass over K steps, newest last: corrections ``e_k`` and ``Pˢ_k`` for each
+    (``rts``'s module docstring). A step without ``transition`` restarts the recursion at its posterior
+    (``e = 0``, ``Pˢ = P``); ``e``/``Ps`` carry the estimate of the step after the last one, zeros when there
+    is none (the newest step then has no transition and restarts the recursion before they are read)."""
     k_total, n = u.shape
     e_out, P_out = np.empty((k_total, n)), np.empty((k_total, n, n))
     zero = np.zeros(n)
@@ -105,7 +107,7 @@ def gains(P: np.ndarray, F: np.ndarray, P_pred: np.ndarray, transition: np.ndarr
 @numba.njit(cache=True, nogil=True)
 def backward_step(C: np.ndarray, D: np.ndarray, u: np.ndarray, e_next: np.ndarray,
                   Ps_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``rts.backward_step``, bit for bit: one step of the fixed-lag smoother's sweep."""
+    """One RTS step on the corrections, ``(e_k, Pˢ_k)`` from ``(e_{k+1}, Pˢ_{k+1})``: the fixed-lag smoother's sweep."""
     return np.dot(C, e_next + u), np.dot(np.dot(C, Ps_next), np.ascontiguousarray(C.T)) + D
 
 
