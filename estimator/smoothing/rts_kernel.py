@@ -1,11 +1,11 @@
 """The RTS backward recursion compiled to machine code.
 
 The backward pass walks every filter step from the newest to the oldest, two small matrix
-products each; in numpy those products' Python wrappers cost more than their arithmetic, and
-since the replay itself became faster the backward pass was the slower half of ``replay
---smooth``. Compiled with numba the same products run through the same BLAS routines in the
-same order: the result is bit for bit that of the same recursion written in numpy (tests/rts_oracle.py,
-the oracle a test holds it to). Cached and loaded as ``inertial.propagation_kernel``.
+products each; in numpy those products' Python wrappers cost more than their arithmetic, enough
+to make the backward pass the slower half of ``replay --smooth``. Compiled with numba the same
+products run through the same BLAS routines in the same order: the result is bit for bit that of
+the same recursion written in numpy (tests/rts_oracle.py, the oracle a test holds it to). Cached
+and loaded as ``inertial.propagation_kernel``.
 """
 
 from __future__ import annotations
