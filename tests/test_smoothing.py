@@ -4,7 +4,6 @@ segments at resets, and the fixed-lag smoother's bounds."""
 import numpy as np
 import pytest
 
-from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import quat_from_euler
 from vtolpose.estimator.filter import Estimator, FilterOptions
@@ -139,11 +138,6 @@ def test_error_state_conventions_match_the_filter():
 
 
 # ---------------------------------------------------------------------------- simulated flights
-@pytest.fixture(scope="module")
-def book():
-    return simulate_flight("book", 45.0, 3)
-
-
 def run_recorded(flight, variant: str, skip_imu_s: tuple[float, float] | None = None):
     """Feed a flight through the estimator with a recorder; filtered poses after each IMU sample."""
     est = Estimator(flight.calibration, FilterOptions(variant=variant))

@@ -5,7 +5,6 @@ import dataclasses
 import itertools
 import json
 import math
-import socket
 import threading
 import time
 
@@ -19,6 +18,8 @@ from vtolpose.estimator.pose_history import PoseHistory
 from vtolpose.service.outputs.pose_json import PoseJson, pose_message
 from vtolpose.service.outputs.zenoh import ZenohOutput
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
+
+from conftest import free_port
 
 POSE = [0, 1, 2, 6, 7, 8]
 FLAGS = ("heading_aligned", "position_initialized", "initialising", "local_position", "fused")
@@ -81,12 +82,6 @@ def test_a_changed_or_equal_but_new_origin_is_written_afresh():
     encode = PoseJson()
     for origin in [(1.0, 2.0, 3.0), (1, 2, 3), None, (1.0, 2.0, 3.0), (1.0, 2.0, 3.5)]:
         assert encode(pose, 7, origin) == json.dumps(pose_message(pose, 7, origin)), origin
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_the_published_bytes_and_sequence_numbers_on_loopback():
