@@ -75,7 +75,8 @@ class ImuDownsampler:
         The live path, one sample at a time, kept in Python rather than calling the compiled
         ``sample_kernel.downsample_run`` on runs of one: a live service does not load the kernels of runs
         (~5 MB, tests/test_layout.py), and a compiled call per sample costs more than this. Its rotations
-        are ``rotation``'s primitives, the ones the kernel calls, and a test holds the two to the same bits."""
+        are ``rotation``'s primitives, the ones the kernel calls; tests/test_imu_delta.py holds the two to
+        the same bits."""
         last = self._last
         # Scalar arithmetic on plain floats: this runs for every IMU sample.
         g, a = gyro.tolist(), accel.tolist()

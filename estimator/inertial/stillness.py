@@ -73,7 +73,8 @@ class StillnessDetector:
         """Add a body-frame sample; at the end of each chunk return it if it was still.
 
         The live path, one sample at a time: the compiled accumulation (:meth:`add_run`) is a kernel of runs,
-        which a live service does not load (tests/test_layout.py); a test holds the two to the same sums."""
+        which a live service does not load (tests/test_layout.py); tests/test_stillness.py holds the two to the
+        same bits."""
         if self._t0 is None:
             self._reset(t_ns)
         self._samples += 1
