@@ -1,8 +1,11 @@
-"""Shared fixtures: where the project's shared data lives, and a skip when it is absent."""
+"""Shared fixtures: where the project's shared data lives (and a skip when it is absent), simulated flights
+made once per session for every module that flies the same one, and a free loopback port."""
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
+from typing import Any, Callable
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -43,15 +46,64 @@ def euroc_dev() -> Path:
     return EUROC_DEV
 
 
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A loopback port nothing listens on now (TCP, or UDP with ``socket.SOCK_DGRAM``), for a real peer."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 @pytest.fixture(scope="session")
-def rendered_book_dir(tmp_path_factory) -> Path:
+def simulated_flight() -> Callable[..., Any]:
+    """``simulate_flight(scenario, duration_s, seed, options)``, flown once per session for each set of
+    arguments (the same arguments give the same arrays, so the modules that fly the same flight share it).
+    The flights are shared: a test must not change their arrays."""
+    from vtolpose.drivers.simulator import simulate_flight
+
+    flown: dict[tuple, Any] = {}
+
+    def fly(scenario: str, duration_s: float, seed: int, options: Any = None) -> Any:
+        key = (scenario, float(duration_s), int(seed), repr(options))
+        if key not in flown:
+            flown[key] = simulate_flight(scenario, duration_s, seed, options)
+        return flown[key]
+
+    return fly
+
+
+@pytest.fixture(scope="session")
+def flight_folder(tmp_path_factory, simulated_flight) -> Callable[..., Path]:
+    """A simulated flight written in the dataset layout (``camera``: with rendered frames, which takes seconds
+    and needs the 'sim' extra, else skipped), once per session for each set of arguments."""
+    written: dict[tuple, Path] = {}
+
+    def folder(scenario: str, duration_s: float, seed: int, options: Any = None, camera: bool = False) -> Path:
+        key = (scenario, float(duration_s), int(seed), repr(options), camera)
+        if key not in written:
+            from vtolpose.drivers.simulator.export import write_flight
+
+            frames = None
+            if camera:
+                pytest.importorskip("skimage", reason="rendering needs scikit-image (the 'sim' extra)")
+                from vtolpose.drivers.simulator.render import default_camera
+
+                frames = default_camera()
+            root = tmp_path_factory.mktemp(scenario) / scenario
+            write_flight(simulated_flight(scenario, duration_s, seed, options), root, camera=frames)
+            written[key] = root
+        return written[key]
+
+    return folder
+
+
+@pytest.fixture(scope="session")
+def book(simulated_flight) -> Any:
+    """The 45 s book flight of seed 3 (10 s on the spot, then the arm waves; its heading found in motion)."""
+    return simulated_flight("book", 45.0, 3)
+
+
+@pytest.fixture(scope="session")
+def rendered_book_dir(flight_folder) -> Path:
     """The rendered 24 s book flight (seed 1: 10 s on the spot, then the arm waves the platform), made once
     for every module that replays it (rendering takes seconds); skipped without the 'sim' extra."""
-    pytest.importorskip("skimage", reason="rendering needs scikit-image (the 'sim' extra)")
-    from vtolpose.drivers.simulator import simulate_flight
-    from vtolpose.drivers.simulator.export import write_flight
-    from vtolpose.drivers.simulator.render import default_camera
-
-    root = tmp_path_factory.mktemp("book") / "book"
-    write_flight(simulate_flight("book", 24.0, 1), root, camera=default_camera())
-    return root
+    return flight_folder("book", 24.0, 1, camera=True)

@@ -9,8 +9,7 @@ import pytest
 
 from vtolpose.config import ConfigError, load_config
 from vtolpose.drivers.files.dataset import DatasetWriter
-from vtolpose.drivers.simulator import ImuErrorModel, SimulationOptions, simulate_flight
-from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.drivers.simulator import ImuErrorModel, SimulationOptions
 from vtolpose.service.calibration import output as calibration_output
 from vtolpose.service.calibration.plots import PlotUnavailable, plot_allan
 from vtolpose.service.cli import main
@@ -19,9 +18,10 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")
-def book(tmp_path_factory):
-    flight = simulate_flight("book", 20.0, seed=5, options=SimulationOptions(imu=ImuErrorModel(gyro_turn_on_bias_std=0.01)))
-    return flight, write_flight(flight, tmp_path_factory.mktemp("cal") / "book")
+def book(simulated_flight, flight_folder):
+    """A 20 s book flight whose gyro has a turn-on bias, and its folder."""
+    options = SimulationOptions(imu=ImuErrorModel(gyro_turn_on_bias_std=0.01))
+    return simulated_flight("book", 20.0, 5, options), flight_folder("book", 20.0, 5, options)
 
 
 def test_imu_block_loads_as_config_and_the_figure_is_drawn(book, tmp_path, capsys) -> None:

@@ -46,11 +46,6 @@ def run(flight, options=None, start_s=0.0, imu=None, gps=None, calibration=None)
 
 
 @pytest.fixture(scope="module")
-def book():
-    return simulate_flight("book", 45.0, 3)
-
-
-@pytest.fixture(scope="module")
 def book_runs(book):
     return {v: run(book, FilterOptions(variant=v)) for v in ("thesis", "biases")}
 
@@ -172,7 +167,7 @@ def test_a_non_finite_fix_is_counted(book):
 
 def test_gate_is_an_outlier_test():
     """99.9 %, not the spec's 95 %: on real flights the NIS is χ²(3) and a 95 % gate refuses one good fix in
-    twenty; a run of them (EuRoC MH03 at 66 s) locked the filter out until it reset (issue 12)."""
+    twenty, and a run of them (EuRoC MH03 at 66 s) locks the filter out until it resets."""
     assert FilterOptions().gps_gate == pytest.approx(chi2_gate(3, 0.999), abs=0.01)
 
 

@@ -1,7 +1,7 @@
-"""Real EuRoC flights, imported and replayed as issue 12 measured them: one regression test per failure.
+"""Real EuRoC flights, imported and replayed as the EuRoC bench does: one test per way these flights can fail.
 
-Before: V201 never started (1109 of 1121 fixes ``before_start``), MH03 diverged at 66 s (every
-fix refused for 3 s, reset, heading lost), V101 gave its first pose 33 s after the truth starts.
+V201 can fail to start at all (its fixes all refused ``before_start``), MH03 can diverge at 66 s (every
+fix refused for 3 s, a reset, the heading lost), V101 can give its first pose tens of seconds late.
 Each flight goes through ``vtolpose bench --only euroc``'s own import, replay and scoring
 (``vtolpose.service.bench.euroc``); skipped without ``../shared``.
 """
@@ -29,10 +29,10 @@ def scores(euroc_dev: Path, euroc_mh01: Path, tmp_path_factory: pytest.TempPathF
 
 
 def test_v201_starts_at_once_and_places_its_heading(scores) -> None:
-    """Root cause: its rotor shook the IMU (0.4-0.5 m/s² std at rest) so no still window was found, no
-    start without one was allowed while GPS came in, and the in-motion alignment wanted a 2° heading
-    sigma that its slow flight never gave. Now: still judged on 0.1-s means, a start within seconds
-    in any case, the heading from a bank of hypotheses."""
+    """Its rotor shakes the IMU (0.4-0.5 m/s² std at rest): rest must be judged on 0.1-s means or no still
+    window is found; the start must come within seconds even without one while GPS comes in; and its slow
+    flight never gives a single alignment a 2° heading sigma, so the heading must come from a bank of
+    hypotheses."""
     s = scores[("V201", "biases")]
     assert s.first_pose_s < 3.0 and s.heading_s is not None and s.heading_s < 20.0
     assert s.resets == 0 and s.ratio <= 0.6 and s.attitude_rms_deg <= 2.4
@@ -40,8 +40,8 @@ def test_v201_starts_at_once_and_places_its_heading(scores) -> None:
 
 
 def test_mh03_holds_the_gps_through_its_fast_loops(scores) -> None:
-    """Root cause: the 95 % χ² gate refuses one good fix in twenty; at 66 s, in a 2.8 m/s loop, a run
-    of them left the filter dead-reckoning, every later fix beyond the gate, until the 3-s reset."""
+    """A 95 % χ² gate would refuse one good fix in twenty; at 66 s, in a 2.8 m/s loop, a run of them leaves
+    the filter dead-reckoning, every later fix beyond the gate, until the 3-s reset."""
     for variant in ("biases", "thesis"):
         assert scores[("MH03", variant)].resets == 0
     s = scores[("MH03", "biases")]
@@ -51,8 +51,8 @@ def test_mh03_holds_the_gps_through_its_fast_loops(scores) -> None:
 
 
 def test_v101_gives_its_first_pose_at_once(scores) -> None:
-    """Root cause: as V201 (no still window under the rotor's vibration, no start with GPS coming in),
-    and its gentle flight brought the alignment's heading sigma under 2° only at 33 s."""
+    """As V201 (no still window under the rotor's vibration unless judged on means, a start needed while GPS
+    comes in), and its gentle flight brings a single alignment's heading sigma under 2° only at 33 s."""
     s = scores[("V101", "biases")]
     assert s.first_pose_s < 3.0 and s.heading_s is not None and s.heading_s < 20.0
     assert s.resets == 0 and s.ratio <= 0.6 and s.attitude_rms_deg <= 2.45
@@ -80,7 +80,7 @@ def _first_seconds(dataset: Path, seconds: float) -> None:
 
 
 def test_v101_real_images_at_rest_hold_the_pose(euroc_dev: Path, tmp_path: Path) -> None:
-    """Issue 12 item 7: V101's 95 frames (4.7 s on the floor, rotor turning) through imu,camera,gps:
+    """V101's 95 frames (4.7 s on the floor, rotor turning) through imu,camera,gps:
     features found and tracked on real frames, the pose held within 1 cm, no landmark blow-up. The
     heading is unknown all along (no horizontal motion): the camera maps in the filter's own frame."""
     import numpy as np

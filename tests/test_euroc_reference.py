@@ -1,4 +1,4 @@
-"""The GTSAM speed reference of ``vtolpose bench --only euroc-reference`` (issue 16).
+"""The GTSAM speed reference of ``vtolpose bench --only euroc-reference``.
 
 gtsam is an optional benchmark extra: without it the bench says so and still measures
 vtolpose; with it the reference must really track the flight, or its speed would mean nothing.

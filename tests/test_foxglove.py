@@ -3,7 +3,6 @@ WebSocket client (``websockets``) and records one MCAP file, read back with the 
 the raw samples in it are decoded with ``rosbags`` and compared with the dataset."""
 
 import json
-import socket
 import struct
 import threading
 import time
@@ -25,16 +24,12 @@ from vtolpose.service.cli import build_parser
 from vtolpose.service.commands.run import config_for
 from vtolpose.service.replay.session import replay
 
+from conftest import free_port
+
 ROS = get_typestore(Stores.ROS2_JAZZY)
 VIEW_TOPICS = {"/tf", "/pose", "/path", "/covariance", "/gps", "/gps/local", "/landmarks", "/camera/image",
                "/camera/overlay", "/status"}
 RECORDED_TOPICS = VIEW_TOPICS | {"/vtolpose/pose", "/imu", "/gps/fix", "/camera/image_raw/compressed"}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class ViewClient:

@@ -31,9 +31,9 @@ def sigmas(gps: GpsSeries) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def book():
+def book(simulated_flight):
     lever = (0.1, -0.05, -0.2)
-    return simulate_flight("book", 60.0, seed=3, options=SimulationOptions(gps=GpsErrorModel(0.02, lever_arm_b=lever)))
+    return simulated_flight("book", 60.0, 3, SimulationOptions(gps=GpsErrorModel(0.02, lever_arm_b=lever)))
 
 
 def rest_bias(flight) -> np.ndarray:

@@ -166,3 +166,28 @@ def test_one_compiled_call_updates_every_hypothesis_as_one_at_a_time_would(case:
         assert bank.fixes == 1
         if case == "broken":
             assert np.isneginf(log_like[[2, 5]]).all() and np.isneginf(bank.log_weights[[2, 5]]).all()
+
+
+def test_equal_nis_weighs_the_hypothesis_with_the_tighter_prediction_higher() -> None:
+    """A hypothesis' likelihood is a Gaussian's, −½ (NIS + log det S): two that predicted a fix equally well in
+    NIS still differ by how sure they were. Each hypothesis here sits its own innovation sigma away from the
+    fix (NIS 1 for all), with a different position variance: the weights follow 1/√det S exactly."""
+    gps = GpsUpdater(np.zeros(3), None)
+    bank = HeadingBank(HeadingBankOptions(hypotheses=4), level_state(), ImuPropagator(NOISE, G), gps)
+    bank.update(GpsFix(0, np.zeros(3), 0.05, 0.08))  # placed at the first fix
+    fix = GpsFix(1, np.array([1.0, 2.0, -0.5]), 0.05, 0.08)
+    var_h, var_v = 0.05**2, 0.08**2
+    log_dets = []
+    for k, member in enumerate(bank.members):
+        position_var = 1e-4 * 4.0**k
+        member.cov[0:3, :] = 0.0
+        member.cov[:, 0:3] = 0.0
+        member.cov[0:3, 0:3] = np.eye(3) * position_var
+        s = np.array([position_var + var_h, position_var + var_h, position_var + var_v])
+        member.p = fix.p_ned - np.array([math.sqrt(s[0]), 0.0, 0.0])  # one sigma north of its prediction: NIS 1
+        log_dets.append(float(np.sum(np.log(s))))
+    before = bank.log_weights.copy()
+    bank.update(fix)
+    gained = bank.log_weights - before
+    np.testing.assert_allclose(gained - gained[0], -0.5 * (np.array(log_dets) - log_dets[0]), rtol=0, atol=1e-9)
+    assert np.all(np.diff(bank.log_weights) < 0.0)  # the tighter, the heavier

@@ -1,4 +1,4 @@
-"""Damaged and hostile input (issue 18): YAML alias bombs, image bombs, implausible IMU readings, a full
+"""Damaged and hostile input: YAML alias bombs, image bombs, implausible IMU readings, a full
 disk, recording on replay, and configuration errors that blame the right source."""
 
 import logging

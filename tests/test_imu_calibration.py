@@ -71,9 +71,9 @@ def test_a_short_record_does_not_pretend_to_know_the_random_walk() -> None:
 
 
 @pytest.fixture(scope="module")
-def book():
+def book(simulated_flight):
     model = ImuErrorModel(gyro_turn_on_bias_std=0.01, accel_turn_on_bias_std=0.01)
-    return simulate_flight("book", 30.0, seed=4, options=SimulationOptions(imu=model))
+    return simulated_flight("book", 30.0, 4, SimulationOptions(imu=model))
 
 
 def test_simulated_static_start_gives_bias_gravity_and_attitude(book) -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -27,14 +26,10 @@ from vtolpose.service.mapping.mapper import map_returns
 from vtolpose.service.mapping.poses import ZenohPoses, file_window, trajectory_window, window_poses
 from vtolpose.service.replay.smoothing import replay_smoothed
 
+from conftest import free_port
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PREFIX = "vtolpose/mapper-test"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

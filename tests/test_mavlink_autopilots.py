@@ -72,11 +72,9 @@ def spec(name: str, port: int, rate_hz: float, role: str = "autopilot") -> Endpo
 
 
 @pytest.fixture(scope="module")
-def book(tmp_path_factory) -> Dataset:
-    """A flight whose heading vtolpose must find in motion (about 12 s in)."""
-    root = tmp_path_factory.mktemp("autopilots") / "book"
-    write_flight(simulate_flight("book", 45.0, 3), root)
-    return Dataset.open(root)
+def book(flight_folder) -> Dataset:
+    """A flight whose heading vtolpose must find in motion (about 12 s in): conftest's book, written."""
+    return Dataset.open(flight_folder("book", 45.0, 3))
 
 
 def test_from_unknown_to_aligned_heading_no_autopilot_fuses_an_unusable_pose(book):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 from vtolpose.estimator.metrics import (
     chi2_band, evaluate, gps_error_rmse, interpolate_poses, mean_world_rotation, motion_onset, nees, nees_summary,
-    rigid_alignment,
+    pose_errors_for_nees, rigid_alignment,
 )
 from vtolpose.estimator.core.rotation import quat_exp, quat_from_euler, quat_mul, quat_to_rot, rotation_angle
 
@@ -174,3 +175,19 @@ def test_motion_onset_is_the_first_second_of_horizontal_motion() -> None:
     up_only = truth(t, np.column_stack([np.zeros_like(s), np.zeros_like(s), -s]))  # climbing: no onset
     onset = motion_onset(truth(t, np.column_stack([north, np.zeros_like(s), np.zeros_like(s)])))
     assert 4.0 < onset * 1e-9 < 5.0 and motion_onset(up_only) is None  # the window that first shows it starts
+
+
+def test_the_nees_attitude_error_is_in_the_world_frame() -> None:
+    """The filter's attitude error is global, R_true = Exp(δθ) R_est: with the estimate yawed 90° and the truth
+    turned a little further about world north, the error is about north (x), not about the body's axis
+    that north is at 90° of yaw (−y); a covariance that knows only an error about north finds it consistent."""
+    yaw = quat_from_euler(0.0, 0.0, math.pi / 2)
+    tilt = 0.02
+    q_true = quat_mul(quat_exp(np.array([tilt, 0.0, 0.0])), yaw)
+    track = truth([0, S], np.zeros((2, 3)), np.array([q_true, q_true]))
+    pose_cov = np.diag([1e-4, 1e-4, 1e-4, 1e-4, 1e-12, 1e-12])
+    err, cov, dof = pose_errors_for_nees(np.array([S // 2]), np.zeros((1, 3)), yaw[None], pose_cov[None], track,
+                                         np.zeros(3))
+    assert dof == 6
+    np.testing.assert_allclose(err[0, 3:], [tilt, 0.0, 0.0], atol=1e-12)
+    assert nees(err, cov)[0] == pytest.approx(tilt**2 / 1e-4, rel=1e-9)

@@ -1,6 +1,5 @@
 """The mapper's client against a real Zenoh output on loopback: subscribe, pose_at, trajectory, errors."""
 
-import socket
 import threading
 import time
 
@@ -15,15 +14,11 @@ from vtolpose.service.outputs.pose_client import PoseClient, PoseUnavailable
 from vtolpose.service.outputs.zenoh import QueryLimits, ZenohOutput
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
+from conftest import free_port
+
 MS = 1_000_000
 PREFIX = "test/vehicle"
 ORIGIN = (58.43, 15.68, 60.0)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def truth(t_ns: int) -> tuple[np.ndarray, np.ndarray]:
@@ -234,7 +229,7 @@ def genuine(pose) -> bool:
 
 
 def test_a_rogue_peer_on_the_vehicle_never_reaches_the_client(service):
-    """The attack of the issue: a peer connects to the vehicle, answers pose/at and trajectory itself, publishes
+    """The attack the access control is for: a peer connects to the vehicle, answers pose/at and trajectory itself, publishes
     poses (plain and with a genuine pose's source info) and declares the service's liveliness token. The
     vehicle's access control keeps all of it from the vehicle's clients."""
     out, port = service

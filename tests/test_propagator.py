@@ -7,7 +7,9 @@ import pytest
 
 from vtolpose.estimator.core.calibration import ImuNoise
 from vtolpose.estimator.inertial.imu_delta import ImuDelta, ImuDownsampler
-from vtolpose.estimator.inertial.propagator import ImuPropagator, error_transition, integrate_nominal, process_noise
+from vtolpose.estimator.inertial.propagator import ImuPropagator, process_noise
+
+from propagation_oracle import error_transition, integrate_nominal
 from vtolpose.estimator.core.rotation import quat_conj, quat_exp, quat_from_euler, quat_log, quat_mul
 from vtolpose.estimator.core.state import FilterState, StateLayout
 
@@ -335,7 +337,7 @@ def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
     def compiled() -> list[set]:
         return [set(f.signatures) for f in (kernel.step, kernel.noise_from_terms, kernel.step_run, kernel.step_all,
                                              kernel.step_all_run,
-                                             update_kernel.small_update, gps_kernel.gps_update,
+                                             update_kernel.small_update, update_kernel.small_inverse, gps_kernel.gps_update,
                                              sample_kernel.downsample_run, sample_kernel.stillness_run,
                                              sample_kernel.screen_rows, sample_kernel.plain_run, sample_kernel.level_run)]
     from vtolpose.estimator.gnss import gps_kernel

@@ -29,7 +29,8 @@ from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
-from test_run_daemon import MavlinkListener, free_port
+from conftest import free_port
+from test_run_daemon import MavlinkListener
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PREFIX = "vtolpose/vtol1"

@@ -19,8 +19,8 @@ from vtolpose.estimator.vision.camera_model import CameraModel  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def book():
-    return simulate_flight("book", 16.0, 1)
+def book(simulated_flight):
+    return simulated_flight("book", 16.0, 1)
 
 
 def first_frames(flight, n: int, **options) -> list[tuple[int, np.ndarray]]:

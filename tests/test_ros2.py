@@ -3,7 +3,6 @@ loopback receives them, ``rosbags`` (not our code) decodes the CDR, and frames, 
 are checked against the JSON pose on ``<prefix>/pose`` of the same instant."""
 
 import json
-import socket
 import threading
 import time
 from pathlib import Path
@@ -19,18 +18,14 @@ from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.service.runtime.replay_feed import run_replay
 
+from conftest import free_port
+
 ROS = get_typestore(Stores.ROS2_JAZZY)
 ODOM_KEY = f"0/vtol1/odom/nav_msgs::msg::dds_::Odometry_/{ROS.hash_rihs01('nav_msgs/msg/Odometry')}"
 TF_KEY = f"0/tf/tf2_msgs::msg::dds_::TFMessage_/{ROS.hash_rihs01('tf2_msgs/msg/TFMessage')}"
 # NED -> ENU and FRD -> FLU written out here, independently of vtolpose.estimator.core.frames.
 A_ENU_NED = np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])
 A_FLU_FRD = np.diag([1.0, -1, -1])
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def rot(q_wxyz) -> np.ndarray:

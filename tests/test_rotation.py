@@ -11,11 +11,17 @@ from vtolpose.estimator.core.rotation import (
     quat_from_euler,
     quat_log,
     quat_mul,
+    quat_exp_of,
     quat_normalize,
+    quat_product,
     quat_slerp,
     quat_to_rot,
+    right_jacobian,
+    rot_of,
     rot_to_quat,
+    rotate,
     rotation_angle,
+    rotvec_quat,
     skew,
     so3_exp,
     so3_log,
@@ -137,3 +143,61 @@ def test_attitude_conversion_to_enu_flu_is_consistent_with_vectors():
     assert rotation_angle(back, q) < 1e-12
     # Level and nose north: in ENU (yaw counted from east, counter-clockwise) that is +90°.
     assert yaw_of(frames.q_ned_frd_to_enu_flu(np.array([1.0, 0, 0, 0]))) == pytest.approx(np.pi / 2)
+
+
+# The scalar primitives the per-sample paths and the compiled kernels share (rotation.py's docstring).
+
+
+def test_the_scalar_product_and_rotation_are_the_array_ones():
+    a, b = random_quats(2)
+    assert np.array_equal(np.array(quat_product(*a, *b)), quat_mul(a, b))
+    v = rng.normal(size=3)
+    assert np.allclose(rotate(*a, *v), quat_to_rot(a) @ v, atol=1e-14)
+    assert np.array_equal(np.array(rot_of(*a)), quat_to_rot(a))
+    stack = random_quats(5)
+    assert np.array_equal(quat_to_rot(stack), np.stack([np.array(rot_of(*q)) for q in stack]))
+
+
+@pytest.mark.parametrize("phi", [np.array([0.3, -1.2, 0.7]), np.array([2.9, 0.1, -0.4]), np.array([1e-7, -2e-7, 3e-8]),
+                                 np.zeros(3)])
+def test_right_jacobian_matches_central_differences(phi):
+    """Exp(φ + δ) = Exp(φ) Exp(Jr(φ) δ) to first order: column i of Jr is the derivative of
+    Log(Exp(φ)ᵀ Exp(φ + h eᵢ)) in h, taken by central differences (navlie's way of checking a Jacobian)."""
+    h = 1e-6
+    numeric = np.empty((3, 3))
+    base_t = so3_exp(phi).T
+    for i in range(3):
+        step = np.zeros(3)
+        step[i] = h
+        numeric[:, i] = (so3_log(base_t @ so3_exp(phi + step)) - so3_log(base_t @ so3_exp(phi - step))) / (2 * h)
+    assert np.allclose(right_jacobian(phi), numeric, atol=1e-8)
+
+
+def test_quat_exp_of_is_quat_exp_on_floats():
+    for phi in (np.array([0.4, -0.2, 1.3]), np.array([3e-9, 0.0, -1e-9]), np.zeros(3)):
+        assert np.array_equal(np.array(quat_exp_of(*phi.tolist())), quat_exp(phi))
+        assert np.allclose(rotvec_quat(*phi.tolist()), quat_exp(phi), atol=1e-17)
+
+
+def test_the_compiled_primitives_are_bit_for_bit_the_interpreted_ones():
+    """The kernels call the numba forms; the per-sample paths the plain ones: the same numbers, to the last
+    bit, from both (including the small-angle branches)."""
+    from vtolpose.estimator.core import rotation
+
+    local = np.random.default_rng(11)
+    for scale in (1.0, 1e-5, 1e-9, 0.0):
+        a, b = random_quats(2)
+        phi = local.normal(size=3) * scale
+        cases = [(rotation.quat_product, (*a, *b)), (rotation.rotate, (*a, *phi)), (rotation.rot_of, tuple(a)),
+                 (rotation.rotvec_quat, tuple(phi)), (rotation.quat_exp_of, tuple(phi)),
+                 (rotation.right_jacobian_of, tuple(phi))]
+        for plain, args in cases:
+            args = tuple(float(x) for x in args)
+            compiled = getattr(rotation, "compiled_" + plain.__name__)
+            assert np.array_equal(np.array(compiled(*args)), np.array(plain(*args))), plain.__name__
+
+
+def test_importing_the_rotations_loads_no_numba():
+    from test_layout import printed_by_a_fresh_process
+
+    assert printed_by_a_fresh_process("import sys, vtolpose.estimator.core.rotation; print('numba' in sys.modules)") == "False"

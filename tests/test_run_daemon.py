@@ -27,14 +27,10 @@ from vtolpose.service.outputs.pose_client import PoseClient, PoseUnavailable
 from vtolpose.service.replay.session import replay
 from vtolpose.service.runtime.replay_feed import run_replay
 
+from conftest import free_port
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 mav = mavutil.mavlink
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def can_bind(port: int, kind: int = socket.SOCK_STREAM) -> bool:

@@ -2,7 +2,6 @@
 receiver on pseudo-terminals), poses and status out over Zenoh to this process."""
 
 import json
-import socket
 import subprocess
 import sys
 import time
@@ -15,15 +14,11 @@ from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.service.outputs.pose_client import PoseClient
 
+from conftest import free_port
+
 emulators = pytest.importorskip("vtolpose.drivers.emulators")
 REPO_ROOT = Path(__file__).resolve().parents[1]
 LIVE_DELAY_S = 0.5  # fusion.delay_s of the emulated live run
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -4,15 +4,16 @@ segments at resets, and the fixed-lag smoother's bounds."""
 import numpy as np
 import pytest
 
-from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import quat_from_euler
 from vtolpose.estimator.filter import Estimator, FilterOptions
 from vtolpose.estimator.metrics import evaluate, nees, pose_errors_for_nees
 from vtolpose.estimator.smoothing.fixed_lag import FixedLagSmoother
 from vtolpose.estimator.smoothing.recorder import StepRecorder
-from vtolpose.estimator.smoothing.rts import apply_error, backward_step, error_between, gains, recursion, smooth_steps
+from vtolpose.estimator.smoothing.rts import apply_error, error_between, gains, smooth_steps
 from vtolpose.estimator.smoothing.steps import Step
+
+from rts_oracle import backward_step, recursion
 
 
 # ------------------------------------------------------------------ linear-Gaussian exactness
@@ -77,7 +78,10 @@ def test_rts_recursion_equals_batch_least_squares():
     u = np.array([post[k + 1][0] - pred[k][0] for k in range(K - 1)] + [np.zeros(6)])
     C, D = np.concatenate([C, np.zeros((1, 6, 6))]), np.concatenate([D, np.zeros((1, 6, 6))])
     transition = np.arange(K) < K - 1
-    e, Ps, _, _ = recursion(C, D, u, P, transition, None, None)
+    from vtolpose.estimator.smoothing import rts_kernel
+
+    e, Ps, _, _ = rts_kernel.recursion(C, D, u, P, transition, np.zeros(6), np.zeros((6, 6)))
+    assert all(np.array_equal(a, b) for a, b in zip((e, Ps), recursion(C, D, u, P, transition, None, None)[:2]))
     smoothed = np.array([post[k][0] for k in range(K)]) + e
     mean, cov = batch_least_squares(F, Q, H, R, x0, P0, z)
     assert np.max(np.abs(smoothed - mean)) < 1e-10 * max(1.0, np.max(np.abs(mean)))
@@ -134,11 +138,6 @@ def test_error_state_conventions_match_the_filter():
 
 
 # ---------------------------------------------------------------------------- simulated flights
-@pytest.fixture(scope="module")
-def book():
-    return simulate_flight("book", 45.0, 3)
-
-
 def run_recorded(flight, variant: str, skip_imu_s: tuple[float, float] | None = None):
     """Feed a flight through the estimator with a recorder; filtered poses after each IMU sample."""
     est = Estimator(flight.calibration, FilterOptions(variant=variant))
@@ -443,7 +442,7 @@ def test_a_segment_closes_with_its_own_heading_flag(book):
 
 @pytest.mark.parametrize("n", [9, 15])
 def test_the_compiled_backward_recursion_is_bit_for_bit_the_numpy_one(n):
-    """The backward pass runs rts_kernel.recursion (numba); rts.recursion is its numpy reference: the same
+    """The backward pass runs rts_kernel.recursion (numba); tests/rts_oracle.py is its numpy reference: the same
     corrections and covariances to the last bit, restarts (steps without a transition) included."""
     from vtolpose.estimator.smoothing import rts_kernel
 
@@ -501,8 +500,9 @@ def test_the_compiled_gains_are_the_numpy_ones(n):
 
 
 def test_the_fixed_lag_sweeps_compiled_steps_are_bit_for_bit_the_numpy_ones():
-    """The fixed-lag smoother runs rts_kernel.backward_step and rts_kernel.apply_error (numba); rts' numpy
-    functions are their references: equal to the last bit, tiny and zero rotations included."""
+    """The fixed-lag smoother runs rts_kernel.backward_step and rts_kernel.apply_error (numba); the oracle's
+    backward step and rts.apply_error (the whole-chunk form) are their references: equal to the last bit, tiny
+    and zero rotations included."""
     from vtolpose.estimator.smoothing import rts_kernel
 
     rng = np.random.default_rng(17)

@@ -1,4 +1,4 @@
-"""Smoothing on real EuRoC flights, imported and scored as ``vtolpose bench --only euroc`` does (issue 13's
+"""Smoothing on real EuRoC flights, imported and scored as ``vtolpose bench --only euroc`` does (the smoothing's
 targets: smoothed ≤ 0.3 × the GPS RMSE and ≤ 1°, fixed lag ≤ 0.45 ×); skipped without ``../shared``."""
 
 from __future__ import annotations

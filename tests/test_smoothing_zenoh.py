@@ -2,7 +2,6 @@
 first with a prediction or the filtered pose, and with the smoothed pose once the lag has passed."""
 
 import asyncio
-import socket
 import threading
 import time
 
@@ -17,14 +16,10 @@ from vtolpose.estimator.metrics import interpolate_poses
 from vtolpose.service.outputs.pose_client import PoseClient, PoseUnavailable
 from vtolpose.service.runtime.replay_feed import replay_async
 
+from conftest import free_port
+
 LAG_S = 1.0
 STEPS_PER_SAMPLE = 4
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -20,9 +20,7 @@ pytest.importorskip("skimage", reason="rendering needs scikit-image (the 'sim' e
 from vtolpose.config import load_config  # noqa: E402
 from vtolpose.drivers.files.dataset import Dataset  # noqa: E402
 from vtolpose.drivers.files.tum import read_tum  # noqa: E402
-from vtolpose.drivers.simulator import SimulationOptions, simulate_flight  # noqa: E402
-from vtolpose.drivers.simulator.export import write_flight  # noqa: E402
-from vtolpose.drivers.simulator.render import default_camera  # noqa: E402
+from vtolpose.drivers.simulator import SimulationOptions  # noqa: E402
 from vtolpose.estimator.core.rotation import quat_exp, quat_mul  # noqa: E402
 from vtolpose.estimator.filter import Estimator  # noqa: E402
 from vtolpose.estimator.fusion import FusionCore, FusionOptions, OutputPose  # noqa: E402
@@ -40,23 +38,20 @@ from vtolpose.service.runtime.wiring import feature_options, filter_options  # n
 ORB = {"features": {"detector": "orb"}}
 
 
-def rendered(tmp_path_factory, name: str, scenario: str, seconds: float, start_s: float, camera: bool = True) -> Dataset:
-    root = tmp_path_factory.mktemp(name) / name
-    flight = simulate_flight(scenario, seconds, 2, SimulationOptions(start_s=start_s))
-    write_flight(flight, root, camera=default_camera() if camera else None)
-    return Dataset.open(root)
+def rendered(flight_folder, scenario: str, seconds: float, start_s: float, camera: bool = True) -> Dataset:
+    return Dataset.open(flight_folder(scenario, seconds, 2, SimulationOptions(start_s=start_s), camera))
 
 
 @pytest.fixture(scope="module")
-def book(tmp_path_factory) -> Dataset:
+def book(flight_folder) -> Dataset:
     """The arm waving from the first sample (20 s into the scenario), camera rendered."""
-    return rendered(tmp_path_factory, "book", "book", 14.0, 20.0)
+    return rendered(flight_folder, "book", 14.0, 20.0)
 
 
 @pytest.fixture(scope="module")
-def landfill(tmp_path_factory) -> Dataset:
+def landfill(flight_folder) -> Dataset:
     """On a survey leg at 8 m/s, 45 m up, 5 s before a turn: a steady cruise at first."""
-    return rendered(tmp_path_factory, "landfill", "landfill", 10.0, 70.0)
+    return rendered(flight_folder, "landfill", 10.0, 70.0)
 
 
 def traced(dataset: Dataset, sensors: list[str], start_at_s: float | None = None):
@@ -125,8 +120,8 @@ def test_imu_camera_in_a_steady_cruise_stays_initialising(landfill):
 
 
 @pytest.fixture(scope="module")
-def landfill_gps(tmp_path_factory) -> Dataset:
-    return rendered(tmp_path_factory, "landfill_gps", "landfill", 30.0, 70.0, camera=False)
+def landfill_gps(flight_folder) -> Dataset:
+    return rendered(flight_folder, "landfill", 30.0, 70.0, camera=False)
 
 
 def test_imu_gps_in_a_cruise_never_starts_at_rest_nor_publishes_before_its_heading(landfill_gps):
@@ -138,8 +133,8 @@ def test_imu_gps_in_a_cruise_never_starts_at_rest_nor_publishes_before_its_headi
 
 
 @pytest.mark.parametrize("scenario, start_s", [("landfill", 70.0), ("book", 20.0)])
-def test_imu_gps_in_flight_has_its_heading_within_20_s_and_stays_within_5_sigma(tmp_path_factory, scenario, start_s):
-    dataset = rendered(tmp_path_factory, f"{scenario}_gps", scenario, 30.0, start_s, camera=False)
+def test_imu_gps_in_flight_has_its_heading_within_20_s_and_stays_within_5_sigma(flight_folder, scenario, start_s):
+    dataset = rendered(flight_folder, scenario, 30.0, start_s, camera=False)
     result, poses, _ = traced(dataset, ["imu", "gps"])
     aligned = [p for p in poses if p.heading_aligned]
     assert aligned and (aligned[0].t_ns - int(dataset.imu().t_ns[0])) * 1e-9 <= 20.0  # placed by the heading bank

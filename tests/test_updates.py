@@ -169,12 +169,13 @@ def test_small_and_stacked_updates_equal_the_textbook_gain_and_nis(m):
 
 
 def test_small_inverse_refuses_what_is_not_positive_definite():
-    from vtolpose.estimator.core.kalman import _small_inverse
+    from vtolpose.estimator.core.update_kernel import small_inverse
     for S in (np.array([[0.0]]), np.array([[np.nan]]), np.array([[1.0, 2.0], [2.0, 1.0]]),
               np.diag([1.0, 1.0, -1e-9]), np.diag([1.0, np.inf, 1.0])):
-        assert _small_inverse(S) is None
+        assert not small_inverse(S)[0]
     S = np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]])
-    S_inv, L_inv = _small_inverse(S)
+    positive, S_inv, L_inv = small_inverse(S)
+    assert positive
     np.testing.assert_allclose(S_inv, np.linalg.inv(S), rtol=1e-12)
     np.testing.assert_allclose(L_inv, np.linalg.inv(np.linalg.cholesky(S)), rtol=1e-12, atol=1e-15)
 

@@ -1,4 +1,4 @@
-"""The Zenoh examples a user copies, run as written: the README's local example (issue 15) and the TLS
+"""The Zenoh examples a user copies, run as written: the README's local example and the TLS
 and access-control example of docs/zenoh.md, with the daemon and the clients as separate processes on
 loopback. Only the port changes (7448 → a free one), so that parallel test runs cannot collide."""
 
@@ -7,7 +7,6 @@ import re
 import shlex
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -18,14 +17,10 @@ from vtolpose.client import PoseClient, ServiceUnreachable
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 
+from conftest import free_port
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def blocks(text: str, marker: str) -> dict[str, str]:

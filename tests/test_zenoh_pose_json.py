@@ -1,10 +1,10 @@
 """The pose message written straight from the pose (PoseJson) is, byte for byte, ``json.dumps(pose_message(...))``:
 the wire format of ``<prefix>/pose`` is an interface (INTERFACES.md) that mappers parse."""
 
+import dataclasses
 import itertools
 import json
 import math
-import socket
 import threading
 import time
 
@@ -12,12 +12,14 @@ import numpy as np
 import pytest
 import zenoh
 
-from vtolpose.estimator.core.rotation import quat_from_euler
+from vtolpose.estimator.core.rotation import quat_exp, quat_from_euler
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.pose_history import PoseHistory
 from vtolpose.service.outputs.pose_json import PoseJson, pose_message
 from vtolpose.service.outputs.zenoh import ZenohOutput
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
+
+from conftest import free_port
 
 POSE = [0, 1, 2, 6, 7, 8]
 FLAGS = ("heading_aligned", "position_initialized", "initialising", "local_position", "fused")
@@ -82,12 +84,6 @@ def test_a_changed_or_equal_but_new_origin_is_written_afresh():
         assert encode(pose, 7, origin) == json.dumps(pose_message(pose, 7, origin)), origin
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_the_published_bytes_and_sequence_numbers_on_loopback():
     """What a subscriber receives: the reference's bytes, each under its ``seq`` as Zenoh's source sequence number
     and the publisher's own id."""
@@ -131,3 +127,18 @@ def test_a_pose_with_a_number_that_is_not_finite_is_written_with_null(value):
     pose.p[1] = value
     text = PoseJson()(pose, 1, None)
     assert text == json.dumps(pose_message(pose, 1, None)) and json.loads(text)["p"][1] is None
+
+
+def test_the_attitude_is_written_scalar_first_as_the_pose_holds_it():
+    """``q`` is [w, x, y, z], body→NED (INTERFACES.md): for a turn of 2.4 rad about a tilted axis the document
+    holds cos(θ/2) first, then sin(θ/2) times the axis, in both writers (a mapper reading x, y, z, w would
+    place every LIDAR return with the wrong attitude)."""
+    axis = np.array([0.36, -0.48, 0.8])
+    angle = 2.4
+    pose = random_pose(np.random.default_rng(3), dict.fromkeys(FLAGS, True), 100, None)
+    pose = dataclasses.replace(pose, q=quat_exp(angle * axis))
+    expected = [math.cos(angle / 2), *(math.sin(angle / 2) * axis)]
+    for text in (PoseJson()(pose, 1, None), json.dumps(pose_message(pose, 1, None))):
+        q = json.loads(text)["q"]
+        np.testing.assert_allclose(q, expected, rtol=0, atol=1e-15)
+        assert q == pose.q.tolist()

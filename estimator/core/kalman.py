@@ -55,42 +55,6 @@ def normalized_innovation(S: np.ndarray, residual: np.ndarray) -> float | None:
     return float(w @ w)
 
 
-def _small_inverse(S: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(S⁻¹, L⁻¹)`` of an m × m covariance, m ≤ 3, through its Cholesky factor ``L`` in scalars;
-    None when S is not positive definite. A GPS fix's 3 × 3 costs a fraction of the general
-    path's four LAPACK calls (their Python wrappers dominate at this size)."""
-    m = S.shape[0]
-    s = S.ravel().tolist()
-    a = s[0]
-    if not (a > 0.0 and math.isfinite(a)):
-        return None
-    l00 = math.sqrt(a)
-    i00 = 1.0 / l00
-    if m == 1:
-        inv_l = np.array([[i00]])
-        return inv_l * i00, inv_l
-    l10 = s[m] / l00
-    d = s[m + 1] - l10 * l10
-    if not (d > 0.0 and math.isfinite(d)):
-        return None
-    l11 = math.sqrt(d)
-    i11 = 1.0 / l11
-    i10 = -l10 * i00 * i11
-    if m == 2:
-        inv_l = np.array([[i00, 0.0], [i10, i11]])
-        return inv_l.T @ inv_l, inv_l
-    l20 = s[6] / l00
-    l21 = (s[7] - l20 * l10) / l11
-    d = s[8] - l20 * l20 - l21 * l21
-    if not (d > 0.0 and math.isfinite(d)):
-        return None
-    i22 = 1.0 / math.sqrt(d)
-    i21 = -l21 * i11 * i22
-    i20 = -(l20 * i00 + l21 * i10) * i22
-    inv_l = np.array([[i00, 0.0, 0.0], [i10, i11, 0.0], [i20, i21, i22]])
-    return inv_l.T @ inv_l, inv_l
-
-
 def ekf_update(
     state: FilterState,
     cols: np.ndarray | slice,
@@ -113,18 +77,20 @@ def ekf_update(
 
 def _numpy_update(state: FilterState, cols: np.ndarray | slice, H: np.ndarray, residual: np.ndarray, R: np.ndarray,
                   gate: float | None, held: np.ndarray | None) -> UpdateOutcome:
-    """:func:`ekf_update` in numpy: stacked measurements, scattered columns (and the compiled path's reference)."""
+    """:func:`ekf_update` in numpy, for what the compiled update does not take: stacked measurements (more than
+    three rows), scattered columns (a landmark's observation: the robot block and the landmark's six), a
+    covariance that is not C-ordered. Not a twin: the compiled path declines these; where both apply, a test
+    holds them to the same bits. A small S is still inverted by the compiled ``update_kernel.small_inverse``."""
     m = residual.shape[0]
     cov = state.cov
     PHt = cov[:, cols] @ H.T  # (n, m)
     S = H @ PHt[cols] + R
     S = 0.5 * (S + S.T)
     if m <= 3:
-        inverses = _small_inverse(S)
-        if inverses is None or not all(math.isfinite(x) for x in residual.tolist()):
+        positive, S_inv, L_inv = update_kernel.small_inverse(S)
+        if not positive or not all(math.isfinite(x) for x in residual.tolist()):
             return UpdateOutcome(False, float("nan"), m,
-                                 "singular innovation covariance" if inverses is None else "non-finite residual")
-        S_inv, L_inv = inverses
+                                 "non-finite residual" if positive else "singular innovation covariance")
         w = L_inv @ residual
         nis = float(w @ w)
         if gate is not None and nis > gate:

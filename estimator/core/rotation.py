@@ -5,6 +5,14 @@ rotates body vectors into the world, ``v_W = R(q) v_B``; composition is Hamilton
 so ``q_WC = q_WB ⊗ q_BC``. Every function accepts a single quaternion/vector or a stack of
 them along the leading axes (``[..., 4]`` / ``[..., 3]``), which keeps evaluation code free of
 Python loops.
+
+The scalar primitives (:func:`quat_product`, :func:`rotvec_quat`, :func:`quat_exp_of`, :func:`rot_of`,
+:func:`rotate`, :func:`right_jacobian_of`) are written once here and serve three callers: Python on plain
+floats (the per-sample paths), numpy on whole arrays (the same expressions, element-wise), and the compiled
+kernels, which call their numba forms ``compiled_<name>`` (made on first use, so that importing the
+rotations, as the mapper's client does, loads no numba). Each is the same operations in the same order
+in all three, so the results agree to the last bit. numba's cache of a kernel does not notice a change
+made here: after editing a primitive, delete the ``*.nbi``/``*.nbc`` files under ``estimator/``.
 """
 
 from __future__ import annotations
@@ -43,21 +51,62 @@ def rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, floa
     return math.cos(0.5 * angle), s * x, s * y, s * z
 
 
+def quat_exp_of(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """:func:`quat_exp` of one rotation vector on plain floats, with its threshold and series (the smoother
+    applies its corrections with this one, :func:`rotvec_quat` is the filter's)."""
+    angle = math.sqrt(x * x + y * y + z * z)
+    half = 0.5 * angle
+    k = math.sin(half) / max(angle, _SMALL_ANGLE) if angle > _SMALL_ANGLE else 0.5 - angle**2 / 48.0
+    return math.cos(half), k * x, k * y, k * z
+
+
+def quat_product(aw: float, ax: float, ay: float, az: float,
+                 bw: float, bx: float, by: float, bz: float) -> tuple[float, float, float, float]:
+    """Hamilton product ``a ⊗ b`` of two quaternions given by their components (floats, or arrays
+    element-wise): the one place the product is written out."""
+    return (aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw)
+
+
+def rotate(w: float, x: float, y: float, z: float, vx: float, vy: float, vz: float) -> tuple[float, float, float]:
+    """``R(q) v`` for a unit quaternion without forming R: v + 2w (r × v) + 2 r × (r × v), r = (x, y, z)."""
+    cx, cy, cz = y * vz - z * vy, z * vx - x * vz, x * vy - y * vx
+    return (vx + 2.0 * (w * cx + y * cz - z * cy),
+            vy + 2.0 * (w * cy + z * cx - x * cz),
+            vz + 2.0 * (w * cz + x * cy - y * cx))
+
+
+def right_jacobian_of(x: float, y: float, z: float) -> tuple[tuple[float, float, float], ...]:
+    """Right Jacobian of SO(3) at φ = (x, y, z), as row tuples: ``Exp(φ + δ) ≈ Exp(φ) Exp(Jr(φ) δ)``.
+
+    Jr = I − a [φ]× + b [φ]×², a = (1 − cos θ)/θ², b = (θ − sin θ)/θ³, with [φ]×² = φ φᵀ − θ² I; the
+    series' first terms below θ² = 1e-10, where the closed forms lose their digits."""
+    t2 = x * x + y * y + z * z
+    if t2 < 1e-10:
+        a, b = 0.5, 1.0 / 6.0
+    else:
+        t = math.sqrt(t2)
+        a, b = (1.0 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
+    return (
+        (1.0 + b * (x * x - t2), a * z + b * x * y, -a * y + b * x * z),
+        (-a * z + b * x * y, 1.0 + b * (y * y - t2), a * x + b * y * z),
+        (a * y + b * x * z, -a * x + b * y * z, 1.0 + b * (z * z - t2)),
+    )
+
+
+def right_jacobian(phi: np.ndarray) -> np.ndarray:
+    """:func:`right_jacobian_of` of one rotation vector, as a 3 × 3 array."""
+    return np.array(right_jacobian_of(*np.asarray(phi, dtype=float).tolist()))
+
+
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product ``p ⊗ q`` (scalar first)."""
+    """Hamilton product ``p ⊗ q`` (scalar first), of single quaternions or stacks."""
     p = np.asarray(p, dtype=float)
     q = np.asarray(q, dtype=float)
-    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
-    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
+    return np.stack(quat_product(p[..., 0], p[..., 1], p[..., 2], p[..., 3], q[..., 0], q[..., 1], q[..., 2], q[..., 3]),
+                    axis=-1)
 
 
 def quat_conj(q: np.ndarray) -> np.ndarray:
@@ -88,17 +137,11 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
     q = np.asarray(q, dtype=float)
     if q.shape == (4,):  # one quaternion: the same arithmetic on floats, a fraction of the numpy calls
         return np.array(rot_of(*q.tolist()))
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = rot_of(q[..., 0], q[..., 1], q[..., 2], q[..., 3])  # element-wise over the stack
     r = np.empty(q.shape[:-1] + (3, 3))
-    r[..., 0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    r[..., 0, 1] = 2.0 * (x * y - w * z)
-    r[..., 0, 2] = 2.0 * (x * z + w * y)
-    r[..., 1, 0] = 2.0 * (x * y + w * z)
-    r[..., 1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    r[..., 1, 2] = 2.0 * (y * z - w * x)
-    r[..., 2, 0] = 2.0 * (x * z - w * y)
-    r[..., 2, 1] = 2.0 * (y * z + w * x)
-    r[..., 2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    for i in range(3):
+        for j in range(3):
+            r[..., i, j] = rows[i][j]
     return r
 
 
@@ -198,3 +241,18 @@ def rotation_angle(q_a: np.ndarray, q_b: np.ndarray) -> np.ndarray:
     """Angle in radians of the rotation between two attitudes (``R_a^T R_b``), in [0, π]."""
     dq = quat_mul(quat_conj(q_a), q_b)
     return 2.0 * np.arctan2(np.linalg.norm(dq[..., 1:], axis=-1), np.abs(dq[..., 0]))
+
+
+_COMPILED = (quat_product, rotvec_quat, quat_exp_of, rot_of, rotate, right_jacobian_of)
+
+
+def __getattr__(name: str):
+    """``compiled_<primitive>``: the primitive compiled by numba, for the kernels to call. Made on first use
+    (numba imports scipy's top package, which the mapper's client must not load)."""
+    if name.startswith("compiled_") and name[len("compiled_"):] in {f.__name__ for f in _COMPILED}:
+        import numba
+
+        for primitive in _COMPILED:
+            globals()["compiled_" + primitive.__name__] = numba.njit(cache=True, nogil=True)(primitive)
+        return globals()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

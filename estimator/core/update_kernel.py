@@ -4,9 +4,9 @@ measurement, a levelling) compiled to machine code.
 These updates run ten to a hundred times per second and in numpy each is some twenty calls on
 tiny arrays whose Python wrappers cost more than their arithmetic. Compiled with numba the same
 operations run in one call, in the same order (the matrix products through the same BLAS
-routines), so the filter's numbers do not change; ``kalman.ekf_update`` stays the one entry point
-and its numpy path the reference (a test compares the two bit for bit). Cached and loaded as
-``inertial.propagation_kernel``.
+routines), so the filter's numbers do not change; ``kalman.ekf_update`` stays the one entry point,
+its numpy path for what this one does not take (a test holds the two together where both apply).
+Cached and loaded as ``inertial.propagation_kernel``.
 """
 
 from __future__ import annotations
@@ -21,7 +21,9 @@ ACCEPTED, SINGULAR, NON_FINITE, GATED = 0, 1, 2, 3
 
 @numba.njit(cache=True, nogil=True)
 def small_inverse(S: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray]:
-    """``(ok, S⁻¹, L⁻¹)`` of an m × m covariance, m ≤ 3, through its Cholesky factor (``kalman._small_inverse``)."""
+    """``(ok, S⁻¹, L⁻¹)`` of an m × m covariance, m ≤ 3, through its Cholesky factor in scalars; ok is False
+    (and the matrices not to be used) where S is not positive definite. A GPS fix's 3 × 3 costs a fraction of
+    the general path's four LAPACK calls."""
     m = S.shape[0]
     inv_l = np.zeros((m, m))
     a = S[0, 0]
@@ -97,6 +99,7 @@ NO_HELD = np.zeros(0, dtype=np.bool_)
 def warm_up() -> None:
     """Compile (or load from the cache) for the argument types the filter passes, m = 1..3."""
     for m in (1, 2, 3):
+        small_inverse(np.eye(m))  # the numpy update's, on its own
         cov = np.eye(15)
         small_update(cov, 0, 9, np.ones((m, 9)), np.zeros(m), np.eye(m), math.inf, NO_HELD)
         small_update(cov, 0, 9, np.ones((m, 9)), np.zeros(m), np.eye(m), 16.0, np.zeros(15, dtype=np.bool_))

@@ -17,6 +17,9 @@ import math
 import numba
 import numpy as np
 
+from vtolpose.estimator.core.rotation import compiled_quat_product as quat_product
+from vtolpose.estimator.core.rotation import compiled_rot_of as rot_of
+from vtolpose.estimator.core.rotation import compiled_rotvec_quat as rotvec_quat
 from vtolpose.estimator.core.update_kernel import NO_HELD, small_update
 
 NAV_DIM = 9  # δp, δv, δθ: the error states a fix depends on
@@ -25,11 +28,8 @@ NAV_DIM = 9  # δp, δv, δθ: the error states a fix depends on
 @numba.njit(cache=True, nogil=True)
 def lever_arm_world(q: np.ndarray, lever_b: np.ndarray) -> np.ndarray:
     """``R(q) l``: the rotation as :func:`~vtolpose.estimator.core.rotation.rot_of` builds it, then the product."""
-    w, x, y, z = q[0], q[1], q[2], q[3]
     r = np.empty((3, 3))
-    r[0, 0], r[0, 1], r[0, 2] = 1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)
-    r[1, 0], r[1, 1], r[1, 2] = 2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)
-    r[2, 0], r[2, 1], r[2, 2] = 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
+    (r[0, 0], r[0, 1], r[0, 2]), (r[1, 0], r[1, 1], r[1, 2]), (r[2, 0], r[2, 1], r[2, 2]) = rot_of(q[0], q[1], q[2], q[3])
     return np.dot(r, lever_b)
 
 
@@ -104,15 +104,8 @@ def gps_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a
             p[j, i] = p[j, i] + dx[i]
             v[j, i] = v[j, i] + dx[3 + i]
         # Exp(δθ) ⊗ q, then normalised (FilterState.inject with rotation.rotvec_quat).
-        x, y, z = dx[6], dx[7], dx[8]
-        angle = math.sqrt(x * x + y * y + z * z)
-        s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
-        dw, ex, ey, ez = math.cos(0.5 * angle), s * x, s * y, s * z
-        w, qx, qy, qz = q[j, 0], q[j, 1], q[j, 2], q[j, 3]
-        r0 = dw * w - ex * qx - ey * qy - ez * qz
-        r1 = dw * qx + ex * w + ey * qz - ez * qy
-        r2 = dw * qy - ex * qz + ey * w + ez * qx
-        r3 = dw * qz + ex * qy - ey * qx + ez * w
+        dw, ex, ey, ez = rotvec_quat(dx[6], dx[7], dx[8])
+        r0, r1, r2, r3 = quat_product(dw, ex, ey, ez, q[j, 0], q[j, 1], q[j, 2], q[j, 3])
         norm = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
         q[j, 0], q[j, 1], q[j, 2], q[j, 3] = r0 / norm, r1 / norm, r2 / norm, r3 / norm
         if biases:

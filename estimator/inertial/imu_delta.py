@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vtolpose.estimator.core.rotation import rotvec_quat
+from vtolpose.estimator.core.rotation import quat_product, rotate, rotvec_quat
 from vtolpose.estimator.inertial import sample_kernel
 
 
@@ -47,28 +47,6 @@ class DeltaRun:
                         self.deltas[j, 3:6])
 
 
-def _qmul(a: tuple, b: tuple) -> tuple[float, float, float, float]:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
-def _rotate(q: tuple, x: float, y: float, z: float) -> tuple[float, float, float]:
-    """``R(q) v`` for a unit quaternion: v + 2w (r × v) + 2 r × (r × v)."""
-    w, rx, ry, rz = q
-    cx, cy, cz = ry * z - rz * y, rz * x - rx * z, rx * y - ry * x
-    return (
-        x + 2.0 * (w * cx + ry * cz - rz * cy),
-        y + 2.0 * (w * cy + rz * cx - rx * cz),
-        z + 2.0 * (w * cz + rx * cy - ry * cx),
-    )
-
-
 def _log(q: tuple) -> np.ndarray:
     w, x, y, z = q
     n = math.sqrt(x * x + y * y + z * z)
@@ -92,7 +70,13 @@ class ImuDownsampler:
         self._dt = 0.0
 
     def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> ImuDelta | None:
-        """Add a sample (strictly later than the previous); return a delta when one is complete."""
+        """Add a sample (strictly later than the previous); return a delta when one is complete.
+
+        The live path, one sample at a time, kept in Python rather than calling the compiled
+        ``sample_kernel.downsample_run`` on runs of one: a live service does not load the kernels of runs
+        (~5 MB, tests/test_layout.py), and a compiled call per sample costs more than this. Its rotations
+        are ``rotation``'s primitives, the ones the kernel calls; tests/test_imu_delta.py holds the two to
+        the same bits."""
         last = self._last
         # Scalar arithmetic on plain floats: this runs for every IMU sample.
         g, a = gyro.tolist(), accel.tolist()
@@ -106,11 +90,11 @@ class ImuDownsampler:
         h = 0.5 * dt
         wx, wy, wz = h * (g0x + g[0]), h * (g0y + g[1]), h * (g0z + g[2])  # rotation vector of this sample step
         fx, fy, fz = h * (a0x + a[0]), h * (a0y + a[1]), h * (a0z + a[2])
-        half = _qmul(self._q, rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz))
-        dx, dy, dz = _rotate(half, fx, fy, fz)
+        half = quat_product(*self._q, *rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz))
+        dx, dy, dz = rotate(*half, fx, fy, fz)
         vx, vy, vz = self._dv
         self._dv = (vx + dx, vy + dy, vz + dz)
-        self._q = _qmul(self._q, rotvec_quat(wx, wy, wz))
+        self._q = quat_product(*self._q, *rotvec_quat(wx, wy, wz))
         self._dt += dt
         if self._dt < self.min_dt:
             return None
@@ -153,4 +137,4 @@ class ImuDownsampler:
         dt = (t_ns - t_last) * 1e-9
         self._last = (t_ns, gyro, accel, g, a)
         half = rotvec_quat(*(0.5 * dt * gyro).tolist())
-        return ImuDelta(t_last, t_ns, dt, gyro * dt, np.array(_rotate(half, *(dt * accel).tolist())))
+        return ImuDelta(t_last, t_ns, dt, gyro * dt, np.array(rotate(*half, *(dt * accel).tolist())))

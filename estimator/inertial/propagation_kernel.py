@@ -2,10 +2,10 @@
 
 The step runs 60–100 times per second of data, once more for each heading hypothesis while the
 heading is searched for, and in Python its ~150 scalar operations cost more than the 15 × 15
-matrix products. Compiled with numba it takes a quarter of the time, with the same operations in
-the same order: the results are bit for bit those of the interpreted step (``step.py_func``; a
-test holds the two together, and ``propagator.error_transition`` and
-``propagator.integrate_nominal`` stay the references).
+matrix products. Compiled with numba it takes a quarter of the time. It is the one implementation
+of the step; tests hold it to the same equations written plainly (tests/propagation_oracle.py, itself
+tested against central differences), and to its own interpreted run (``step.py_func``) bit for bit.
+Its rotations are ``core.rotation``'s primitives, compiled.
 
 Compiled once per machine and cached next to this file (or where ``NUMBA_CACHE_DIR`` says); a
 process loads the cached code on first use, which the runtime does before its first sample
@@ -19,21 +19,18 @@ import math
 import numba
 import numpy as np
 
+from vtolpose.estimator.core.rotation import compiled_quat_product as quat_product
+from vtolpose.estimator.core.rotation import compiled_right_jacobian_of as right_jacobian_of
+from vtolpose.estimator.core.rotation import compiled_rot_of as rot_of
+from vtolpose.estimator.core.rotation import compiled_rotvec_quat as rotvec_quat
+
 OUT_LEN = 13  # p (3), v (3), q (4), a_W (3)
 
 
 @numba.njit(cache=True, nogil=True)
 def rotation(w: float, x: float, y: float, z: float, r: np.ndarray) -> None:
-    """``r`` ← R(q) for a unit quaternion (w first), as ``rotation.rot_of``."""
-    r[0, 0] = 1.0 - 2.0 * (y * y + z * z)
-    r[0, 1] = 2.0 * (x * y - w * z)
-    r[0, 2] = 2.0 * (x * z + w * y)
-    r[1, 0] = 2.0 * (x * y + w * z)
-    r[1, 1] = 1.0 - 2.0 * (x * x + z * z)
-    r[1, 2] = 2.0 * (y * z - w * x)
-    r[2, 0] = 2.0 * (x * z - w * y)
-    r[2, 1] = 2.0 * (y * z + w * x)
-    r[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    """``r`` ← R(q) for a unit quaternion (w first): ``rotation.rot_of`` written into an array."""
+    (r[0, 0], r[0, 1], r[0, 2]), (r[1, 0], r[1, 1], r[1, 2]), (r[2, 0], r[2, 1], r[2, 2]) = rot_of(w, x, y, z)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -65,13 +62,8 @@ def step(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.n
     out[3] = v[0] + ax * dt
     out[4] = v[1] + ay * dt
     out[5] = v[2] + az * dt
-    angle = math.sqrt(px * px + py * py + pz * pz)
-    s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
-    dw, dx, dy, dz = math.cos(0.5 * angle), s * px, s * py, s * pz
-    nw = w * dw - x * dx - y * dy - z * dz
-    nx = w * dx + x * dw + y * dz - z * dy
-    ny = w * dy - x * dz + y * dw + z * dx
-    nz = w * dz + x * dy - y * dx + z * dw
+    dw, dx, dy, dz = rotvec_quat(px, py, pz)
+    nw, nx, ny, nz = quat_product(w, x, y, z, dw, dx, dy, dz)
     norm = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
     nw, nx, ny, nz = nw * norm, nx * norm, ny * norm, nz * norm
     out[6], out[7], out[8], out[9] = nw, nx, ny, nz
@@ -87,17 +79,9 @@ def step(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.n
         hx, hy, hz = 0.5 * vx, 0.5 * vy, 0.5 * vz
         rn = np.empty((3, 3))
         rotation(nw, nx, ny, nz, rn)
-        t2 = px * px + py * py + pz * pz
-        if t2 < 1e-10:
-            a, b = 0.5, 1.0 / 6.0
-        else:
-            t = math.sqrt(t2)
-            a, b = (1.0 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
-        # Right Jacobian of SO(3) at φ: I − a [φ]× + b [φ]×².
         jr = np.empty((3, 3))
-        jr[0, 0], jr[0, 1], jr[0, 2] = 1.0 + b * (px * px - t2), a * pz + b * px * py, -a * py + b * px * pz
-        jr[1, 0], jr[1, 1], jr[1, 2] = -a * pz + b * px * py, 1.0 + b * (py * py - t2), a * px + b * py * pz
-        jr[2, 0], jr[2, 1], jr[2, 2] = a * py + b * px * pz, -a * px + b * py * pz, 1.0 + b * (pz * pz - t2)
+        (jr[0, 0], jr[0, 1], jr[0, 2]), (jr[1, 0], jr[1, 1], jr[1, 2]), (jr[2, 0], jr[2, 1], jr[2, 2]) = \
+            right_jacobian_of(px, py, pz)
         m = -dt
         for i in range(3):
             d0 = r[i, 1] * hz - r[i, 2] * hy

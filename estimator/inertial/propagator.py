@@ -9,106 +9,21 @@ over ``dt``) and corrects it for the biases to first order:
     p'  = p + v dt + ½ a_W dt²,   v' = v + a_W dt,   q' = q ⊗ Exp(φ)
 
 Only the robot rows and columns of the covariance change, so a step costs O(n) in the map
-size, not O(n²). :func:`error_transition` is tested against central differences of
-:func:`integrate_nominal`; :class:`ImuPropagator` is the fast path, tested against both.
+size, not O(n²). The arithmetic is ``propagation_kernel``'s, compiled; the same equations written plainly
+(tests/propagation_oracle.py) are the oracle it is tested against, and those against central differences.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 
 from vtolpose.estimator.core.calibration import ImuNoise
 from vtolpose.estimator.inertial import propagation_kernel
 from vtolpose.estimator.inertial.imu_delta import ImuDelta
-from vtolpose.estimator.core.rotation import rot_of as _rot, rotvec_quat
+from vtolpose.estimator.core.rotation import rot_of as _rot
 from vtolpose.estimator.core.state import FilterState, StateLayout, stacked
 
 OUT_LEN = propagation_kernel.OUT_LEN  # what the compiled step writes: p, v, q, a_W
-
-
-def _skew(x: float, y: float, z: float) -> np.ndarray:
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
-def _jr(x: float, y: float, z: float) -> tuple:
-    """Right Jacobian of SO(3) at φ = (x, y, z): ``Exp(φ + δ) ≈ Exp(φ) Exp(Jr(φ) δ)``."""
-    t2 = x * x + y * y + z * z
-    if t2 < 1e-10:
-        a, b = 0.5, 1.0 / 6.0
-    else:
-        t = math.sqrt(t2)
-        a, b = (1.0 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
-    # Jr = I - a [φ]x + b [φ]x², with [φ]x² = φ φ^T - |φ|² I.
-    return (
-        (1.0 + b * (x * x - t2), a * z + b * x * y, -a * y + b * x * z),
-        (-a * z + b * x * y, 1.0 + b * (y * y - t2), a * x + b * y * z),
-        (a * y + b * x * z, -a * x + b * y * z, 1.0 + b * (z * z - t2)),
-    )
-
-
-def _quat_times_rotvec(q: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """``q ⊗ Exp(φ)``, normalised: the body-frame attitude increment."""
-    dw, dx, dy, dz = rotvec_quat(*phi.tolist())
-    w, x, y, z = q.tolist()
-    out = np.array(
-        [
-            w * dw - x * dx - y * dy - z * dz,
-            w * dx + x * dw + y * dz - z * dy,
-            w * dy - x * dz + y * dw + z * dx,
-            w * dz + x * dy - y * dx + z * dw,
-        ]
-    )
-    return out / math.sqrt(float(out @ out))
-
-
-def _corrected(b_g: np.ndarray, b_a: np.ndarray, dtheta: np.ndarray, dvel: np.ndarray, dt: float):
-    """Bias-corrected rotation vector and mean specific force (start-of-step body frame)."""
-    phi = dtheta - b_g * dt
-    dv = dvel - (0.5 * dt) * np.cross(b_g, dvel)
-    return phi, dv / dt - b_a
-
-
-def integrate_nominal(
-    p: np.ndarray,
-    v: np.ndarray,
-    q: np.ndarray,
-    b_g: np.ndarray,
-    b_a: np.ndarray,
-    dtheta: np.ndarray,
-    dvel: np.ndarray,
-    dt: float,
-    gravity: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One nominal step over an IMU delta. Returns ``(p', v', q', a_W)``."""
-    phi, f = _corrected(b_g, b_a, dtheta, dvel, dt)
-    a_w = np.array(_rot(*q.tolist())) @ f + gravity
-    return p + v * dt + (0.5 * dt * dt) * a_w, v + a_w * dt, _quat_times_rotvec(q, phi), a_w
-
-
-def error_transition(
-    q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, dtheta: np.ndarray, dvel: np.ndarray, dt: float, layout: StateLayout
-) -> np.ndarray:
-    """Jacobian F of the robot error state (global attitude error) over one step."""
-    n = layout.robot_dim
-    phi, f = _corrected(b_g, b_a, dtheta, dvel, dt)
-    r = np.array(_rot(*q.tolist()))
-    a_skew = _skew(*(r @ f))
-    F = np.eye(n)
-    h2 = 0.5 * dt * dt
-    F[0:3, 3:6] = dt * np.eye(3)
-    F[0:3, 6:9] = -h2 * a_skew
-    F[3:6, 6:9] = -dt * a_skew
-    if layout.estimates_biases:
-        r_new = np.array(_rot(*_quat_times_rotvec(q, phi).tolist()))
-        d_a_d_bg = 0.5 * (r @ _skew(*dvel))
-        F[0:3, 9:12] = h2 * d_a_d_bg
-        F[3:6, 9:12] = dt * d_a_d_bg
-        F[6:9, 9:12] = -dt * (r_new @ np.array(_jr(*phi.tolist())))
-        F[0:3, 12:15] = -h2 * r
-        F[3:6, 12:15] = -dt * r
-    return F
 
 
 def process_noise(
@@ -118,6 +33,10 @@ def process_noise(
 
     ``extra_horizontal_accel`` [m/s²/√Hz] widens horizontal velocity while the heading is
     unknown, so that the filter follows GPS instead of a mis-rotated accelerometer.
+
+    Not a twin of a kernel: it is the runtime's only Q where the white noise differs between axes (Q then
+    turns with the attitude, and the compiled steps, which take Q as polynomial terms in dt, decline), and
+    the source of those terms where it does not (:func:`noise_dt_polynomial`).
     """
     n = layout.robot_dim
     r = np.array(_rot(*q.tolist()))

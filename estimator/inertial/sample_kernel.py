@@ -16,20 +16,9 @@ import math
 import numba
 import numpy as np
 
-
-
-@numba.njit(cache=True, nogil=True)
-def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
-    angle = math.sqrt(x * x + y * y + z * z)
-    s = math.sin(0.5 * angle) / angle if angle > 1e-9 else 0.5 - angle * angle / 48.0
-    return math.cos(0.5 * angle), s * x, s * y, s * z
-
-
-@numba.njit(cache=True, nogil=True)
-def _qmul(aw: float, ax: float, ay: float, az: float,
-          bw: float, bx: float, by: float, bz: float) -> tuple[float, float, float, float]:
-    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+from vtolpose.estimator.core.rotation import compiled_quat_product as quat_product
+from vtolpose.estimator.core.rotation import compiled_rotate as rotate
+from vtolpose.estimator.core.rotation import compiled_rotvec_quat as rotvec_quat
 
 
 @numba.njit(cache=True, nogil=True)
@@ -68,14 +57,14 @@ def downsample_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, acc: np.n
         wx, wy, wz = h * (g0x + gx), h * (g0y + gy), h * (g0z + gz)
         fx, fy, fz = h * (a0x + ax), h * (a0y + ay), h * (a0z + az)
         qw, qx, qy, qz = acc[6], acc[7], acc[8], acc[9]
-        hw, hx, hy, hz = _rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz)
-        hw, hx, hy, hz = _qmul(qw, qx, qy, qz, hw, hx, hy, hz)
-        cx, cy, cz = hy * fz - hz * fy, hz * fx - hx * fz, hx * fy - hy * fx
-        acc[10] = acc[10] + (fx + 2.0 * (hw * cx + hy * cz - hz * cy))
-        acc[11] = acc[11] + (fy + 2.0 * (hw * cy + hz * cx - hx * cz))
-        acc[12] = acc[12] + (fz + 2.0 * (hw * cz + hx * cy - hy * cx))
-        dw, dx, dy, dz = _rotvec_quat(wx, wy, wz)
-        acc[6], acc[7], acc[8], acc[9] = _qmul(qw, qx, qy, qz, dw, dx, dy, dz)
+        hw, hx, hy, hz = rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz)
+        hw, hx, hy, hz = quat_product(qw, qx, qy, qz, hw, hx, hy, hz)
+        ux, uy, uz = rotate(hw, hx, hy, hz, fx, fy, fz)  # the specific force at the half-step attitude
+        acc[10] = acc[10] + ux
+        acc[11] = acc[11] + uy
+        acc[12] = acc[12] + uz
+        dw, dx, dy, dz = rotvec_quat(wx, wy, wz)
+        acc[6], acc[7], acc[8], acc[9] = quat_product(qw, qx, qy, qz, dw, dx, dy, dz)
         acc[13] += dt
         if acc[13] < min_dt or acc[13] <= 0.0:
             continue

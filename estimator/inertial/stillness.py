@@ -70,7 +70,11 @@ class StillnessDetector:
         self._block_a = (0.0, 0.0, 0.0)
 
     def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray, gravity: float, speed: float) -> StillChunk | None:
-        """Add a body-frame sample; at the end of each chunk return it if it was still."""
+        """Add a body-frame sample; at the end of each chunk return it if it was still.
+
+        The live path, one sample at a time: the compiled accumulation (:meth:`add_run`) is a kernel of runs,
+        which a live service does not load (tests/test_layout.py); tests/test_stillness.py holds the two to the
+        same bits."""
         if self._t0 is None:
             self._reset(t_ns)
         self._samples += 1

@@ -102,32 +102,6 @@ def stacked_gains(P: np.ndarray, F: np.ndarray, P_pred: np.ndarray, transition: 
         return C, D
 
 
-def backward_step(C: np.ndarray, D: np.ndarray, u: np.ndarray, e_next: np.ndarray,
-                  Ps_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One RTS step on the corrections: ``(e_k, Pˢ_k)`` from ``(e_{k+1}, Pˢ_{k+1})``."""
-    return C @ (e_next + u), C @ Ps_next @ C.T + D
-
-
-def recursion(C: np.ndarray, D: np.ndarray, u: np.ndarray, P: np.ndarray, transition: np.ndarray,
-              e: np.ndarray | None, Ps: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The linear heart of the pass over K steps, newest last: corrections ``e_k`` and ``Pˢ_k`` for each.
-
-    A step without ``transition`` restarts the recursion at its posterior (``e = 0``, ``Pˢ = P``);
-    ``e``/``Ps`` carry the estimate of the step after the last one (None if there is none).
-    """
-    k_total, n = u.shape
-    e_out, P_out = np.empty((k_total, n)), np.empty((k_total, n, n))
-    zero = np.zeros(n)
-    for k in range(k_total - 1, -1, -1):
-        if transition[k]:
-            Ck = C[k]
-            e, Ps = Ck @ (e + u[k]), Ck @ Ps @ Ck.T + D[k]
-        else:
-            e, Ps = zero, P[k]
-        e_out[k], P_out[k] = e, Ps
-    return e_out, P_out, e, Ps
-
-
 @dataclass(slots=True)
 class SmoothedChunk:
     """Smoothed estimates in time order: nominal ``[p, v, q, b_g, b_a]`` and the pose covariance."""
@@ -186,7 +160,7 @@ class BackwardPass:
             raise ValueError(f"step at t_ns={int(t_all[np.argmax(broken)])} has no successor in its segment: "
                              "steps out of order")
         n_zero = np.zeros(n)
-        e_out, P_out, e, Ps = rts_kernel.recursion(  # compiled: bit for bit recursion() below
+        e_out, P_out, e, Ps = rts_kernel.recursion(  # compiled (tests/rts_oracle.py is its numpy reading)
             C, D, u, P, np.ascontiguousarray(transition),
             n_zero if self._e is None else self._e, np.zeros((n, n)) if self._Ps is None else self._Ps)
         # Where a segment's end and the next segment's start share a time, keep the later one.

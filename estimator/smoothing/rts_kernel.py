@@ -1,11 +1,11 @@
 """The RTS backward recursion compiled to machine code.
 
 The backward pass walks every filter step from the newest to the oldest, two small matrix
-products each; in numpy those products' Python wrappers cost more than their arithmetic, and
-since the replay itself became faster the backward pass was the slower half of ``replay
---smooth``. Compiled with numba the same products run through the same BLAS routines in the
-same order: the result is bit for bit that of ``rts.recursion``, its numpy reference (a test
-holds them together). Cached and loaded as ``inertial.propagation_kernel``.
+products each; in numpy those products' Python wrappers cost more than their arithmetic, enough
+to make the backward pass the slower half of ``replay --smooth``. Compiled with numba the same
+products run through the same BLAS routines in the same order: the result is bit for bit that of
+the same recursion written in numpy (tests/rts_oracle.py, the oracle a test holds it to). Cached
+and loaded as ``inertial.propagation_kernel``.
 """
 
 from __future__ import annotations
@@ -15,14 +15,17 @@ import math
 import numba
 import numpy as np
 
-from vtolpose.estimator.core.rotation import _SMALL_ANGLE
+from vtolpose.estimator.core.rotation import compiled_quat_exp_of as quat_exp_of
+from vtolpose.estimator.core.rotation import compiled_quat_product as quat_product
 
 
 @numba.njit(cache=True, nogil=True)
 def recursion(C: np.ndarray, D: np.ndarray, u: np.ndarray, P: np.ndarray, transition: np.ndarray,
               e: np.ndarray, Ps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """See ``rts.recursion``; ``e``/``Ps`` are zeros when there is no later step (the newest step then
-    has no transition and restarts the recursion before they are read)."""
+    """The linear heart of the pass over K steps, newest last: corrections ``e_k`` and ``Pˢ_k`` for each
+    (``rts``'s module docstring). A step without ``transition`` restarts the recursion at its posterior
+    (``e = 0``, ``Pˢ = P``); ``e``/``Ps`` carry the estimate of the step after the last one, zeros when there
+    is none (the newest step then has no transition and restarts the recursion before they are read)."""
     k_total, n = u.shape
     e_out, P_out = np.empty((k_total, n)), np.empty((k_total, n, n))
     zero = np.zeros(n)
@@ -104,7 +107,7 @@ def gains(P: np.ndarray, F: np.ndarray, P_pred: np.ndarray, transition: np.ndarr
 @numba.njit(cache=True, nogil=True)
 def backward_step(C: np.ndarray, D: np.ndarray, u: np.ndarray, e_next: np.ndarray,
                   Ps_next: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``rts.backward_step``, bit for bit: one step of the fixed-lag smoother's sweep."""
+    """One RTS step on the corrections, ``(e_k, Pˢ_k)`` from ``(e_{k+1}, Pˢ_{k+1})``: the fixed-lag smoother's sweep."""
     return np.dot(C, e_next + u), np.dot(np.dot(C, Ps_next), np.ascontiguousarray(C.T)) + D
 
 
@@ -114,16 +117,8 @@ def apply_error(x: np.ndarray, dx: np.ndarray, n: int) -> np.ndarray:
     out = x.copy()
     for i in range(6):
         out[i] += dx[i]
-    rx, ry, rz = dx[6], dx[7], dx[8]
-    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
-    half = 0.5 * angle
-    k = math.sin(half) / max(angle, _SMALL_ANGLE) if angle > _SMALL_ANGLE else 0.5 - angle**2 / 48.0
-    pw, px, py, pz = math.cos(half), k * rx, k * ry, k * rz
-    qw, qx, qy, qz = x[6], x[7], x[8], x[9]
-    w = pw * qw - px * qx - py * qy - pz * qz
-    a = pw * qx + px * qw + py * qz - pz * qy
-    b = pw * qy - px * qz + py * qw + pz * qx
-    c = pw * qz + px * qy - py * qx + pz * qw
+    pw, px, py, pz = quat_exp_of(dx[6], dx[7], dx[8])
+    w, a, b, c = quat_product(pw, px, py, pz, x[6], x[7], x[8], x[9])
     norm = math.sqrt(w * w + a * a + b * b + c * c)
     out[6], out[7], out[8], out[9] = w / norm, a / norm, b / norm, c / norm
     if n > 9:

@@ -1,6 +1,6 @@
 """Every EuRoC flight on disk, end to end: imported, replayed with both models, scored — one table.
 
-This is issue 12's measurement, repeatable on flights this program was never tuned on: each
+A measurement repeatable on flights this program was never tuned on: each
 flight is imported the same way (the IMU as recorded; a GPS made from the truth at 10 Hz with
 σ_xy 2 cm, σ_z² = 2 σ_xy², seed 1; the heading unknown; the one vehicle file
 ``config/euroc_vi_sensor.yaml``), replayed through the runtime with IMU and GPS, and scored
@@ -248,7 +248,7 @@ def _angle_deg(R: np.ndarray) -> float:
 
 
 def imported_flight(flight: Flight, work: Path) -> Dataset:
-    """``flight`` imported into ``work`` as issue 12 prescribes (GPS from the truth at 10 Hz, 2 cm, seed 1)."""
+    """``flight`` imported into ``work`` the one way every flight is (GPS from the truth at 10 Hz, 2 cm, seed 1)."""
     out = work / flight.name
     import_euroc(flight.source, out, gps_rate_hz=GPS_RATE_HZ, gps_sigma_m=GPS_SIGMA_M, seed=GPS_SEED,
                  overwrite=True, truth_file=flight.truth_file, camera=False)
@@ -338,7 +338,7 @@ def flights_or_skip(bench: str, echo: Callable[[str], None]) -> list:
 
 
 def bench_euroc(echo: Callable[[str], None] = print) -> list[Row]:
-    """Every EuRoC flight under ../shared/data: import, replay both models, score (issue 12's table)."""
+    """Every EuRoC flight under ../shared/data: import, replay both models, score (the table of docs/results.md)."""
     flights = flights_or_skip("euroc", echo)
     if not flights:
         return []
@@ -355,7 +355,7 @@ def bench_euroc(echo: Callable[[str], None] = print) -> list[Row]:
                        for s in scores]
     rows += [BenchRow(f"{s.flight} {s.variant}: worst {WINDOW_S:g} s / GPS", s.worst_window[0] / s.gps_rmse_m, "ratio",
                       f"from {s.worst_window[1]:.0f} s") for s in scores if s.worst_window is not None]
-    for s in scores:  # issue 13's targets, default variant
+    for s in scores:  # the smoothing's targets (docs/smoothing.md), default variant
         if s.variant != "biases" or s.smoothed is None:
             continue
         rows.append(BenchRow(f"{s.flight} smoothed: position / GPS", s.smoothed.position_rmse_m / s.gps_rmse_m, "ratio",

@@ -1,4 +1,4 @@
-"""Replay speed against a reference on the same inputs, measured in the same run (issue 16).
+"""Replay speed against a reference on the same inputs, measured in the same run (the same machine, the same load).
 
 The reference is GTSAM (optional extra ``bench``, never imported at run time): the IMU
 preintegrated between GPS fixes (``CombinedImuFactor``: attitude, velocity, position and both
@@ -29,7 +29,7 @@ from vtolpose.service.replay.session import replay
 from vtolpose.service.runtime.daemon import load_compiled_kernels
 
 LAG_S = 3.0
-REPLAY_TARGET = ">= 250"  # x real time, IMU+GPS, both variants (issue 16)
+REPLAY_TARGET = ">= 250"  # x real time, IMU+GPS, both variants (an hour of flight in under 15 s)
 RATIO_TARGET = ">= 4"  # vtolpose's real-time factor over the reference's
 ROUNDS = 3  # each side's best of this many runs, taken in turn: the machine's swings are not the code's
 _ACCEL_INIT_S = 0.5  # level from the mean specific force over this long when the truth has no attitude

@@ -6,7 +6,7 @@ Python allocated (tracemalloc, one frame per allocation) are sampled every minut
 allocation sites that grew most since the history filled are listed. Figures: growth per minute
 over the first and the second half of the time after the fill.
 
-What it showed (issue 18). ``--rss-only``, 20 min: RSS 197 → 213 MB from minute 2 to 11 (1.7
+What it shows. ``--rss-only``, 20 min: RSS 197 → 213 MB from minute 2 to 11 (1.7
 MB/min), then flat to the end. Traced, one hour: Python's allocations flat (121.52 → 121.53 MB
 from minute 4 to 59), and the one site that grew is the pose history's array
 (estimator/pose_history.py, +6.4 MB): once the history holds more than half its buffer, the

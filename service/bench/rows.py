@@ -1,4 +1,4 @@
-"""One benchmark figure: its value, unit, note and, where an issue set one, its target and verdict.
+"""One benchmark figure: its value, unit, note and, where it has one, its target and verdict.
 
 A target is written as the comparison the value must pass, e.g. ``">= 300"`` (a real-time
 factor) or ``"<= 25"`` (milliseconds per frame). Absolute figures hold for the machine they were

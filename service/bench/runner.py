@@ -1,7 +1,7 @@
 """Benchmarks that answer "can my helicopter computer keep up?" — figures, not asserts.
 
 Each benchmark returns :class:`~vtolpose.service.bench.rows.Row` figures, with a target and a
-pass/short verdict where an issue set one. Ratios are measured against a baseline taken in the
+pass/short verdict where the figure has a target. Ratios are measured against a baseline taken in the
 same run where a baseline makes sense.
 """
 

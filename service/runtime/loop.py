@@ -1,6 +1,6 @@
 """The onboard runtime: sources → fusion → outputs on one asyncio loop, for live runs and replays alike.
 
-Timing rules (spec "Fusion order"; issue 4):
+Timing rules (spec "Fusion order"):
 - An IMU sample is handled the moment it arrives: it goes into the fusion core, the pose
   predicted to it is published (ODOMETRY, Zenoh) and stored in the history. Nothing on this
   path waits for anything else.

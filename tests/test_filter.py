@@ -1,0 +1,71 @@
+"""The estimator's frame changes, through its public methods only: a GPS heard by a filter that has no world frame."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vtolpose.estimator.core.calibration import Calibration, ImuCalibration, ImuNoise
+from vtolpose.estimator.core.measurements import GpsFix
+from vtolpose.estimator.filter import VELOCITY_FIT_S, Estimator, PoseEstimate
+from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator.vision.features import FeatureOptions, extract_features
+from vtolpose.service.outputs.mavlink_odometry import odometry_fields
+
+from test_camera_pipeline import CAM, EPOCH, textured
+
+IMU_DT_NS = 8_000_000  # 125 Hz
+STILL_F = np.array([0.0, 0.0, -9.80665])
+
+
+def odometry_reset_counter(pose: PoseEstimate) -> int:
+    """The ``reset_counter`` an ODOMETRY message made from this pose carries."""
+    cov9 = np.zeros((9, 9))
+    cov9[0:3, 0:3], cov9[6:9, 6:9], cov9[0:3, 6:9], cov9[6:9, 0:3] = (
+        pose.pose_cov[0:3, 0:3], pose.pose_cov[3:6, 3:6], pose.pose_cov[0:3, 3:6], pose.pose_cov[3:6, 0:3])
+    cov9[3:6, 3:6] = pose.vel_cov
+    out = OutputPose(pose.t_ns, pose.p, pose.v, pose.q, pose.omega_b, cov9, pose.pose_cov, np.full(3, 1e-6),
+                     pose.heading_aligned, True, pose.reset_counter, pose.t_ns)
+    return odometry_fields(out)["reset_counter"]
+
+
+def test_a_gps_joining_a_camera_frame_of_its_own_resets_once_onto_the_fixes() -> None:
+    """Started still without a heading and mapping with the camera in its own frame, the filter hears a GPS:
+    it collects the fixes for VELOCITY_FIT_S, then takes their velocity and the last one's position, the
+    frame jumps to the GPS's and the reset counter (the one ODOMETRY carries) rises by exactly one."""
+    cal = Calibration(imu=ImuCalibration(125.0, ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4)), camera=CAM)
+    est = Estimator(cal)
+    t_ns = EPOCH
+    for _ in range(320):  # 2.5 s at rest: the static start, heading unknown
+        est.process_imu(t_ns, np.zeros(3), STILL_F)
+        t_ns += IMU_DT_NS
+    for k, frame_t in enumerate((3_000_000_000, 3_133_333_333)):
+        assert est.process_features(extract_features(textured(5 + k), EPOCH + frame_t, FeatureOptions())).accepted
+    assert est.local_position and not est.heading_aligned
+    before = est.reset_counter
+    assert odometry_reset_counter(est.pose()) == before % 256
+
+    p0, velocity = np.array([12.0, -7.0, 1.5]), np.array([0.5, -0.2, 0.1])
+    first_fix_ns = EPOCH + 3_200_000_000
+    fix_times = [first_fix_ns + k * 100_000_000 for k in range(16)]  # 10 Hz for 1.5 s
+    joined_at, counters = None, []
+    for fix_t in fix_times:
+        while t_ns <= fix_t:
+            est.process_imu(t_ns, np.zeros(3), STILL_F)
+            t_ns += IMU_DT_NS
+        fix = GpsFix(fix_t, p0 + velocity * (fix_t - first_fix_ns) * 1e-9, 0.02, 0.03)
+        outcome = est.process_gps(fix)
+        counters.append(est.reset_counter)
+        if outcome is not None and outcome.reason == "GPS joined":
+            assert joined_at is None, "joined twice"
+            joined_at = fix_t
+            pose = est.pose()
+            assert pose.p == pytest.approx(fix.p_ned, abs=1e-9)  # the last fix's position (no lever arm)
+            assert pose.v == pytest.approx(velocity, abs=1e-6)  # the fixes' velocity
+            assert odometry_reset_counter(pose) == (before + 1) % 256
+    assert joined_at is not None and (joined_at - first_fix_ns) * 1e-9 == pytest.approx(VELOCITY_FIT_S)
+    assert est.reset_counter == before + 1
+    assert counters == [before if t < joined_at else before + 1 for t in fix_times]
+    joined = [text for t, text in est.events if "GPS joined" in text]
+    assert len(joined) == 1 and f"reset #{before + 1}" in joined[0]
+    assert not est.local_position
