@@ -34,7 +34,7 @@ import numpy as np
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.core.measurements import ImuSample, RejectionCounts, readings_finite, rows_finite
 from vtolpose.estimator.inertial.propagator import is_isotropic, noise_dt_polynomial, process_noise
-from vtolpose.estimator.core.rotation import rotvec_quat, skew
+from vtolpose.estimator.core.rotation import quat_product, rot_of, rotate, rotvec_quat, skew
 from vtolpose.estimator.core.covariance import BG
 from vtolpose.estimator.core.state import StateLayout
 
@@ -111,35 +111,28 @@ def nominal_step(
 
     The same arithmetic as a one-sample :class:`~vtolpose.estimator.inertial.imu_delta.ImuDelta` (trapezoid rates,
     specific force rotated by the half-step) followed by
-    :func:`~vtolpose.estimator.inertial.propagator.integrate_nominal`; a test holds the two together.
+    the propagator's nominal integration (``tests/propagation_oracle.py``); a test holds the two together.
     """
     # Raw increments over the step.
     wx, wy, wz = 0.5 * dt * (g0[0] + g1[0]), 0.5 * dt * (g0[1] + g1[1]), 0.5 * dt * (g0[2] + g1[2])
     fx, fy, fz = 0.5 * dt * (a0[0] + a1[0]), 0.5 * dt * (a0[1] + a1[1]), 0.5 * dt * (a0[2] + a1[2])
     hw, hx, hy, hz = rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz)
-    cx, cy, cz = hy * fz - hz * fy, hz * fx - hx * fz, hx * fy - hy * fx
-    dvx = fx + 2.0 * (hw * cx + hy * cz - hz * cy)
-    dvy = fy + 2.0 * (hw * cy + hz * cx - hx * cz)
-    dvz = fz + 2.0 * (hw * cz + hx * cy - hy * cx)
+    dvx, dvy, dvz = rotate(hw, hx, hy, hz, fx, fy, fz)
     # Bias correction (first order, as in the propagator).
     bx, by, bz = b_g
     px, py, pz = wx - bx * dt, wy - by * dt, wz - bz * dt
     h = 0.5 * dt
     kx, ky, kz = by * dvz - bz * dvy, bz * dvx - bx * dvz, bx * dvy - by * dvx
     sx, sy, sz = (dvx - h * kx) / dt - b_a[0], (dvy - h * ky) / dt - b_a[1], (dvz - h * kz) / dt - b_a[2]
-    qw, qx, qy, qz = q
-    ax = (1.0 - 2.0 * (qy * qy + qz * qz)) * sx + 2.0 * (qx * qy - qw * qz) * sy + 2.0 * (qx * qz + qw * qy) * sz
-    ay = 2.0 * (qx * qy + qw * qz) * sx + (1.0 - 2.0 * (qx * qx + qz * qz)) * sy + 2.0 * (qy * qz - qw * qx) * sz
-    az = 2.0 * (qx * qz - qw * qy) * sx + 2.0 * (qy * qz + qw * qx) * sy + (1.0 - 2.0 * (qx * qx + qy * qy)) * sz
+    r0, r1, r2 = rot_of(*q)
+    ax = r0[0] * sx + r0[1] * sy + r0[2] * sz
+    ay = r1[0] * sx + r1[1] * sy + r1[2] * sz
+    az = r2[0] * sx + r2[1] * sy + r2[2] * sz
     az += gravity_down
     hh = 0.5 * dt * dt
     p_new = (p[0] + v[0] * dt + hh * ax, p[1] + v[1] * dt + hh * ay, p[2] + v[2] * dt + hh * az)
     v_new = (v[0] + ax * dt, v[1] + ay * dt, v[2] + az * dt)
-    dw, dx, dy, dz = rotvec_quat(px, py, pz)
-    nw = qw * dw - qx * dx - qy * dy - qz * dz
-    nx = qw * dx + qx * dw + qy * dz - qz * dy
-    ny = qw * dy - qx * dz + qy * dw + qz * dx
-    nz = qw * dz + qx * dy - qy * dx + qz * dw
+    nw, nx, ny, nz = quat_product(*q, *rotvec_quat(px, py, pz))
     norm = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
     return p_new, v_new, (nw * norm, nx * norm, ny * norm, nz * norm)
 

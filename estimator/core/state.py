@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from vtolpose.estimator.core.rotation import quat_to_rot, rotvec_quat
+from vtolpose.estimator.core.rotation import quat_product, quat_to_rot, rotvec_quat
 
 VARIANTS = ("thesis", "biases")
 LANDMARK_DIM = 6
@@ -98,8 +98,7 @@ class FilterState:
         # Exp(δθ) ⊗ q on plain floats (every update passes here), then normalised.
         dw, ex, ey, ez = rotvec_quat(*dx[lay.TH].tolist())
         w, x, y, z = self.q.tolist()
-        q = (dw * w - ex * x - ey * y - ez * z, dw * x + ex * w + ey * z - ez * y,
-             dw * y - ex * z + ey * w + ez * x, dw * z + ex * y - ey * x + ez * w)
+        q = quat_product(dw, ex, ey, ez, w, x, y, z)
         norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         self.q = np.array([q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm])
         if lay.estimates_biases:
