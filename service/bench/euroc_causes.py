@@ -12,7 +12,9 @@ predicted for up to 100 ms. This bench scores the default model's plain replay (
 - the same ratio with the GPS stamps moved by ``±TIMING_SHIFTS_S`` (``calibration.gps.time_offset_s``):
   whether the fixes and the IMU share one clock;
 - the same ratio with the vehicle file's white noise scaled by ``NOISE_SCALES``: whether the inflated
-  constant is what holds the position back.
+  constant is what holds the position back;
+- the IMU's own vibration floor in flight (``estimator.inertial.vibration``, 10-60 Hz, from SCORE_FROM_S)
+  per axis, against the vehicle file's white densities: whether that constant is the vibration's level.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.estimator.metrics import gps_error_rmse, interpolate_poses
 from vtolpose.estimator.core.rotation import quat_to_rot
+from vtolpose.estimator.inertial.vibration import DEFAULT_BAND_HZ, vibration_floor
 from vtolpose.service.bench.euroc import SCORE_FROM_S, aligned_position_errors, flights_or_skip, imported_flight
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import replay
@@ -108,6 +111,9 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
     moved_names = [f"GPS stamps {s * 1e3:+g} ms" for s in TIMING_SHIFTS_S]
     moved_names += [f"{key.split('_')[0]} white noise × {scale:g}" for key, scales in NOISE_SCALES.items() for scale in scales]
     moved = ["| flight | as imported | " + " | ".join(moved_names) + " |", "|---" * (len(moved_names) + 2) + "|"]
+    lo, hi = DEFAULT_BAND_HZ
+    floors = [f"| flight | accelerometer {lo:g}-{hi:g} Hz, per axis | vehicle file | gyroscope {lo:g}-{hi:g} Hz, per axis | vehicle file |",
+              "|---|---|---|---|---|"]
     rows: list[Row] = []
     with tempfile.TemporaryDirectory() as tmp:
         for flight in flights:
@@ -133,6 +139,15 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
             rows.append(Row(f"{flight.name}: position / GPS, at the fixes", ratio_at_fixes, "ratio",
                             "scored as the GTSAM reference scores itself"))
             rows += [Row(f"{flight.name}: position / GPS, {name}", f, "ratio") for name, f in zip(moved_names, figures)]
-    for line in scoring + [""] + moved:
+            imu = dataset.imu()
+            flying = imu.t_ns >= truth.t_ns[0] + SCORE_FROM_S * 1e9
+            rate = 1e9 / float(np.median(np.diff(imu.t_ns)))
+            accel, gyro = vibration_floor(imu.accel[flying], rate), vibration_floor(imu.gyro[flying], rate)
+            floors.append(f"| {flight.name} | {' / '.join(f'{a:.3f}' for a in accel)} m/s²/√Hz | "
+                          f"{np.max(noise.accel_noise_density):.3f} | {' / '.join(f'{g:.4f}' for g in gyro)} rad/s/√Hz | "
+                          f"{np.max(noise.gyro_noise_density):.4f} |")
+            rows.append(Row(f"{flight.name}: accelerometer vibration floor (RMS of axes)", float(np.sqrt(np.mean(accel**2))),
+                            "m/s²/√Hz", f"{lo:g}-{hi:g} Hz; vehicle file {np.max(noise.accel_noise_density):g}"))
+    for line in scoring + [""] + moved + [""] + floors:
         echo("  " + line)
     return rows
