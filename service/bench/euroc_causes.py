@@ -13,6 +13,8 @@ predicted for up to 100 ms. This bench scores the default model's plain replay (
   whether the fixes and the IMU share one clock;
 - the same ratio with the vehicle file's white noise scaled by ``NOISE_SCALES``: whether the inflated
   constant is what holds the position back;
+- what a linear filter can reach at all with the vehicle file's white density (:func:`steady_state_ratio`:
+  each axis a double integrator driven by that noise, the fixes of the import), at the fixes and between;
 - the IMU's own vibration floor in flight (``estimator.inertial.vibration``, 10-60 Hz, from SCORE_FROM_S)
   per axis, against the vehicle file's white densities: whether that constant is the vibration's level.
 """
@@ -30,7 +32,7 @@ from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.estimator.metrics import gps_error_rmse, interpolate_poses
 from vtolpose.estimator.core.rotation import quat_to_rot
 from vtolpose.estimator.inertial.vibration import DEFAULT_BAND_HZ, vibration_floor
-from vtolpose.service.bench.euroc import SCORE_FROM_S, aligned_position_errors, flights_or_skip, imported_flight
+from vtolpose.service.bench.euroc import GPS_RATE_HZ, SCORE_FROM_S, aligned_position_errors, flights_or_skip, imported_flight
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import replay
 from vtolpose.service.runtime.daemon import load_compiled_kernels
@@ -67,6 +69,28 @@ def stretch_ratios(t_rel_s: np.ndarray, error: np.ndarray, gps_t_rel_s: np.ndarr
             continue
         out.append(float(np.sqrt(np.mean(np.sum(error[mine] ** 2, axis=1)) / np.mean(np.sum(gps_error[fixes] ** 2, axis=1)))))
     return tuple(out)
+
+
+def steady_state_ratio(accel_density: float, rate_hz: float, sigma_h: float, sigma_v: float,
+                       iterations: int = 3000) -> tuple[float, float]:
+    """The position error over the GPS's of the steady-state Kalman filter for a double integrator per axis
+    driven by white acceleration of ``accel_density`` [m/s²/√Hz], fixed at ``rate_hz`` with σ ``sigma_h``
+    (x, y) and ``sigma_v`` (z): (right after a fix, averaged over the interval between fixes). No causal
+    filter with that noise model does better; the between-fix figure is what every-sample scoring sees."""
+    period, q = 1.0 / rate_hz, accel_density**2
+    transition = np.array([[1.0, period], [0.0, 1.0]])
+    noise = q * np.array([[period**3 / 3, period**2 / 2], [period**2 / 2, period]])
+    after = between = 0.0
+    for sigma in (sigma_h, sigma_h, sigma_v):
+        P = np.eye(2)
+        for _ in range(iterations):
+            P = transition @ P @ transition.T + noise
+            P = P - np.outer(P[:, 0], P[0]) / (P[0, 0] + sigma**2)
+        s = np.linspace(0.0, period, 201)[:-1]
+        after += P[0, 0]
+        between += float(np.mean(P[0, 0] + 2 * s * P[0, 1] + s**2 * P[1, 1] + q * s**3 / 3))
+    gps = 2 * sigma_h**2 + sigma_v**2
+    return float(np.sqrt(after / gps)), float(np.sqrt(between / gps))
 
 
 def _gps_errors(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
@@ -148,6 +172,13 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
                           f"{np.max(noise.gyro_noise_density):.4f} |")
             rows.append(Row(f"{flight.name}: accelerometer vibration floor (RMS of axes)", float(np.sqrt(np.mean(accel**2))),
                             "m/s²/√Hz", f"{lo:g}-{hi:g} Hz; vehicle file {np.max(noise.accel_noise_density):g}"))
-    for line in scoring + [""] + moved + [""] + floors:
+    densities = sorted({float(np.max(dataset.calibration.imu.noise.accel_noise_density)), 0.04, 0.03, 0.02}, reverse=True)
+    gps = dataset.gps()
+    bound = ["| white acceleration density | at the fixes | over the interval |", "|---|---|---|"]
+    for density in densities:
+        at, over = steady_state_ratio(density, GPS_RATE_HZ, float(np.median(gps.sigma_h)), float(np.median(gps.sigma_v)))
+        bound.append(f"| {density:g} m/s²/√Hz | {at:.3f} | {over:.3f} |")
+        rows.append(Row(f"linear filter's floor at {density:g} m/s²/√Hz, over the interval", over, "ratio"))
+    for line in scoring + [""] + moved + [""] + bound + [""] + floors:
         echo("  " + line)
     return rows
