@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vtolpose.service.bench.euroc_causes import GAP_EDGES_S, rmse_by_gap, steady_state_ratio, stretch_ratios
+from vtolpose.service.bench.euroc_causes import (
+    GAP_EDGES_S, bench_euroc_causes, rmse_by_gap, steady_state_ratio, stretch_ratios,
+)
 
 
 def test_the_error_is_filed_by_the_time_since_the_newest_fix():
@@ -92,3 +94,10 @@ def test_the_axes_combine_by_their_gps_variances():
     expected = np.sqrt((2 * (flat_h * h) ** 2 + (flat_v * v) ** 2) / (2 * h**2 + v**2))
     assert both == pytest.approx(expected, rel=1e-9)
     assert not np.allclose(flat_h, flat_v, rtol=1e-3)  # the vertical's larger noise changes its ratio
+
+
+def test_without_flights_the_bench_says_where_to_put_them(tmp_path, monkeypatch):
+    monkeypatch.setenv("VTOLPOSE_EUROC_DATA", str(tmp_path))
+    lines: list[str] = []
+    assert bench_euroc_causes(lines.append) == []
+    assert len(lines) == 1 and "skipped" in lines[0] and "VTOLPOSE_EUROC_DATA" in lines[0]

@@ -42,6 +42,7 @@ STRETCHES_S = (15.0, 30.0, 60.0, 90.0)  # stretches of the flight from the truth
 TIMING_SHIFTS_S = (-0.01, 0.01)
 NOISE_SCALES = {"accel_noise_density": (0.4, 1.6), "gyro_noise_density": (0.25,)}
 MIN_SAMPLES = 20  # fewer samples in a band: no figure
+FLOOR_DENSITIES = (0.04, 0.03, 0.02)  # m/s²/√Hz: the linear filter's floor at these besides the vehicle file's
 
 
 def rmse_by_gap(t_ns: np.ndarray, error: np.ndarray, fix_t_ns: np.ndarray,
@@ -155,6 +156,9 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
                            + " / ".join(_fmt(g and g * 100, ".2f") for g in by_gap) + " cm | "
                            + " / ".join(_fmt(s, ".3f") for s in by_stretch) + " |")
             noise = dataset.calibration.imu.noise
+            gps = dataset.gps()
+            vehicle_density = float(np.max(noise.accel_noise_density))  # one vehicle file: the same on every flight
+            fix_sigmas = float(np.median(gps.sigma_h)), float(np.median(gps.sigma_v))
             figures = [_ratio(dataset, {"calibration": {"gps": {"time_offset_s": s}}})[0] for s in TIMING_SHIFTS_S]
             figures += [_ratio(dataset, {"estimator": {"imu": {"noise": {key: float(np.max(getattr(noise, key))) * scale}}}})[0]
                         for key, scales in NOISE_SCALES.items() for scale in scales]
@@ -172,11 +176,9 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
                           f"{np.max(noise.gyro_noise_density):.4f} |")
             rows.append(Row(f"{flight.name}: accelerometer vibration floor (RMS of axes)", float(np.sqrt(np.mean(accel**2))),
                             "m/s²/√Hz", f"{lo:g}-{hi:g} Hz; vehicle file {np.max(noise.accel_noise_density):g}"))
-    densities = sorted({float(np.max(dataset.calibration.imu.noise.accel_noise_density)), 0.04, 0.03, 0.02}, reverse=True)
-    gps = dataset.gps()
     bound = ["| white acceleration density | at the fixes | over the interval |", "|---|---|---|"]
-    for density in densities:
-        at, over = steady_state_ratio(density, GPS_RATE_HZ, float(np.median(gps.sigma_h)), float(np.median(gps.sigma_v)))
+    for density in sorted({vehicle_density, *FLOOR_DENSITIES}, reverse=True):
+        at, over = steady_state_ratio(density, GPS_RATE_HZ, *fix_sigmas)
         bound.append(f"| {density:g} m/s²/√Hz | {at:.3f} | {over:.3f} |")
         rows.append(Row(f"linear filter's floor at {density:g} m/s²/√Hz, over the interval", over, "ratio"))
     for line in scoring + [""] + moved + [""] + bound + [""] + floors:
