@@ -171,18 +171,27 @@ def find_flights(roots: list[Path]) -> list[Flight]:
     return sorted(found.values(), key=lambda f: f.name)
 
 
+def aligned_position_errors(traj: Trajectory, dataset: Dataset
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The tracked point's error at the truth's samples from SCORE_FROM_S, after the rigid alignment: (the truth
+    samples scored as a mask, the estimate's rotations there, the alignment's rotation and translation, errors)."""
+    truth, point_b = dataset.truth(), dataset.calibration.truth_point_b
+    t_from = int(truth.t_ns[0] + SCORE_FROM_S * 1e9)
+    inside = (truth.t_ns >= max(t_from, int(traj.t_ns[0]))) & (truth.t_ns <= traj.t_ns[-1])
+    p_est, q_est = interpolate_poses(truth.t_ns[inside], traj.t_ns, traj.p, traj.q)
+    R_est = quat_to_rot(q_est)
+    R_al, t_al = rigid_alignment(p_est + R_est @ point_b, truth.p[inside])
+    return inside, R_est, R_al, t_al, (p_est + R_est @ point_b) @ R_al.T + t_al - truth.p[inside]
+
+
 def score_poses(traj: Trajectory, cov: CovarianceSamples, dataset: Dataset, placed: int | None,
                 known_from_start: bool) -> PoseScore:
     """Position after a rigid alignment, attitude with the constant world rotation off (poses with a
     heading: from ``placed``, or all if ``known_from_start``), NEES, from SCORE_FROM_S."""
     truth, point_b = dataset.truth(), dataset.calibration.truth_point_b
     t_from = int(truth.t_ns[0] + SCORE_FROM_S * 1e9)
-    inside = (truth.t_ns >= max(t_from, int(traj.t_ns[0]))) & (truth.t_ns <= traj.t_ns[-1])
+    inside, R_est, R_al, t_al, error = aligned_position_errors(traj, dataset)
     t = truth.t_ns[inside]
-    p_est, q_est = interpolate_poses(t, traj.t_ns, traj.p, traj.q)
-    R_est = quat_to_rot(q_est)
-    R_al, t_al = rigid_alignment(p_est + R_est @ point_b, truth.p[inside])
-    error = (p_est + R_est @ point_b) @ R_al.T + t_al - truth.p[inside]
     attitude, world = None, np.eye(3)
     if truth.q is not None:
         with_heading = t >= placed if placed is not None else np.zeros(len(t), dtype=bool)

@@ -31,6 +31,7 @@ from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.camera import bench_camera, bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.euroc import bench_euroc
+from vtolpose.service.bench.euroc_causes import bench_euroc_causes
 from vtolpose.service.bench.euroc_reference import bench_euroc_reference
 from vtolpose.service.bench.memory_paced import bench_memory_paced
 from vtolpose.service.bench.odometry_encoding import bench_odometry_encoding
@@ -120,6 +121,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "fault-table": bench_fault_table,
     "euroc": bench_euroc,
     "euroc-reference": bench_euroc_reference,
+    "euroc-causes": bench_euroc_causes,
     "zenoh-queries": bench_zenoh_queries,
     "memory-paced": bench_memory_paced,
     "smoothing-sim": bench_smoothing_sim,
@@ -130,7 +132,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "euroc-reference",
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "euroc-reference", "euroc-causes",
                    "zenoh-queries", "memory-paced", "smoothing-sim", "smoothing-landmarks", "smoothing-hour",
                    "smoothing-latency")
 
