@@ -873,8 +873,10 @@ class Estimator:
 
     def status(self) -> EstimatorStatus:
         """A frozen snapshot of what the service may know (modes, counters, health, events, map size)."""
-        state, camera = self.state, self.camera
+        state, camera, visual = self.state, self.camera, self.visual_inertial
         t_ns = state.t_ns if state is not None else None
+        waiting = (visual is not None and visual.progress is not None and not self.position_initialized
+                   and (state is None or self.initialising))
         heading_sigma = None if state is None else math.degrees(math.sqrt(self.published_cov9()[YAW, YAW]))
         return EstimatorStatus(
             t_ns=t_ns, mode=self.mode, heading=self.heading_mode, reset_counter=self.reset_counter,
@@ -886,6 +888,9 @@ class Estimator:
             landmarks=0 if state is None else state.n_landmarks,
             landmarks_initialised=camera.initialized_total if camera is not None else 0,
             landmarks_deleted=MappingProxyType(dict(sorted(camera.deleted_total.items())) if camera is not None else {}),
+            visual_start_waiting=visual.progress if waiting else None,
+            visual_start_history=tuple(visual.history) if visual is not None else (),
+            visual_start_attempts=visual.attempts if visual is not None else 0,
         )
 
     def record_with(self, recorder: FilterRecorder) -> None:

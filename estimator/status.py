@@ -13,6 +13,7 @@ from enum import Enum
 from types import MappingProxyType
 from typing import Mapping
 
+from vtolpose.estimator.init.visual_inertial import VisualStartProgress
 from vtolpose.estimator.modes import FilterMode, HeadingMode
 
 
@@ -68,6 +69,9 @@ class EstimatorStatus:
     landmarks: int  # in the map now
     landmarks_initialised: int  # over the run
     landmarks_deleted: Mapping[str, int]  # over the run, by reason
+    visual_start_waiting: VisualStartProgress | None = None  # why the visual-inertial start has not come yet
+    visual_start_history: tuple[VisualStartProgress, ...] = ()  # each change of the check that held it
+    visual_start_attempts: int = 0
 
     @property
     def initialised(self) -> bool:

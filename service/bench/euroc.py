@@ -219,18 +219,18 @@ def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str,
           plain_wall_s: float | None = None) -> FlightScore:
     """The table's figures for one replay (see the module docstring); with ``result.smoothing`` (a
     ``replay_smoothed`` run) the smoothed and fixed-lag ones too."""
-    est, traj, truth = result.estimator, result.trajectory, dataset.truth()
+    status, traj, truth = result.estimator.status(), result.trajectory, dataset.truth()
     point_b = dataset.calibration.truth_point_b
     t_from = int(truth.t_ns[0] + SCORE_FROM_S * 1e9)
-    placed = est.heading_placement.t_ns if est.heading_placement is not None else None
-    known = est.heading_aligned and placed is None
+    placed = status.heading_placement.t_ns if status.heading_placement is not None else None
+    known = status.heading_aligned and placed is None
     filtered = score_poses(traj, result.covariances, dataset, placed, known)
     gps = dataset.gps()
     keep = gps.t_ns >= t_from
     gps_rmse = gps_error_rmse(type(gps)(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep]), truth,
                               dataset.calibration.gps.lever_arm_b, point_b)["rmse_m"]
     imu_t0 = int(dataset.imu_raw().t_ns[0])
-    positioned = next((e.t_ns for e in est.events if e.kind is EventKind.POSITION_INITIALISED), None)
+    positioned = status.first(EventKind.POSITION_INITIALISED)
     onset = motion_onset(truth)
     sm = result.smoothing
     smoothed = fixed_lag = backward = None
@@ -242,10 +242,10 @@ def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str,
     return FlightScore(
         flight, variant, filtered.position_rmse_m, float(gps_rmse), filtered.attitude_rms_deg,
         filtered.nees_mean, filtered.nees_dof, filtered.nees_in_band,
-        None if positioned is None else (positioned - imu_t0) * 1e-9,
+        None if positioned is None else (positioned.t_ns - imu_t0) * 1e-9,
         None if placed is None or onset is None else (placed - onset) * 1e-9,
         None if onset is None else (onset - int(truth.t_ns[0])) * 1e-9,
-        est.reset_counter, (plain_wall_s and result.duration_s / plain_wall_s) or
+        status.reset_counter, (plain_wall_s and result.duration_s / plain_wall_s) or
         (result.duration_s / result.wall_s if result.wall_s > 0 else float("nan")),
         filtered.alignment_deg, filtered.world_rotation_deg, smoothed, fixed_lag, backward,
         filtered.speed_bands, filtered.worst_window,

@@ -19,7 +19,7 @@ REPORT_VERSION = 1
 
 def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], score_from_s: float = 0.0) -> dict:
     """The report of a replay; ``score_from_s``: accuracy from this long after the truth starts."""
-    est = result.estimator
+    status = result.estimator.status()
     traj = result.trajectory
     report: dict[str, Any] = {
         "report_version": REPORT_VERSION,
@@ -31,14 +31,14 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
         "wall_s": round(result.wall_s, 6),
         "realtime_factor": round(result.duration_s / result.wall_s, 2) if result.wall_s > 0 else None,
         "estimates": int(len(traj.t_ns)),
-        "initialised": est.initialized,
-        "heading_aligned": est.heading_aligned,
-        "heading_source": "heading bank" if est.heading_placement is not None else "known" if est.heading_aligned
-        else "own frame (visual-inertial start)" if est.local_position else "unknown",
-        "reset_counter": est.reset_counter,
-        "sensors": est.counts_report(),
+        "initialised": status.initialised,
+        "heading_aligned": status.heading_aligned,
+        "heading_source": status.heading_source,
+        "mode": status.mode.value,
+        "reset_counter": status.reset_counter,
+        "sensors": {name: dict(counts) for name, counts in status.counts.items()},
         "skipped_lines": dict(dataset.skipped),
-        "events": [{"t_s": round((e.t_ns - result.data_t0_ns) * 1e-9, 3), "message": e.message} for e in est.events],
+        "events": [{"t_s": round((e.t_ns - result.data_t0_ns) * 1e-9, 3), "message": e.message} for e in status.events],
         "notes": list(result.notes),
     }
     if result.faults is not None:
@@ -47,12 +47,12 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
         report["health"] = result.health
     if result.failures:
         report["failures"] = result.failures
-    if est.heading_placement is not None:
-        placed = dataclasses.asdict(est.heading_placement)
+    if status.heading_placement is not None:
+        placed = dataclasses.asdict(status.heading_placement)
         t_placed = placed.pop("t_ns")
         report["heading_placement"] = {"t_s": round((t_placed - result.data_t0_ns) * 1e-9, 3), **placed}
-    if est.state is not None:
-        report["final_biases"] = {"gyro_rad_s": est.state.b_g.tolist(), "accel_m_s2": est.state.b_a.tolist()}
+    if status.gyro_bias is not None:
+        report["final_biases"] = {"gyro_rad_s": list(status.gyro_bias), "accel_m_s2": list(status.accel_bias)}
     camera = camera_summary(result)
     if camera is not None:
         report["camera"] = camera
@@ -102,9 +102,9 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
     report["position_rmse_m"] = filtered["position_rmse_m"]
     if truth.q is not None:
         report["attitude_rmse_deg"] = filtered["attitude_rmse_deg"]
-        if est.heading_placement is not None:  # before it the outputs said the heading was unknown
+        if status.heading_placement is not None:  # before it the outputs said the heading was unknown
             t_data = scoring_times(result, traj.t_ns[valid])
-            placed = t_data >= est.heading_placement.t_ns
+            placed = t_data >= status.heading_placement.t_ns
             if np.count_nonzero(placed) >= 2:
                 report["attitude_rmse_with_heading_deg"] = evaluate(
                     t_data[placed], align.points(traj.p[valid][placed]), align.attitudes(traj.q[valid][placed]), truth,
@@ -210,8 +210,8 @@ def start_alignment(result: ReplayResult, truth, point_b: np.ndarray) -> StartAl
     the turn) that puts the first valid estimated pose on the truth. A camera-only run (``local_position``)
     is always turned: even a heading it was given at the start is carried, in a start in motion, through
     the seconds before the visual-inertial start by a propagation it cannot correct."""
-    est, traj = result.estimator, result.trajectory
-    if est.position_initialized or len(traj.t_ns) == 0:
+    status, traj = result.estimator.status(), result.trajectory
+    if status.position_initialized or len(traj.t_ns) == 0:
         return None
     valid = np.flatnonzero(traj.valid)
     if len(valid) == 0:
@@ -222,7 +222,7 @@ def start_alignment(result: ReplayResult, truth, point_b: np.ndarray) -> StartAl
         return None
     p_true, q_true = interpolate_poses(np.array([traj.t_ns[k]]), truth.t_ns, truth.p, truth.q)
     rotation = np.eye(3)
-    turn = (not est.heading_aligned or est.local_position) and q_true is not None
+    turn = (not status.heading_aligned or status.local_position) and q_true is not None
     if turn:
         rotation = so3_exp(np.array([0.0, 0.0, float(yaw_of(q_true[0]) - yaw_of(traj.q[k]))]))
     return StartAlignment(rotation, traj.p[k] + quat_to_rot(traj.q[k]) @ point_b, p_true[0], turn)
@@ -231,15 +231,14 @@ def start_alignment(result: ReplayResult, truth, point_b: np.ndarray) -> StartAl
 def visual_start_report(result: ReplayResult) -> dict | None:
     """Why the visual-inertial start waited, each change of the check that held it with what it measured
     (``VisualStartProgress``), and, if it never started, where it stood at the end; None without one."""
-    est = result.estimator
-    init = est.visual_inertial
-    if init is None or (not init.history and init.progress is None):
+    status = result.estimator.status()
+    if not status.visual_start_history and status.visual_start_waiting is None:
         return None
     def entry(p) -> dict:
         return {"t_s": round((p.t_ns - result.data_t0_ns) * 1e-9, 3), **p.as_dict()}
-    out: dict[str, Any] = {"attempts": init.attempts, "waited": [entry(p) for p in init.history]}
-    if init.progress is not None and (est.state is None or est.initialising):
-        out["still_waiting"] = entry(init.progress)
+    out: dict[str, Any] = {"attempts": status.visual_start_attempts, "waited": [entry(p) for p in status.visual_start_history]}
+    if status.visual_start_waiting is not None:
+        out["still_waiting"] = entry(status.visual_start_waiting)
     return out
 
 
@@ -256,7 +255,7 @@ def camera_summary(result: ReplayResult) -> dict | None:
     frames = result.frames
     if not frames:
         return None
-    est = result.estimator
+    status = result.estimator.status()
     used = [f for f in frames if f.accepted]
     sources: dict[str, int] = {}
     for f in used:
@@ -264,7 +263,7 @@ def camera_summary(result: ReplayResult) -> dict | None:
             sources[f.depth_source] = sources.get(f.depth_source, 0) + len(f.new_ids)
     timing = {name: _stats([f.timing_ms[name] for f in used if f.timing_ms]) for name in ("predict", "associate", "update", "map", "total")}
     timing["extract"] = _stats(result.extract_ms)
-    matches = est.counts.get("camera_match")
+    matches = status.counts.get("camera_match")
     return {
         "detector": result.detector,
         "frames": len(frames),
@@ -272,10 +271,10 @@ def camera_summary(result: ReplayResult) -> dict | None:
         "landmarks_in_map": _stats([f.n_landmarks for f in used], 1),
         "landmarks_in_view": _stats([f.candidates for f in used], 1),
         "matches_per_frame": _stats([f.n_matches for f in used], 1),
-        "landmarks_initialised": est.camera.initialized_total if est.camera is not None else 0,
-        "landmarks_deleted": dict(sorted(est.camera.deleted_total.items())) if est.camera is not None else {},
+        "landmarks_initialised": status.landmarks_initialised,
+        "landmarks_deleted": dict(status.landmarks_deleted),
         "depth_prior_sources": sources,
-        "rejected_matches": dict(sorted(matches.rejected.items())) if matches is not None else {},
+        "rejected_matches": dict(sorted(matches["rejected"].items())) if matches is not None else {},
         "timing_ms": timing,
     }
 

@@ -83,15 +83,6 @@ def _score(sigma: float, good: float, decades: float) -> float:
     return 1.0 - min(max(math.log10(max(sigma, 1e-12) / good) / decades, 0.0), 1.0)
 
 
-def visual_start_waiting(est: Estimator) -> dict[str, Any] | None:
-    """Why the visual-inertial start has not started yet, with what it measured (``VisualStartProgress``),
-    while the filter waits for it; None when it is not wanted or has not tried."""
-    init = est.visual_inertial
-    if init is None or init.progress is None or est.position_initialized or not (est.state is None or est.initialising):
-        return None
-    return init.progress.as_dict()
-
-
 def resident_memory_mb() -> float | None:
     """Current resident set size of this process [MB] (Linux /proc), None where unavailable."""
     try:
@@ -230,7 +221,7 @@ class StatusTracker:
             "load_average": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
             "memory_mb": None if (rss := resident_memory_mb()) is None else round(rss, 1),
         }
-        waiting = visual_start_waiting(est)
+        waiting = status.visual_start_waiting.as_dict() if status.visual_start_waiting is not None else None
         if waiting is not None:
             doc["visual_start"] = waiting
         if (waiting and waiting["check"]) != self._logged_wait:
