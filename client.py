@@ -6,7 +6,7 @@ See :mod:`vtolpose.service.outputs.pose_client` for the details; this path stays
 the service's modules move.
 """
 
-from vtolpose.estimator.pose_history import OutsideHistory, PoseWindow
+from vtolpose.estimator import OutsideHistory, PoseWindow
 from vtolpose.service.outputs.pose_client import Pose, PoseClient, PoseUnavailable, ServiceUnreachable
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
 

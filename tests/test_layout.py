@@ -139,3 +139,43 @@ def test_the_estimator_imports_no_scipy_sub_package() -> None:
             "print(sorted(m for m in sys.modules if m.startswith('scipy.') and m.split('.')[1][0] != '_'"
             " and m != 'scipy.version'))")
     assert printed_by_a_fresh_process(code) == "[]"
+
+
+def _estimator_imports(path: Path) -> list[str]:
+    """What ``path`` takes from the estimator that is not one of its public names."""
+    from vtolpose.estimator._public import PUBLIC
+
+    wrong = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            wrong += [a.name for a in node.names if a.name.startswith("vtolpose.estimator")]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            if node.module.startswith("vtolpose.estimator."):
+                wrong.append(node.module)
+            elif node.module == "vtolpose.estimator":
+                wrong += [f"vtolpose.estimator.{a.name}" for a in node.names if a.name not in PUBLIC]
+    return wrong
+
+
+def test_service_takes_only_the_estimators_public_names():
+    wrong = {str(p.relative_to(REPO)): w for p in [*sorted((REPO / "service").rglob("*.py")), REPO / "client.py"]
+             if (w := _estimator_imports(p))}
+    assert wrong == {}, "import these through vtolpose.estimator (its public names: estimator/_public.py)"
+
+
+def test_the_check_sees_a_private_import(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("from vtolpose.estimator.filter import Estimator\nfrom vtolpose.estimator import _hidden\n")
+    assert _estimator_imports(probe) == ["vtolpose.estimator.filter", "vtolpose.estimator._hidden"]
+
+
+def test_every_public_name_resolves_to_its_module():
+    import importlib
+
+    import vtolpose.estimator as estimator
+    from vtolpose.estimator._public import PUBLIC
+
+    for name, module in PUBLIC.items():
+        owner = importlib.import_module(module)
+        expected = getattr(owner, name) if hasattr(owner, name) else importlib.import_module(f"{module}.{name}")
+        assert getattr(estimator, name) is expected, name

@@ -21,12 +21,10 @@ from vtolpose.drivers.files.frames_csv import load_grey
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera, render_frames
-from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline
-from vtolpose.estimator.vision.camera_update import predict
-from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
-from vtolpose.estimator.vision.map_manager import MapOptions
-from vtolpose.estimator.core.rotation import quat_from_euler
-from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator import (
+    CameraOptions, CameraPipeline, extract_features, FeatureOptions, FilterState, FrameFeatures, MapOptions, predict,
+    quat_from_euler, StateLayout,
+)
 from vtolpose.service.replay.report import build_report
 from vtolpose.service.replay.session import replay
 from vtolpose.service.runtime.threads import limit_blas_threads

@@ -41,11 +41,9 @@ from vtolpose.service.bench.rows import Row as BenchRow
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.euroc_import import TRUTH_FOLDERS, import_euroc
-from vtolpose.estimator.status import EventKind
-from vtolpose.estimator.core.rotation import quat_to_rot, rot_to_quat, rotation_angle
-from vtolpose.estimator.metrics import (
-    chi2_band, gps_error_rmse, interpolate_poses, mean_world_rotation, motion_onset, nees, pose_errors_for_nees,
-    rigid_alignment,
+from vtolpose.estimator import (
+    chi2_band, EventKind, gps_error_rmse, interpolate_poses, mean_world_rotation, motion_onset, nees,
+    pose_errors_for_nees, quat_to_rot, rigid_alignment, rot_to_quat, rotation_angle,
 )
 from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory, replay
 from vtolpose.service.replay.smoothing import replay_smoothed

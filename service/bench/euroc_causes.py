@@ -29,9 +29,7 @@ import numpy as np
 
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator.metrics import gps_error_rmse, interpolate_poses
-from vtolpose.estimator.core.rotation import quat_to_rot
-from vtolpose.estimator.inertial.vibration import DEFAULT_BAND_HZ, vibration_floor
+from vtolpose.estimator import DEFAULT_BAND_HZ, gps_error_rmse, interpolate_poses, quat_to_rot, vibration_floor
 from vtolpose.service.bench.euroc import GPS_RATE_HZ, SCORE_FROM_S, aligned_position_errors, flights_or_skip, imported_flight
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import replay

@@ -25,9 +25,9 @@ from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
-from vtolpose.estimator.fusion import OutputPose
-from vtolpose.estimator.metrics import chi2_band, interpolate_poses, nees, nees_summary, pose_errors_for_nees
-from vtolpose.estimator.core.rotation import quat_to_rot
+from vtolpose.estimator import (
+    chi2_band, interpolate_poses, nees, nees_summary, OutputPose, pose_errors_for_nees, quat_to_rot,
+)
 from vtolpose.service.replay.faults import parse_faults
 from vtolpose.service.replay.session import ReplayResult, replay
 from vtolpose.service.replay.report import scoring_times

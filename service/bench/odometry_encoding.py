@@ -17,8 +17,7 @@ from typing import Any, Callable
 import numpy as np
 
 from vtolpose.config.mavlink import EndpointSpec
-from vtolpose.estimator.core.rotation import quat_from_euler
-from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator import OutputPose, quat_from_euler
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.outputs.mavlink import COMPONENT_ID, Endpoint, mav
 from vtolpose.service.outputs.mavlink_odometry import (

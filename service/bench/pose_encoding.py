@@ -19,7 +19,7 @@ from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
-from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator import OutputPose
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.outputs.pose_json import PoseJson, pose_message
 from vtolpose.service.replay.session import replay

@@ -19,13 +19,9 @@ from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
-from vtolpose.estimator.core.calibration import ImuNoise
-from vtolpose.estimator.gnss.gps_update import GpsUpdater
-from vtolpose.estimator.inertial.imu_delta import ImuDelta
-from vtolpose.estimator.core.measurements import GpsFix
-from vtolpose.estimator.inertial.propagator import ImuPropagator
-from vtolpose.estimator.core.rotation import quat_from_euler
-from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator import (
+    FilterState, GpsFix, GpsUpdater, ImuDelta, ImuNoise, ImuPropagator, quat_from_euler, StateLayout,
+)
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera

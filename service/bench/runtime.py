@@ -34,8 +34,7 @@ from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
-from vtolpose.estimator.vision.features import extract_features
+from vtolpose.estimator import CameraFrame, extract_features, GpsFix, ImuSample
 from vtolpose.service.runtime.daemon import build_runtime, serve
 from vtolpose.service.commands.run import camera_processor
 from vtolpose.service.runtime.loop import set_thread_priority

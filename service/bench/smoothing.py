@@ -27,10 +27,7 @@ from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
-from vtolpose.estimator.metrics import evaluate
-from vtolpose.estimator.smoothing.full_state import FullStateRecorder
-from vtolpose.estimator.smoothing.recorder import Recorders, StepRecorder
-from vtolpose.estimator.smoothing.rts import smooth_steps
+from vtolpose.estimator import evaluate, FullStateRecorder, Recorders, smooth_steps, StepRecorder
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.runtime import latency_run
 from vtolpose.service.replay.report import build_report

@@ -16,8 +16,7 @@ import numpy as np
 import yaml
 
 from vtolpose.config import validate
-from vtolpose.estimator.calibration.chessboard import ChessboardCalibration
-from vtolpose.estimator.calibration.imu import ImuCalibrationResult
+from vtolpose.estimator import ChessboardCalibration, ImuCalibrationResult
 
 
 def _num(x: float) -> float:

@@ -11,11 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from vtolpose.estimator.calibration.allan import FLAT_FACTOR
-from vtolpose.estimator.calibration.chessboard import ChessboardCalibration
-from vtolpose.estimator.calibration.gps import LatencyScan
-from vtolpose.estimator.calibration.imu import ImuCalibrationResult
-from vtolpose.estimator.calibration.timesync import TimeSyncResult
+from vtolpose.estimator import ChessboardCalibration, FLAT_FACTOR, ImuCalibrationResult, LatencyScan, TimeSyncResult
 
 
 class PlotUnavailable(ValueError):

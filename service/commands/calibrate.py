@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator.calibration.gps import GpsCalibOptions, fit_lever_arm, scan_latency
-from vtolpose.estimator.calibration.imu import calibrate_imu
-from vtolpose.estimator.calibration.static_detection import StaticOptions, find_static_stretches
+from vtolpose.estimator import (
+    calibrate_imu, find_static_stretches, fit_lever_arm, GpsCalibOptions, scan_latency, StaticOptions,
+)
 from vtolpose.service.calibration import output as out
 from vtolpose.service.calibration.output import add_output_options, finish
 from vtolpose.service.commands import calibrate_camera

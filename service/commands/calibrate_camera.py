@@ -9,8 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator.calibration.chessboard import Board, ChessboardCalibration, ChessboardError, calibrate_views, find_corners
-from vtolpose.estimator.calibration.timesync import TimeSyncOptions, correlate, frame_rotations
+from vtolpose.estimator import (
+    Board, calibrate_views, ChessboardCalibration, ChessboardError, correlate, find_corners, frame_rotations,
+    TimeSyncOptions,
+)
 from vtolpose.service.calibration import output as out
 from vtolpose.service.calibration.output import add_output_options, finish
 

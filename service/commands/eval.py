@@ -10,7 +10,7 @@ import numpy as np
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.series import TruthSeries
 from vtolpose.drivers.files.tum import read_tum
-from vtolpose.estimator.metrics import evaluate
+from vtolpose.estimator import evaluate
 from vtolpose.service.commands.common import write_json
 from vtolpose.service.text import number
 

@@ -10,7 +10,7 @@ import numpy as np
 from vtolpose.client import PoseClient
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.lidar import LIDAR_CSV
-from vtolpose.estimator.mapping.survey import height_error, score_map
+from vtolpose.estimator import height_error, score_map
 from vtolpose.service.commands.common import write_json
 from vtolpose.service.mapping.mapper import map_returns, pose_errors, true_ground, with_boresight
 from vtolpose.service.mapping.poses import WAIT_KINDS, ZenohPoses, file_window, truth_window, window_poses

@@ -11,10 +11,9 @@ import numpy as np
 from vtolpose.client import OutsideHistory, PoseWindow
 from vtolpose.drivers.files.lidar import LidarReturns
 from vtolpose.drivers.simulator import make_scenario
-from vtolpose.estimator.core.rotation import quat_from_euler, quat_to_rot, rotation_angle
-from vtolpose.estimator.mapping.geometry import LidarMount, place_returns
-from vtolpose.estimator.mapping.height_grid import HeightGrid
-from vtolpose.estimator.mapping.survey import GroundFunction
+from vtolpose.estimator import (
+    GroundFunction, HeightGrid, LidarMount, place_returns, quat_from_euler, quat_to_rot, rotation_angle,
+)
 from vtolpose.service.mapping.poses import PoseSource
 
 log = logging.getLogger(__name__)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vtolpose.estimator.mapping.height_grid import HeightMap
+from vtolpose.estimator import HeightMap
 from vtolpose.service.calibration.plots import _pyplot, _save
 
 

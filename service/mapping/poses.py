@@ -19,7 +19,7 @@ import numpy as np
 from vtolpose.client import OutsideHistory, PoseClient, PoseUnavailable, PoseWindow
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.tum import read_tum
-from vtolpose.estimator.core.rotation import quat_to_rot
+from vtolpose.estimator import quat_to_rot
 
 PoseSource = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 

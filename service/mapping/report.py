@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from vtolpose.client import PoseWindow
 from vtolpose.drivers.files.lidar import LidarReturns
-from vtolpose.estimator.mapping.survey import GroundFunction, MapScore, score_map
+from vtolpose.estimator import GroundFunction, MapScore, score_map
 from vtolpose.service.mapping.mapper import MapRun, map_returns
 from vtolpose.service.mapping.poses import PoseSource, mixed_poses, one_pose_per_scan, window_poses
 

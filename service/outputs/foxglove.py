@@ -34,13 +34,10 @@ from foxglove.messages import (
     PoseInFrame, PosesInFrame, Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, TextAnnotation, Timestamp, Vector3,
 )
 
-from vtolpose.estimator.core.frames import R_ENU_NED, ned_to_enu, pose_ned_frd_to_enu_flu
-from vtolpose.estimator.core.measurements import GpsFix
-from vtolpose.estimator.core.rotation import rot_to_quat
-from vtolpose.estimator.filter import Estimator
-from vtolpose.estimator.fusion import OutputPose
-from vtolpose.estimator.vision.camera_pipeline import FrameReport
-from vtolpose.estimator.vision.features import FrameFeatures
+from vtolpose.estimator import (
+    Estimator, FrameFeatures, FrameReport, GpsFix, ned_to_enu, OutputPose, pose_ned_frd_to_enu_flu, R_ENU_NED,
+    rot_to_quat,
+)
 from vtolpose.service.outputs.view_worker import ViewWorker
 
 log = logging.getLogger(__name__)

@@ -35,7 +35,7 @@ from vtolpose.drivers.links.mavlink_outbound import send_v2
 from vtolpose.drivers.links.mavlink_signing import SigningKeyError, read_signing_key, signing_timestamp
 from vtolpose.drivers.links.mavlink_transport import open_transport
 from vtolpose.drivers.links.mavlink_wire import mavutil
-from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator import OutputPose
 from vtolpose.service.outputs.mavlink_frame import PublishedFrame
 from vtolpose.service.outputs.mavlink_odometry import (
     ODOMETRY_CRC_EXTRA, ODOMETRY_ID, PROFILES, Profile, euler_jacobian, odometry_covariances, odometry_fields,

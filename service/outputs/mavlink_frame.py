@@ -25,8 +25,7 @@ from dataclasses import replace
 import numpy as np
 
 from vtolpose.drivers.links.mavlink_wire import mavutil
-from vtolpose.estimator.core.rotation import quat_mul, quat_to_rot, yaw_of
-from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator import OutputPose, quat_mul, quat_to_rot, yaw_of
 
 __all__ = ["PublishedFrame", "turned_about_down"]
 

@@ -27,8 +27,7 @@ from typing import Any
 import numpy as np
 
 from vtolpose.drivers.links.mavlink_wire import mavutil
-from vtolpose.estimator.core.rotation import rot_of
-from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator import OutputPose, rot_of
 from vtolpose.service.runtime.status import pose_problem, usable_pose_quality
 
 __all__ = ["ODOMETRY_CRC_EXTRA", "ODOMETRY_ID", "PROFILES", "Profile", "euler_jacobian", "odometry_covariances",

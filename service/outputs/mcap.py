@@ -30,10 +30,7 @@ from foxglove.mcap import MCAPWriteOptions
 import numpy as np
 import pymap3d
 
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuSample
-from vtolpose.estimator.fusion import OutputPose
-from vtolpose.estimator.vision.camera_pipeline import FrameReport
-from vtolpose.estimator.vision.features import FrameFeatures
+from vtolpose.estimator import CameraFrame, FrameFeatures, FrameReport, GpsFix, ImuSample, OutputPose
 from vtolpose.service.outputs import ros2_msgs
 from vtolpose.service.outputs.foxglove import FoxgloveScene, Landmarks, Origin
 from vtolpose.service.outputs.view_worker import ViewWorker

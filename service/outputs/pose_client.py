@@ -34,7 +34,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import zenoh
 
-from vtolpose.estimator.pose_history import PoseWindow
+from vtolpose.estimator import PoseWindow
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
 Origin = tuple[float, float, float] | None

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator import OutputPose
 from vtolpose.service.runtime.status import heading_weak, pose_quality
 
 Origin = tuple[float, float, float] | None

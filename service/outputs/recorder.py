@@ -28,8 +28,7 @@ from vtolpose.drivers.files.dataset import (
     dataset_yaml_text, gps_sensor_yaml,
 )
 from vtolpose.drivers.files.frames_csv import FRAMES_HEADER
-from vtolpose.estimator.core.calibration import Calibration
-from vtolpose.estimator.core.measurements import CameraFrame
+from vtolpose.estimator import Calibration, CameraFrame
 
 __all__ = ["CAM_HEADER", "FlightRecorder"]
 

@@ -42,7 +42,7 @@ import xxhash
 import zenoh
 
 from vtolpose.config import ConfigError
-from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator import OutputPose
 from vtolpose.service.outputs import ros2_msgs
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
 

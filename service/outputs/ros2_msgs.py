@@ -13,12 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from vtolpose.estimator.core.frames import (
-    body_covariance_frd_to_flu, frd_to_flu, pose_covariance_ned_to_enu, pose_ned_frd_to_enu_flu,
+from vtolpose.estimator import (
+    body_covariance_frd_to_flu, frd_to_flu, ImuSample, OutputPose, pose_covariance_ned_to_enu,
+    pose_ned_frd_to_enu_flu, quat_to_rot,
 )
-from vtolpose.estimator.core.measurements import ImuSample
-from vtolpose.estimator.core.rotation import quat_to_rot
-from vtolpose.estimator.fusion import OutputPose
 from vtolpose.service.outputs.mavlink import odometry_covariances
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)  # message layouts (and RIHS01 hashes) of the current LTS

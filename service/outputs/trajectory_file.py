@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Iterator
 
 from vtolpose.drivers.files.tum import TUM_HEADER, tum_line
-from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator import OutputPose
 
 log = logging.getLogger(__name__)
 

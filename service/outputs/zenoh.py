@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import math
 import os
 import queue
 import re
@@ -34,8 +33,7 @@ from typing import Any, Callable
 import numpy as np
 import zenoh
 
-from vtolpose.estimator.fusion import OutputPose
-from vtolpose.estimator.pose_history import OutsideHistory, PoseHistory, PoseWindow
+from vtolpose.estimator import OutputPose, OutsideHistory, PoseHistory, PoseWindow
 from vtolpose.service.outputs.pose_json import Origin, PoseJson, origin_json
 from vtolpose.service.outputs.pose_json import pose_message, pose_status  # noqa: F401 - also imported from here
 from vtolpose.service.outputs.zenoh_session import ZenohSettings, service_config

@@ -28,7 +28,7 @@ from typing import Any, AsyncIterator, Iterable, Sequence
 
 import numpy as np
 
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuBatch, ImuSample
+from vtolpose.estimator import CameraFrame, GpsFix, ImuBatch, ImuSample
 
 __all__ = ["FAULT_KINDS", "Fault", "FaultError", "FaultInjector", "FaultyStream", "add_fault_options", "inject",
            "injector_from", "parse_fault", "parse_faults"]

@@ -17,8 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vtolpose.estimator.vision.camera_pipeline import FrameReport
-from vtolpose.estimator.vision.features import FrameFeatures
+from vtolpose.estimator import FrameFeatures, FrameReport
 
 YELLOW, CYAN, GREEN, MAGENTA, RED, WHITE = (0, 220, 255), (255, 220, 0), (0, 230, 0), (255, 0, 255), (0, 0, 255), (255, 255, 255)
 

@@ -9,8 +9,10 @@ from typing import Any
 import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator.metrics import evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary, pose_errors_for_nees
-from vtolpose.estimator.core.rotation import quat_mul, quat_to_rot, rot_to_quat, so3_exp, so3_log, yaw_of
+from vtolpose.estimator import (
+    evaluate, gps_error_rmse, interpolate_poses, nees, nees_summary, pose_errors_for_nees, quat_mul, quat_to_rot,
+    rot_to_quat, so3_exp, so3_log, yaw_of,
+)
 from vtolpose.drivers.files.series import TruthSeries
 from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory
 

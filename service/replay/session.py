@@ -19,11 +19,9 @@ import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.lidar import lidar_summary
-from vtolpose.estimator.vision.camera_pipeline import FrameReport
-from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features
-from vtolpose.estimator.filter import Estimator
-from vtolpose.estimator.fusion import OutputPose
-from vtolpose.estimator.core.measurements import CameraFrame
+from vtolpose.estimator import (
+    CameraFrame, Estimator, extract_features, FeatureOptions, FrameFeatures, FrameReport, OutputPose,
+)
 from vtolpose.service.replay.faults import Fault, FaultInjector
 from vtolpose.service.runtime.replay_feed import checked_sensors, run_replay
 from vtolpose.service.runtime.threads import limit_blas_threads

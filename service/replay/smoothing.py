@@ -25,9 +25,7 @@ import numpy as np
 from vtolpose.drivers.files.csvio import seconds_text
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.tum import tum_line
-from vtolpose.estimator.smoothing.fixed_lag import SmoothedPose
-from vtolpose.estimator.smoothing.rts import BackwardPass, SmoothedChunk
-from vtolpose.estimator.smoothing.steps import ChunkBuilder, Step, StepChunk
+from vtolpose.estimator import BackwardPass, ChunkBuilder, SmoothedChunk, SmoothedPose, Step, StepChunk
 from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory, replay
 
 COV_HEADER = "# t [s], upper triangle of the 6x6 covariance of [dp (m), dtheta (rad, world frame)], row by row\n"

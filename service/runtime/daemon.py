@@ -18,14 +18,10 @@ from typing import Any, AsyncIterator, Callable, Sequence
 from vtolpose.config import ConfigError
 from vtolpose.config.outputs import zenoh_prefix
 from vtolpose.drivers.files.calibration_yaml import CalibrationError, calibration_from_yaml, load_yaml_file
-from vtolpose.estimator.core.calibration import STANDARD_GRAVITY, Calibration
-from vtolpose.estimator.core.measurements import ImuRange
-from vtolpose.estimator.filter import Estimator
-from vtolpose.estimator.fusion import FusionOptions, OutputPose
-from vtolpose.estimator.core import update_kernel
-from vtolpose.estimator.gnss import gps_kernel
-from vtolpose.estimator.inertial import propagation_kernel, sample_kernel
-from vtolpose.estimator.smoothing import rts_kernel
+from vtolpose.estimator import (
+    Calibration, Estimator, FusionOptions, gps_kernel, ImuRange, OutputPose, propagation_kernel, rts_kernel,
+    sample_kernel, STANDARD_GRAVITY, update_kernel,
+)
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
 from vtolpose.service.text import describe

@@ -29,13 +29,10 @@ from typing import Any, AsyncIterator, Callable, Protocol, Sequence
 
 import numpy as np
 
-from vtolpose.estimator.filter import Estimator
-from vtolpose.estimator.fusion import Apply, FusionCore, FusionOptions, OutputPose
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuBatch, ImuRange, ImuSample, screened
-from vtolpose.estimator.pose_history import COV, P, Q, ROW, V, PoseHistory
-from vtolpose.estimator.smoothing.fixed_lag import FixedLagSmoother, SmoothedPose
-from vtolpose.estimator.smoothing.recorder import StepRecorder
-from vtolpose.estimator.smoothing.steps import Step
+from vtolpose.estimator import (
+    Apply, CameraFrame, COV, Estimator, FixedLagSmoother, FusionCore, FusionOptions, GpsFix, ImuBatch, ImuRange,
+    ImuSample, OutputPose, P, PoseHistory, Q, ROW, screened, SmoothedPose, Step, StepRecorder, V,
+)
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.status import (FailureBook, LatencyProbe, StatusTracker, pose_problem, pose_quality,
                                              stopped_within)

@@ -16,7 +16,7 @@ from typing import Any, AsyncIterator, Callable, Sequence
 
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.service.runtime.daemon import build_runtime, serve
-from vtolpose.estimator.fusion import OutputPose
+from vtolpose.estimator import OutputPose
 from vtolpose.service.replay.faults import FaultInjector, inject
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RunSummary
 from vtolpose.service.runtime.sources import ReplayClock, ReplaySource

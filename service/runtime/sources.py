@@ -18,7 +18,7 @@ from typing import Any, AsyncIterator, Callable, Iterator, Sequence, Union
 import numpy as np
 
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator.core.measurements import CameraFrame, GpsFix, ImuBatch, ImuSample
+from vtolpose.estimator import CameraFrame, GpsFix, ImuBatch, ImuSample
 
 log = logging.getLogger(__name__)
 

@@ -16,8 +16,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from vtolpose.estimator.filter import Estimator
-from vtolpose.estimator.fusion import FusionCore, OutputPose
+from vtolpose.estimator import Estimator, FusionCore, OutputPose
 
 
 log = logging.getLogger(__name__)

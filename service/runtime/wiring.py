@@ -9,18 +9,10 @@ import copy
 import numpy as np
 
 from vtolpose.config import ConfigError, get
-from vtolpose.estimator.vision.association import AssociationOptions
-from vtolpose.estimator.core.calibration import Calibration, ImuNoise
-from vtolpose.estimator.vision.camera_pipeline import CameraOptions
-from vtolpose.estimator.vision.features import FeatureOptions
-from vtolpose.estimator.vision.frame_quality import FrameQualityOptions
-from vtolpose.estimator.health import HealthOptions
-from vtolpose.estimator.filter import FilterOptions
-from vtolpose.estimator.inertial.initializer import InitOptions
-from vtolpose.estimator.init.visual_inertial import VisualInertialOptions
-from vtolpose.estimator.vision.map_manager import MapOptions
-from vtolpose.estimator.inertial.heading_bank import HeadingBankOptions
-from vtolpose.estimator.inertial.stillness import StillnessOptions
+from vtolpose.estimator import (
+    AssociationOptions, Calibration, CameraOptions, FeatureOptions, FilterOptions, FrameQualityOptions,
+    HeadingBankOptions, HealthOptions, ImuNoise, InitOptions, MapOptions, StillnessOptions, VisualInertialOptions,
+)
 
 NOISE_KEYS = ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", "accel_random_walk")
 
