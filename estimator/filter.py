@@ -34,6 +34,7 @@ from vtolpose.estimator.core.calibration import Calibration, ImuNoise
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
+from vtolpose.estimator.gnss.noise_check import GpsNoiseCheck, NoiseCheckOptions
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
 from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonitor, HealthOptions
 from vtolpose.estimator.inertial.imu_delta import DeltaRun, ImuDelta, ImuDownsampler
@@ -79,6 +80,7 @@ class FilterOptions:
     camera: CameraOptions = field(default_factory=CameraOptions)
     visual_inertial: VisualInertialOptions = field(default_factory=VisualInertialOptions)
     health: HealthOptions = field(default_factory=HealthOptions)
+    gps_noise: NoiseCheckOptions = field(default_factory=NoiseCheckOptions)
 
     def __post_init__(self) -> None:
         StateLayout(self.variant)  # validates the variant name
@@ -119,6 +121,7 @@ class Estimator:
         self.position_initialized = False
         self.reset_counter = 0
         self.events: list[tuple[int, str]] = []  # (t_ns, message): start-up, alignment, resets
+        self.gps_noise = GpsNoiseCheck(opts.gps_noise, opts.gps_sigma_floor_m, self.events)  # claimed sigmas checked
         heading, self._heading_sigma = self._known_heading()
         self._heading_known = heading is not None
         self._initializer = StaticInitializer(opts.init, calibration.imu.gravity, heading or 0.0)
@@ -631,6 +634,8 @@ class Estimator:
             counts.reject("non_finite")
             self.health.measured("gps", fix.t_ns, used=False)  # alive, but not usable
             return None
+        # The GPS noise check: the fix weighed with the noise it really has when its claim is not believed.
+        raw, fix = fix, self.gps_noise.believed(fix)
         state = self.state
         if state is not None and fix.t_ns < state.t_ns:
             counts.reject("older_than_filter")
@@ -638,6 +643,8 @@ class Estimator:
         if state is None:
             self._gps_seen = True
             self._fixes_before_start.append(fix)
+            if self.gps_noise.before_start(raw):  # the GPS noise check: the fixes held weighed as it now believes
+                self._fixes_before_start = deque(map(self.gps_noise.believed, self._fixes_before_start), maxlen=64)
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)
@@ -657,6 +664,7 @@ class Estimator:
             counts.used += 1
             self.health.measured("gps", fix.t_ns, used=True)
             return UpdateOutcome(True, 0.0, 3, "position initialised")
+        self.gps_noise.before_update(state, raw, self.gps.model)  # the GPS noise check (1/2)
         if self.heading_aligned:
             outcome = self.gps.update(state, fix)
         else:
@@ -669,10 +677,17 @@ class Estimator:
         self.health.innovations("gps", fix.t_ns, outcome.accepted if gated else None,
                                 "" if outcome.accepted else f"fix refused by the gate (NIS {outcome.nis:.1f})")
         if self.health.measured("gps", fix.t_ns, outcome.accepted, gated=True):
-            self._reset_from_gps(fix)
+            self._reset_from_gps(raw)
+        self._noise_checked(raw, fix, outcome.accepted)  # the GPS noise check (2/2)
         if not self.heading_aligned:
             self._search_heading(fix)
         return outcome
+
+    def _noise_checked(self, raw: GpsFix, weighed: GpsFix, accepted: bool) -> None:
+        """The GPS noise check sees the fix's residual after its update; a change of belief is an event."""
+        self.gps_noise.after_update(raw.t_ns, self.gps.residual(self.state, raw), accepted)
+        if weighed is not raw:
+            self.counts["gps"].flag("sigma_not_believed")
 
     def _search_heading(self, fix: GpsFix) -> None:
         """Feed the heading hypotheses. After a reset they start again from the filter's state, but
@@ -704,6 +719,7 @@ class Estimator:
         that, the attitude is wrong too (a damaged gyro reading turned it): it starts again level,
         as a moving start does, and gravity and the heading hypotheses find it again.
         """
+        fix = self.gps_noise.on_reset(fix)  # from the second reset in a row: the noise the fixes really have
         state, after_s = self.state, self.options.gps_reset_after_s
         again = self._gps_reset_t is not None and (fix.t_ns - self._gps_reset_t) * 1e-9 <= 2.0 * after_s
         self._gps_reset_t = fix.t_ns
