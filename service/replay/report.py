@@ -37,6 +37,8 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
         "reset_counter": est.reset_counter,
         "sensors": est.counts_report(),
         "skipped_lines": dict(dataset.skipped),
+        "clock_steps": {rel: [step.describe() for step in steps] for rel, steps in dataset.clock_steps.items()},
+        "gps_noise": est.gps_noise.report(),
         "events": [{"t_s": round((t - result.data_t0_ns) * 1e-9, 3), "message": m} for t, m in est.events],
         "notes": list(result.notes),
     }

@@ -1,0 +1,109 @@
+"""Sensors that lie about themselves: a GPS that overstates its accuracy, an IMU clock that steps.
+
+Each damaged flight is replayed as a new user would (IMU + GPS) and must stay within 1.5 × the
+clean flight's RMSE, with the lie said in the report (the noise the GPS really has, the steps undone).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vtolpose.config import load_config
+from vtolpose.drivers.files.clock_steps import reanchor
+from vtolpose.drivers.files.dataset import GPS_CSV, IMU_CSV, Dataset
+from vtolpose.drivers.simulator import simulate_flight
+from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.service.bench.faults import FaultRun, traced_replay
+
+DURATION_S = 50.0
+T0_NS = 1_000_000_000  # the simulator's first stamp
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("lies") / "clean"
+    write_flight(simulate_flight("landfill", DURATION_S, 1), root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def clean(flight) -> FaultRun:
+    return traced_replay(Dataset.open(flight), load_config(), ["imu", "gps"])
+
+
+def damaged(flight: Path, tmp_path: Path, rel: str, edit) -> Dataset:
+    """A copy of ``flight`` whose ``rel`` rows went through ``edit(fields) -> fields``."""
+    root = tmp_path / "damaged"
+    shutil.copytree(flight, root)
+    lines = (root / rel).read_text().splitlines()
+    (root / rel).write_text("\n".join([lines[0], *(",".join(edit(line.split(","))) for line in lines[1:])]) + "\n")
+    return Dataset.open(root)
+
+
+def replayed(dataset: Dataset, *faults: str) -> FaultRun:
+    return traced_replay(dataset, load_config(), ["imu", "gps"], list(faults))
+
+
+def stepped_at(t_s: float, step_ns: int):
+    return lambda f: [str(int(f[0]) + step_ns) if int(f[0]) - T0_NS >= t_s * 1e9 else f[0], *f[1:]]
+
+
+def test_a_gps_claiming_impossible_accuracy_is_weighed_by_its_scatter(flight, clean, tmp_path):
+    run = replayed(damaged(flight, tmp_path, GPS_CSV, lambda f: [*f[:4], "1e-300", "1e-300"]))
+    est = run.result.estimator
+    assert run.rmse() <= 1.5 * clean.rmse()
+    assert est.reset_counter == 0
+    noise = est.gps_noise.report()
+    assert not noise["believed"] and 0.5 < noise["measured_sigma_h_m"] < 2.0  # the flight's GPS has σ 1 m
+    assert noise["text"].startswith("GPS claims 0.005 m, behaves like")
+    assert any("behaves like" in message for _, message in est.events)
+    assert est.counts_report()["gps"]["flagged"]["sigma_not_believed"] > 0
+
+
+def test_a_lie_that_starts_in_flight_stops_resetting_after_two(flight, clean):
+    """From 15 s every fix claims 1e-300 m: refused, reset, refused again; from the second reset on the
+    fixes are weighed with the noise measured, and the resets stop."""
+    run = replayed(Dataset.open(flight), "gps-sigma:15:1000:1e-300")
+    est = run.result.estimator
+    assert est.health.reset_counts.get("gps_rejected", 0) <= 2
+    assert not est.gps_noise.report()["believed"]
+    assert run.rmse(30.0) <= 1.5 * clean.rmse(30.0)
+
+
+def test_honest_fixes_and_a_held_jump_keep_their_claims(flight, clean):
+    """The check must not take an offset for noise: 10 s of fixes 20 m off are refused and reset to,
+    as before, and honest fixes are believed."""
+    assert clean.result.estimator.gps_noise.report()["believed"]
+    run = replayed(Dataset.open(flight), "gps-jump:20:20,0,0:10")
+    assert run.result.estimator.gps_noise.report()["believed"]
+    assert run.result.estimator.health.reset_counts == {"gps_rejected": 2}
+
+
+@pytest.mark.parametrize("step_ns", [10**18, -5 * 10**9])
+def test_an_imu_clock_step_is_undone_on_the_gps_clock(flight, clean, tmp_path, step_ns):
+    dataset = damaged(flight, tmp_path, IMU_CSV, stepped_at(16.0 if step_ns > 0 else 24.0, step_ns))
+    run = replayed(dataset)
+    assert run.rmse() <= 1.5 * clean.rmse()
+    assert dataset.skipped[IMU_CSV] == 0  # no row dropped
+    [step] = dataset.clock_steps[IMU_CSV]
+    assert step.jump_ns == pytest.approx(step_ns, abs=10**7)
+    assert run.result.estimator.reset_counter == 0
+
+
+def test_what_is_no_clock_step_stays_as_it_was():
+    t = T0_NS + np.arange(2000, dtype=np.int64) * 8_000_000
+    one_bad = t.copy()
+    one_bad[700] += 10**18  # a single corrupt stamp: the order check's
+    assert reanchor(one_bad, int(t[-1])) == (pytest.approx(one_bad), [])
+    gap = np.concatenate([t[:800], t[1200:]])  # 3.2 s of samples lost: the stream still ends with the others
+    out, steps = reanchor(gap, int(t[-1]))
+    assert steps == [] and np.array_equal(out, gap)
+    out, steps = reanchor(gap, None)  # nothing to compare with: a jump forward stays a gap
+    assert steps == []
+    spliced = np.concatenate([t[:1000], t[:1000] - 3 * 10**9])
+    out, [step] = reanchor(spliced, int(t[-1]))
+    assert np.all(np.diff(out) == 8_000_000)
