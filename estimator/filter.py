@@ -405,6 +405,7 @@ class Estimator:
             self._downsampler = ImuDownsampler(self.options.max_filter_rate_hz)  # no more holding the last sample
             self._reset(t_ns, "imu_gap", f"no IMU sample for {self.options.health.imu_gap_reset_s:g} s (samples lost "
                         "or a clock step): the state is held, not extrapolated; covariance widened", clear_map=False)
+            self.health.imu_missing(self._last_imu_t)  # until the next sample: the held pose is not published as good
         if self._gap.holding:
             state.t_ns = max(state.t_ns, t_ns)
 
@@ -421,6 +422,7 @@ class Estimator:
         gap_s = (t_ns - self._last_imu_t) * 1e-9 if self._last_imu_t is not None else 0.0
         if gap_s > self.options.max_imu_gap_s:
             self._in_gap(t_ns)
+            self.health.imu_missing(None)  # the IMU is back
             if not self._gap.holding:
                 self.counts["imu"].flag("gap_bridged")  # extrapolated over, widened
             else:

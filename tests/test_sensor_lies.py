@@ -107,3 +107,68 @@ def test_what_is_no_clock_step_stays_as_it_was():
     spliced = np.concatenate([t[:1000], t[:1000] - 3 * 10**9])
     out, [step] = reanchor(spliced, int(t[-1]))
     assert np.all(np.diff(out) == 8_000_000)
+
+
+def test_while_the_imu_is_missing_the_held_pose_is_not_called_good():
+    """The IMU stops for 3 s (host clock) while the GPS goes on: past imu_gap_reset_s (1 s) the status says the
+    pose must not be used (quality 0, ODOMETRY -1); the IMU's return lifts that."""
+    from vtolpose.estimator.filter import Estimator
+    from vtolpose.service.runtime.loop import Runtime, RuntimeOptions
+    from vtolpose.service.runtime.wiring import filter_options
+    from runtime_helpers import PoseList, flight_samples
+
+    flight = simulate_flight("landfill", 20.0, 2)
+    est = Estimator(flight.calibration, filter_options(load_config(), flight.calibration.imu.noise))
+    runtime = Runtime(est, RuntimeOptions(), outputs=[PoseList()])
+    host_s = [100.0]
+    runtime.status.clock = lambda: host_s[0]
+    for sample in flight_samples(flight, 0.0, 12.0):
+        runtime.handle(sample)
+    assert runtime.status_document()["quality"] > 0
+    host_s[0] += 3.0
+    for sample in flight_samples(flight, 12.0, 15.0):
+        if not hasattr(sample, "gyro"):  # the GPS alone
+            runtime.handle(sample)
+    doc = runtime.status_document()
+    assert doc["quality"] == 0 and doc["pose_problem"].startswith("IMU missing")
+    for sample in flight_samples(flight, 15.0, 17.0):
+        runtime.handle(sample)
+    doc = runtime.status_document()
+    assert doc["quality"] > 0 and doc["pose_problem"] is None
+
+
+def test_a_held_state_caps_the_quality_until_the_imu_returns(flight):
+    """In a replay the filter sees the hole itself (a fix after 1 s without IMU): until the next IMU sample its
+    health caps the quality at 0, and the status lists the IMU as missing."""
+    from vtolpose.estimator.core.measurements import GpsFix, ImuSample
+    from vtolpose.estimator.filter import Estimator
+    from vtolpose.service.runtime.wiring import filter_options
+
+    dataset = Dataset.open(flight)
+    est = Estimator(dataset.calibration, filter_options(load_config(), dataset.calibration.imu.noise))
+    imu, gps = dataset.imu(), dataset.gps()
+    t_gap = T0_NS + 12 * 10**9
+    for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel):
+        if t < t_gap:
+            est.process_imu(int(t), g, a)
+    fixes = [(int(t), p, h, v) for t, p, h, v in zip(gps.t_ns, gps.p_ned, gps.sigma_h, gps.sigma_v)]
+    for t, p, h, v in fixes:
+        if t_gap + 10**9 < t <= t_gap + 3 * 10**9:
+            est.process_gps(GpsFix(t, p, float(h), float(v)))
+    assert est.health.quality_cap(est.state.t_ns) == 0
+    report = est.health.report(est.state.t_ns)
+    assert "imu_missing" in report["degraded"] and report["sensors"]["imu"]["stale"]
+    k = int(np.searchsorted(imu.t_ns, t_gap + 3 * 10**9, side="right"))
+    est.process_imu(int(imu.t_ns[k]), imu.gyro[k], imu.accel[k])
+    assert est.health.quality_cap(est.state.t_ns) > 0
+
+
+def test_the_operator_is_told_what_the_gps_really_does():
+    from vtolpose.service.outputs.mavlink_status import StatusEvents, mav
+
+    events = StatusEvents()
+    text = "GPS claims 0.005 m, behaves like 1.9 m"
+    assert events.changes({"gps_noise": {"text": None}}) == []
+    assert events.changes({"gps_noise": {"text": text}}) == [(mav.MAV_SEVERITY_WARNING, text)]
+    assert events.changes({"gps_noise": {"text": text}}) == []
+    assert events.changes({"gps_noise": {"text": None}})[0][0] == mav.MAV_SEVERITY_INFO

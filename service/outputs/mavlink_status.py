@@ -2,7 +2,8 @@
 
 Once a second the runtime hands the outputs its status document; :class:`StatusEvents` compares it
 with the previous one and names what an operator must know: a filter reset (and why), a sensor going
-stale or coming back, the heading placed (or lost). :class:`TextLimiter` lets at most ``per_minute``
+stale or coming back, the heading placed (or lost), a GPS whose claimed accuracy is not believed
+("GPS claims 0.005 m, behaves like 1.9 m"). :class:`TextLimiter` lets at most ``per_minute``
 texts out (a short burst allowed), and says how many it held back once it lets one out again, so a
 flapping sensor cannot flood a radio link. Long texts are split into chunks that share an ``id``
 (the MAVLink 2 extension ground stations reassemble); at most four chunks, the rest cut.
@@ -31,6 +32,7 @@ class StatusEvents:
         self._aligned = False
         self._resets = 0
         self._stale: set[str] = set()
+        self._gps_noise: str | None = None
 
     def changes(self, doc: dict[str, Any]) -> list[tuple[int, str]]:
         health = doc.get("health") or {}
@@ -47,7 +49,11 @@ class StatusEvents:
                        else (mav.MAV_SEVERITY_WARNING, "heading not aligned, pose not usable"))
         out += [(mav.MAV_SEVERITY_WARNING, f"{name} stale") for name in sorted(stale - self._stale)]
         out += [(mav.MAV_SEVERITY_INFO, f"{name} back") for name in sorted(self._stale - stale)]
-        self._aligned, self._resets, self._stale = aligned, resets, stale
+        gps_noise = (doc.get("gps_noise") or {}).get("text")
+        if gps_noise != self._gps_noise:
+            out.append((mav.MAV_SEVERITY_WARNING, gps_noise) if gps_noise
+                       else (mav.MAV_SEVERITY_INFO, "GPS accuracy claims believed again"))
+        self._aligned, self._resets, self._stale, self._gps_noise = aligned, resets, stale, gps_noise
         return out
 
 

@@ -332,6 +332,12 @@ def summary_lines(report: dict) -> list[str]:
         lines.append(f"  {label}: {c['used']} used of {c['received']}; rejected: {rej}" + (f"; flagged: {flagged}" if flagged else ""))
     for fault in report.get("faults", []):
         lines.append(f"  fault {fault['spec']}: {fault['samples_affected']} samples dropped or changed")
+    for rel, steps in (report.get("clock_steps") or {}).items():
+        lines += [f"  {rel}: {step}" for step in steps]
+    noise = report.get("gps_noise") or {}
+    if noise.get("fixes_adjusted"):
+        lines.append(f"  GPS accuracy claims not believed: {noise['fixes_adjusted']} fixes weighed with the noise measured"
+                     + (f" ({noise['text']})" if noise.get("text") else ""))
     health = report.get("health") or {}
     if health.get("resets"):
         lines.append(f"  filter resets: {', '.join(f'{k} {v}' for k, v in health['resets'].items())} (see the events)")

@@ -213,6 +213,10 @@ def summary_lines(summary: RunSummary) -> list[str]:
         lines.append(f"filter resets: {describe(health['resets'])}; the last: {last['reason']}")
     if health.get("degraded"):
         lines.append(f"degraded at the end: {', '.join(health['degraded'])}")
+    noise = status.get("gps_noise") or {}
+    if noise.get("fixes_adjusted"):
+        lines.append(f"GPS accuracy claims not believed: {noise['fixes_adjusted']} fixes weighed with the noise measured"
+                     + (f"; at the end: {noise['text']}" if noise.get("text") else ""))
     if status.get("failures"):
         lines.append("isolated failures: " + "; ".join(f"{part} x{f['failures']} ({f['last']})"
                                                     for part, f in status["failures"].items()))

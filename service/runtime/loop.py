@@ -393,11 +393,22 @@ class Runtime:
             "outputs": links,
             "quality": pose_quality(self.last_pose) if self.last_pose is not None else 0,
             "pose_problem": pose_problem(self.last_pose) if self.last_pose is not None else "no pose yet",
+            **self._imu_missing(),
             "failures": self.failures.report(),  # isolated failures of outputs, sources, the trajectory file
         }
         if self.recorder is not None:  # a live run's flight recording (its own status, never an error here)
             extra["recording"] = {"status": self.recorder.status, "rows": dict(self.recorder.rows)}
         return self.status.snapshot(self.est, self.fusion, extra)
+
+    def _imu_missing(self) -> dict[str, Any]:
+        """The last pose is no longer one to use when the IMU has gone quiet: the filter holds its state over the
+        hole (it said so at the last measurement), or no sample has arrived for ``imu_gap_reset_s`` (host clock)."""
+        limit_s = self.est.options.health.imu_gap_reset_s
+        imu = self.status.sensors.get("imu")
+        age_s = None if imu is None or imu.last_arrival is None else self.status.clock() - imu.last_arrival
+        if self.est.health.imu_missing_since_ns is None and (age_s is None or age_s <= limit_s):
+            return {}
+        return {"quality": 0, "pose_problem": "IMU missing: the state is held, not flown"}
 
     async def _status_loop(self, stop: asyncio.Event) -> None:
         period = self.options.status_period_s
