@@ -196,8 +196,6 @@ def summary_lines(summary: RunSummary) -> list[str]:
         f"({summary.data_s:.1f} s of data), {summary.poses_published} poses published, "
         f"{summary.trajectory_lines} trajectory lines",
     ]
-    if summary.trajectory_error:
-        lines.append(f"the trajectory file is incomplete: {summary.trajectory_error}")
     if summary.latency_ms["p50"] == summary.latency_ms["p50"]:  # not NaN
         lines.append("latency IMU in -> outputs out: p50 {p50:.3f} ms, p99 {p99:.3f} ms, max {max:.3f} ms".format(**summary.latency_ms))
     status = summary.status
@@ -220,4 +218,4 @@ def summary_lines(summary: RunSummary) -> list[str]:
     if status.get("failures"):
         lines.append("isolated failures: " + "; ".join(f"{part} x{f['failures']} ({f['last']})"
                                                     for part, f in status["failures"].items()))
-    return lines
+    return lines + summary.incomplete  # last: what was asked for and not done (the command then fails)

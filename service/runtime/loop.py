@@ -113,6 +113,7 @@ class RunSummary:
     latency_ms: dict[str, float]
     status: dict[str, Any]
     trajectory_error: str | None = None  # a write to the trajectory file failed (a full disk): it is incomplete
+    incomplete: list[str] = field(default_factory=list)  # each requested file output that is incomplete, and why
 
 
 class Runtime:
@@ -129,6 +130,7 @@ class Runtime:
     ) -> None:
         self.options = opts = options or RuntimeOptions()
         self.fused_hook = on_fused  # sees every fused pose (a replay's recorder)
+        self._close_errors: dict[str, str] = {}  # file outputs whose close failed: name -> why
         # Stamps enter on the IMU clock: each sensor's calibrated offset is added here, before the
         # fusion horizon orders them (so a late camera is fused at the time it really saw).
         cal = estimator.calibration
@@ -513,6 +515,8 @@ class Runtime:
                     out.close()
                 except Exception as exc:  # closing one link must not keep the others open
                     log.error("closing %s: %s", type(out).__name__, exc)
+                    if hasattr(out, "incomplete"):  # a file output that could not be finished
+                        self._close_errors[out.name] = f"{getattr(exc, 'strerror', None) or exc}"
             self._executor.shutdown(wait=True, cancel_futures=True)
             if opencv_threads is not None:
                 import cv2
@@ -535,4 +539,17 @@ class Runtime:
             latency_ms={"p50": p50, "p99": p99, "max": pmax},
             status=self.status_document(),
             trajectory_error=self.trajectory.error if self.trajectory is not None else None,
+            incomplete=self.incomplete_outputs(),
         )
+
+    def incomplete_outputs(self) -> list[str]:
+        """Each requested file output (the trajectory file, an MCAP recording) that could not be written in full,
+        with the reason: the run then did not do what was asked, whatever the poses did."""
+        out = []
+        if self.trajectory is not None and self.trajectory.error:
+            out.append(f"the trajectory file {self.trajectory.path} is incomplete: {self.trajectory.error}")
+        for output in self.outputs:
+            why = self._close_errors.get(output.name) or getattr(output, "incomplete", None)
+            if why:
+                out.append(f"the {output.name} output {getattr(output, 'path', '')} is incomplete: {why}".replace("  ", " "))
+        return out
