@@ -16,9 +16,11 @@ noise that is larger than claimed is seen.
 When the claimed sigma is far below the measured scatter *and* the fixes' NIS under the claimed
 noise is out of band over the window, the claim is not believed: fixes are weighed with the
 measured sigma (never below the claimed one, never above ``max_sigma_m``) until the claims are
-consistent again. After two resets to refused fixes in a row it takes what it has measured so
-far, rather than wait for a full window: a reset that re-initialises from the same claim would
-only repeat. Pure computation: no I/O, no clocks.
+consistent again. A reset because every fix was refused is that NIS out of band, for seconds:
+when the scatter says the claim is the problem, the reset re-initialises from the fix weighed
+with the noise measured. After two such resets in a row it takes what it has measured so far
+(``min_pairs_after_resets``) rather than wait for more: a reset that re-initialises from the same
+claim would only repeat. Pure computation: no I/O, no clocks.
 """
 
 from __future__ import annotations
@@ -40,7 +42,8 @@ MAD_TO_SIGMA = 1.4826  # a normal variable's sigma from its median absolute devi
 @dataclass(frozen=True, slots=True)
 class NoiseCheckOptions:
     enabled: bool = True
-    window: int = 20  # successive fix pairs the scatter and the NIS are judged over
+    window: int = 100  # successive fix pairs the scatter is measured over (10 s at 10 Hz) ...
+    nis_window: int = 10  # ... and fixes the NIS under their claims is judged over (the latest claims)
     min_pairs: int = 10  # a verdict needs at least this many (after two resets in a row: min_pairs_after_resets)
     min_pairs_after_resets: int = 3
     distrust_ratio: float = 3.0  # measured sigma beyond this many times the claimed one: not believed ...
@@ -51,8 +54,8 @@ class NoiseCheckOptions:
     nis_probability: float = 0.999  # the window's median NIS beyond this χ² quantile (3 dof) is out of band
 
     def __post_init__(self) -> None:
-        if not (2 <= self.min_pairs_after_resets <= self.min_pairs <= self.window):
-            raise ValueError("gps noise check: need 2 <= min_pairs_after_resets <= min_pairs <= window")
+        if not (2 <= self.min_pairs_after_resets <= self.min_pairs <= self.window and 1 <= self.nis_window):
+            raise ValueError("gps noise check: need 2 <= min_pairs_after_resets <= min_pairs <= window, nis_window >= 1")
         if not (1.0 < self.trust_ratio <= self.distrust_ratio):
             raise ValueError("gps noise check: need 1 < trust_ratio <= distrust_ratio")
         if not (0.0 < self.min_sigma_m < self.max_sigma_m) or not (0.0 < self.nis_probability < 1.0):
@@ -86,13 +89,15 @@ class GpsNoiseCheck:
         self.events = [] if events is None else events  # (t_ns, text) of each change: the filter's events
         n = self.options.window
         self._diffs: deque[np.ndarray] = deque(maxlen=n)  # d_k, NED
-        self._before_start: deque[GpsFix] = deque(maxlen=n)  # fixes heard before the filter started
-        self._nis: deque[float] = deque(maxlen=n)  # under the claimed noise
-        self._claimed_h: deque[float] = deque(maxlen=n)
-        self._claimed_v: deque[float] = deque(maxlen=n)
+        m = self.options.nis_window
+        self._before_start: deque[GpsFix] = deque(maxlen=max(self.options.min_pairs, 2 * m))  # heard before the start
+        self._nis: deque[float] = deque(maxlen=m)  # under the claimed noise
+        self._claimed_h: deque[float] = deque(maxlen=m)
+        self._claimed_v: deque[float] = deque(maxlen=m)
         self._pending: tuple[int, np.ndarray, float, float] | None = None  # this fix: t, innovation, claimed σh, σv
         self._last_posterior: tuple[int, np.ndarray] | None = None  # the previous fix: t, posterior residual
         self._resets_in_a_row = 0
+        self._said_h = math.nan  # the latest fix's own sigma_h, before the filter's floor
 
     # ------------------------------------------------------------------------------- filter hooks
     def believed(self, fix: GpsFix) -> GpsFix:
@@ -121,6 +126,7 @@ class GpsNoiseCheck:
         except np.linalg.LinAlgError:
             nis = math.inf
         self._pending = (fix.t_ns, nu, claimed_h, claimed_v)
+        self._said_h = float(fix.sigma_h)  # the claim as the receiver made it, for the operator
         last = self._last_posterior
         if last is not None and 0 < fix.t_ns - last[0] <= self.options.max_pair_gap_s * 1e9 and np.all(np.isfinite(nu)):
             self._diffs.append(nu - last[1])
@@ -170,7 +176,8 @@ class GpsNoiseCheck:
         claimed_h, claimed_v = float(np.median(claimed[:, 0])), float(np.median(claimed[:, 1]))
         if sigma_h > max(self.options.distrust_ratio * claimed_h, self.options.min_sigma_m):
             hi = self.options.max_sigma_m
-            self.verdict = NoiseVerdict(min(sigma_h, hi), min(max(sigma_v, claimed_v), hi), claimed_h, fix.t_ns)
+            said = float(np.median([f.sigma_h for f in fixes]))
+            self.verdict = NoiseVerdict(min(sigma_h, hi), min(max(sigma_v, claimed_v), hi), said, fix.t_ns)
             self._changed(fix.t_ns, f"{self.verdict.describe()} (before the start): its fixes weighed as {sigma_h:.1f} m")
             return True
         return False
@@ -202,19 +209,19 @@ class GpsNoiseCheck:
         if measured is None:
             return
         sigma_h, sigma_v = measured
-        claimed_h = float(np.median(self._claimed_h))
-        claimed_v = float(np.median(self._claimed_v))
-        nis_out = float(np.median(self._nis)) > chi2_gate(3, opts.nis_probability)
+        claimed_h, claimed_v = self._claimed_h[-1], self._claimed_v[-1]  # what the latest fix claims
+        # A reset for refused fixes is itself the NIS out of band, for gps_reset_after_s on end.
+        nis_out = self._resets_in_a_row > 0 or float(np.median(self._nis)) > chi2_gate(3, opts.nis_probability)
         if self.verdict is None:
             if nis_out and sigma_h > max(opts.distrust_ratio * claimed_h, opts.min_sigma_m):
-                self.verdict = NoiseVerdict(sigma_h, max(sigma_v, claimed_v), claimed_h, t_ns)
+                self.verdict = NoiseVerdict(sigma_h, max(sigma_v, claimed_v), self._said_h, t_ns)
                 self._changed(t_ns, f"{self.verdict.describe()}: its fixes weighed as {sigma_h:.1f} m")
         elif sigma_h < max(opts.trust_ratio * claimed_h, opts.min_sigma_m) and not nis_out:
             old, self.verdict = self.verdict, None
-            self._changed(t_ns, f"GPS claims {claimed_h:.3f} m again consistent with its fixes (was weighed as "
+            self._changed(t_ns, f"GPS claims {self._said_h:.3f} m again consistent with its fixes (was weighed as "
                                 f"{old.sigma_h_m:.1f} m)")
         else:
-            self.verdict = NoiseVerdict(max(sigma_h, claimed_h), max(sigma_v, claimed_v), claimed_h, self.verdict.since_t_ns)
+            self.verdict = NoiseVerdict(max(sigma_h, claimed_h), max(sigma_v, claimed_v), self._said_h, self.verdict.since_t_ns)
 
     def _changed(self, t_ns: int, text: str) -> None:
         self.changes += 1
