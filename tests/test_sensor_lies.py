@@ -6,6 +6,7 @@ clean flight's RMSE, with the lie said in the report (the noise the GPS really h
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -184,7 +185,8 @@ def test_the_operator_is_told_what_the_gps_really_does():
 
 def test_a_live_receiver_that_lies_is_caught(flight, tmp_path, capsys):
     """The same lie live: the NMEA receiver's GST says 1 mm, the Crossbow IMU streams as usual; the run says
-    what the fixes really do, and the pose is used rather than reset to every few seconds."""
+    what the fixes really do, and the pose is used rather than reset to every few seconds (caught before the
+    start, or at the first reset when the fixes before the start were too few: it depends on the timing)."""
     emulators = pytest.importorskip("vtolpose.drivers.emulators")
     from vtolpose.service.cli import main
 
@@ -198,4 +200,5 @@ def test_a_live_receiver_that_lies_is_caught(flight, tmp_path, capsys):
     out = capsys.readouterr().out
     assert code == 0, out
     assert "GPS accuracy claims not believed" in out and "GPS claims 0.001 m, behaves like" in out
-    assert "filter resets" not in out
+    resets = re.search(r"filter resets: gps_rejected (\d+)", out)  # at most the one that catches it (timing)
+    assert resets is None or int(resets.group(1)) <= 1, out
