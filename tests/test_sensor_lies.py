@@ -202,3 +202,24 @@ def test_a_live_receiver_that_lies_is_caught(flight, tmp_path, capsys):
     assert "GPS accuracy claims not believed" in out and "GPS claims 0.001 m, behaves like" in out
     resets = re.search(r"filter resets: gps_rejected (\d+)", out)  # at most the one that catches it (timing)
     assert resets is None or int(resets.group(1)) <= 1, out
+
+
+def test_camera_stamps_are_anchored_and_anchor_the_imu(flight, tmp_path):
+    """Without GPS (a camera flight) the frame index is the IMU's other clock, and a step in it is undone too."""
+    from vtolpose.drivers.files.dataset import CAM_CSV
+
+    dataset = damaged(flight, tmp_path, IMU_CSV, stepped_at(16.0, 10**18))
+    (dataset.root / GPS_CSV).unlink()
+    period = 133_333_333
+    stamps = [T0_NS + k * period for k in range(int(DURATION_S * 1e9) // period)]
+    stepped = [t - 4 * 10**9 if t - T0_NS >= 30e9 else t for t in stamps]
+    (dataset.root / CAM_CSV).parent.mkdir(parents=True, exist_ok=True)
+    (dataset.root / CAM_CSV).write_text("#timestamp [ns],filename\n" + "".join(f"{t},{k}.png\n" for k, t in enumerate(stepped)))
+    dataset = Dataset.open(dataset.root)
+    imu = dataset.imu()
+    assert len(dataset.clock_steps[IMU_CSV]) == 1 and imu.t_ns[-1] < T0_NS + 60 * 10**9
+    frames = dataset.camera_frames()
+    [step] = dataset.clock_steps[CAM_CSV]
+    assert step.jump_ns == pytest.approx(-4 * 10**9 + period, abs=10)
+    assert len(frames) == len(stamps) and dataset.skipped[CAM_CSV] == 0
+    assert [t for t, _ in frames] == stamps and frames[-1][1].name == f"{len(stamps) - 1}.png"

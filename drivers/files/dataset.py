@@ -117,6 +117,10 @@ class Dataset:
         if not (self.root / rel).is_file():
             return None
         try:
+            if rel == CAM_CSV:
+                frames, _ = read_frame_index(self.root / CAM_CSV, self.root / CAM_DIR, in_order=False)
+                self._parsed[f"{rel} end"] = robust_end(np.array([t for t, _ in frames], dtype=np.int64))
+                return self._parsed[f"{rel} end"]
             t = self._raw(rel).t_ns
         except (OSError, ValueError):
             return None
@@ -125,9 +129,9 @@ class Dataset:
     def _anchored(self, rel: str, data: CsvData) -> tuple[np.ndarray, np.ndarray, int]:
         """``data`` with its clock steps undone against the other sensor files' end (clock_steps.py), then
         the rows still out of order dropped and counted."""
-        ends = [end for end in (self._end(other) for other in SENSOR_FILES if other != rel) if end is not None]
+        ends = [end for end in (self._end(other) for other in (*SENSOR_FILES, CAM_CSV) if other != rel) if end is not None]
         t, steps = reanchor(data.t_ns, max(ends) if ends else None)
-        del self._parsed[f"{rel} raw"]
+        self._parsed.pop(f"{rel} raw", None)
         self._parsed[f"{rel} end"] = robust_end(t)
         if steps:
             self.clock_steps[rel] = steps
@@ -143,12 +147,15 @@ class Dataset:
         return t, data.values, data.skipped
 
     def camera_frames(self) -> list[tuple[int, Path]]:
-        """``(t_ns, image path)`` of every frame in ``cam0/data.csv``, in time order (bad lines counted)."""
+        """``(t_ns, image path)`` of every frame in ``cam0/data.csv``, in time order (bad lines counted; clock
+        steps undone against the IMU and GPS files, as theirs against each other and the camera's)."""
         if not (self.root / CAM_CSV).is_file():
             return []
-        frames, skipped = read_frame_index(self.root / CAM_CSV, self.root / CAM_DIR)
+        frames, skipped = read_frame_index(self.root / CAM_CSV, self.root / CAM_DIR, in_order=False)
+        t, values, skipped = self._anchored(CAM_CSV, CsvData(np.array([t for t, _ in frames], dtype=np.int64),
+                                                             np.arange(len(frames)).reshape(-1, 1), skipped))
         self.skipped[CAM_CSV] = skipped
-        return frames
+        return [(int(t_ns), frames[int(k)][1]) for t_ns, k in zip(t.tolist(), values[:, 0].tolist())]
 
     def load_frame(self, path: Path) -> np.ndarray | None:
         """A frame as a grey uint8 array; a missing or unreadable file is a counted skip (None)."""
