@@ -9,14 +9,16 @@ The check measures the scatter itself. Between two fixes the filter knows how th
 (the IMU's prediction), so each fix minus the previous one's posterior residual,
 ``d_k = ν_k − r⁺_{k−1}``, is the difference of two fixes' errors: per axis its variance is twice the
 fix noise, whatever the filter's own error (shared by both, it cancels) and whatever offset a
-jump or multipath adds for many fixes in a row (it also cancels, except at its two edges). A
-median over a window of them ignores those edges: a jump stays an outlier for the gate, a
-noise that is larger than claimed is seen.
+jump adds for many fixes in a row (it also cancels, except at its two edges). Over a window of
+them, the lowest tenth of their sizes decides whether a claim is believed (it ignores those edges,
+and the half of the differences that multipath on a third of the fixes spoils: those fixes are
+the gate's to refuse); their median gives the weight.
 
-When the claimed sigma is far below the measured scatter *and* the fixes' NIS under the claimed
-noise is out of band over the window, the claim is not believed: fixes are weighed with the
-measured sigma (never below the claimed one, never above ``max_sigma_m``) until the claims are
-consistent again. A reset because every fix was refused is that NIS out of band, for seconds:
+When the claimed sigma is far below that scatter *and* most of the latest fixes are refused under
+their claims (NIS out of band), the claim is not believed: fixes are weighed with the measured
+sigma (never below the claimed one, never above ``max_sigma_m``) until the claims are consistent
+again. A claim below a tenth of the scatter is not believed at once, without waiting for the
+NIS: a single such fix that happened to pass the gate would collapse the position covariance. A reset because every fix was refused is that NIS out of band, for seconds:
 when the scatter says the claim is the problem, the reset re-initialises from the fix weighed
 with the noise measured. After two such resets in a row it takes what it has measured so far
 (``min_pairs_after_resets``) rather than wait for more: a reset that re-initialises from the same
@@ -37,27 +39,29 @@ from vtolpose.estimator.core.state import FilterState
 from vtolpose.estimator.gnss.gps_update import GPS_COLS, GpsModel, gps_sigmas
 
 MAD_TO_SIGMA = 1.4826  # a normal variable's sigma from its median absolute deviation
+LOWER_DECILE_ABS = 0.1257  # the 10th percentile of |x| for a standard normal x
 
 
 @dataclass(frozen=True, slots=True)
 class NoiseCheckOptions:
     enabled: bool = True
     window: int = 100  # successive fix pairs the scatter is measured over (10 s at 10 Hz) ...
-    nis_window: int = 10  # ... and fixes the NIS under their claims is judged over (the latest claims)
+    nis_window: int = 20  # ... and fixes the NIS under their claims is judged over (the latest claims)
     min_pairs: int = 10  # a verdict needs at least this many (after two resets in a row: min_pairs_after_resets)
     min_pairs_after_resets: int = 3
     distrust_ratio: float = 3.0  # measured sigma beyond this many times the claimed one: not believed ...
     trust_ratio: float = 2.0  # ... believed again below this many times
+    implausible_ratio: float = 10.0  # a single fix claiming less than the scatter over this: weighed with the scatter
     min_sigma_m: float = 0.1  # differences this small are the IMU's prediction between fixes, not the GPS
     max_sigma_m: float = 50.0  # the largest noise the check will ever assign
     max_pair_gap_s: float = 2.0  # fixes further apart than this are no pair (the motion between them is not known well)
-    nis_probability: float = 0.999  # the window's median NIS beyond this χ² quantile (3 dof) is out of band
+    nis_probability: float = 0.999  # the window's lower-quartile NIS beyond this χ² quantile (3 dof): out of band
 
     def __post_init__(self) -> None:
         if not (2 <= self.min_pairs_after_resets <= self.min_pairs <= self.window and 1 <= self.nis_window):
             raise ValueError("gps noise check: need 2 <= min_pairs_after_resets <= min_pairs <= window, nis_window >= 1")
-        if not (1.0 < self.trust_ratio <= self.distrust_ratio):
-            raise ValueError("gps noise check: need 1 < trust_ratio <= distrust_ratio")
+        if not (1.0 < self.trust_ratio <= self.distrust_ratio <= self.implausible_ratio):
+            raise ValueError("gps noise check: need 1 < trust_ratio <= distrust_ratio <= implausible_ratio")
         if not (0.0 < self.min_sigma_m < self.max_sigma_m) or not (0.0 < self.nis_probability < 1.0):
             raise ValueError("gps noise check: need 0 < min_sigma_m < max_sigma_m and nis_probability in (0, 1)")
 
@@ -90,26 +94,35 @@ class GpsNoiseCheck:
         n = self.options.window
         self._diffs: deque[np.ndarray] = deque(maxlen=n)  # d_k, NED
         m = self.options.nis_window
-        self._before_start: deque[GpsFix] = deque(maxlen=max(self.options.min_pairs, 2 * m))  # heard before the start
+        self._before_start: deque[GpsFix] = deque(maxlen=max(self.options.min_pairs, m))  # heard before the start
         self._nis: deque[float] = deque(maxlen=m)  # under the claimed noise
         self._claimed_h: deque[float] = deque(maxlen=m)
         self._claimed_v: deque[float] = deque(maxlen=m)
         self._pending: tuple[int, np.ndarray, float, float] | None = None  # this fix: t, innovation, claimed σh, σv
         self._last_posterior: tuple[int, np.ndarray] | None = None  # the previous fix: t, posterior residual
         self._resets_in_a_row = 0
+        self._scatter = (0.0, 0.0, 0.0)  # the fixes' scatter (robust horizontal; horizontal, vertical), once judged
         self._said_h = math.nan  # the latest fix's own sigma_h, before the filter's floor
 
     # ------------------------------------------------------------------------------- filter hooks
     def believed(self, fix: GpsFix) -> GpsFix:
         """``fix`` with the sigmas the filter should weigh it with (the fix itself while claims are believed)."""
-        v = self.verdict
-        if v is None or not self.options.enabled:
+        if not self.options.enabled:
             return fix
+        v = self.verdict
         claimed_h, claimed_v = self._claimed(fix)
-        if claimed_h >= v.sigma_h_m and claimed_v >= v.sigma_v_m:
+        if v is not None:
+            floor_h, floor_v = v.sigma_h_m, v.sigma_v_m
+        elif claimed_h * self.options.implausible_ratio < self._scatter[0]:
+            # Before the verdict, one fix claiming a tenth of what the fixes have shown is not believed either: one
+            # such fix that happens to pass the gate would collapse the position covariance meanwhile.
+            floor_h, floor_v = self._scatter[1:]
+        else:
+            return fix
+        if claimed_h >= floor_h and claimed_v >= floor_v:
             return fix
         self.adjusted += 1
-        return GpsFix(fix.t_ns, fix.p_ned, max(claimed_h, v.sigma_h_m), max(claimed_v, v.sigma_v_m))
+        return GpsFix(fix.t_ns, fix.p_ned, max(claimed_h, floor_h), max(claimed_v, floor_v))
 
     def before_update(self, state: FilterState, fix: GpsFix, model: GpsModel) -> None:
         """The fix's innovation against the state before its update; ``fix`` as received."""
@@ -202,6 +215,13 @@ class GpsNoiseCheck:
         lo, hi = self.sigma_floor_m, self.options.max_sigma_m
         return min(max(h, lo), hi), min(max(v, lo), hi)
 
+    def robust_sigma_h(self) -> float:
+        """The horizontal scatter from the lowest tenth of the differences' sizes: what decides whether a claim
+        is believed. Multipath on a third of the fixes spoils half the differences and lifts their median (the
+        weight's measure) above three claimed sigmas; those fixes are the gate's to refuse, not a lie."""
+        d = np.abs(np.array(self._diffs)[:, :2])
+        return float(np.percentile(d, 10)) / (LOWER_DECILE_ABS * math.sqrt(2.0))
+
     def _judge(self, t_ns: int) -> None:
         opts = self.options
         needed = opts.min_pairs_after_resets if self._resets_in_a_row >= 2 else opts.min_pairs
@@ -209,19 +229,28 @@ class GpsNoiseCheck:
         if measured is None:
             return
         sigma_h, sigma_v = measured
+        robust_h = self.robust_sigma_h()
+        if len(self._diffs) >= opts.min_pairs:
+            self._scatter = (robust_h, sigma_h, sigma_v)
         claimed_h, claimed_v = self._claimed_h[-1], self._claimed_v[-1]  # what the latest fix claims
         # A reset for refused fixes is itself the NIS out of band, for gps_reset_after_s on end.
-        nis_out = self._resets_in_a_row > 0 or float(np.median(self._nis)) > chi2_gate(3, opts.nis_probability)
+        # Most of the latest fixes refused under their claims (the lower quartile of their NIS beyond the gate):
+        # a third of them off by multipath is not that.
+        nis_out = self._resets_in_a_row > 0 or float(np.percentile(self._nis, 25)) > chi2_gate(3, opts.nis_probability)
         if self.verdict is None:
-            if nis_out and sigma_h > max(opts.distrust_ratio * claimed_h, opts.min_sigma_m):
+            implausible = robust_h > max(opts.implausible_ratio * claimed_h, opts.min_sigma_m)  # no NIS needed
+            if implausible or (nis_out and robust_h > max(opts.distrust_ratio * claimed_h, opts.min_sigma_m)):
                 self.verdict = NoiseVerdict(sigma_h, max(sigma_v, claimed_v), self._said_h, t_ns)
                 self._changed(t_ns, f"{self.verdict.describe()}: its fixes weighed as {sigma_h:.1f} m")
-        elif sigma_h < max(opts.trust_ratio * claimed_h, opts.min_sigma_m) and not nis_out:
+        elif robust_h < max(opts.trust_ratio * claimed_h, opts.min_sigma_m) and not nis_out:
             old, self.verdict = self.verdict, None
             self._changed(t_ns, f"GPS claims {self._said_h:.3f} m again consistent with its fixes (was weighed as "
                                 f"{old.sigma_h_m:.1f} m)")
         else:
-            self.verdict = NoiseVerdict(max(sigma_h, claimed_h), max(sigma_v, claimed_v), self._said_h, self.verdict.since_t_ns)
+            old = self.verdict
+            if len(self._diffs) < opts.window // 2:  # a few pairs may say less than the fit or the reset said: keep that
+                sigma_h, sigma_v = max(sigma_h, old.sigma_h_m), max(sigma_v, old.sigma_v_m)
+            self.verdict = NoiseVerdict(max(sigma_h, claimed_h), max(sigma_v, claimed_v), self._said_h, old.since_t_ns)
 
     def _changed(self, t_ns: int, text: str) -> None:
         self.changes += 1
