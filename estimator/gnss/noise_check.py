@@ -167,8 +167,9 @@ class GpsNoiseCheck:
         return self.believed(fix)
 
     def before_start(self, fix: GpsFix) -> bool:
-        """A fix heard before the filter has a state to predict it: the fixes of the last ``window`` are fitted
-        with a constant acceleration in time, and the fit's scatter judged against their claims. True when
+        """A fix heard before the filter has a state to predict it: the last fixes (``nis_window``, at least
+        ``min_pairs``) are fitted with a constant acceleration in time, and the fit's scatter judged against
+        their claims. True when
         the belief has just changed (the caller re-weighs the fixes it holds)."""
         if not self.options.enabled:
             return False
@@ -194,12 +195,6 @@ class GpsNoiseCheck:
             self._changed(fix.t_ns, f"{self.verdict.describe()} (before the start): its fixes weighed as {sigma_h:.1f} m")
             return True
         return False
-
-    def forget(self) -> None:
-        """The filter starts again from nothing it can compare with (a new start)."""
-        self._diffs.clear()
-        self._nis.clear()
-        self._last_posterior = None
 
     # ------------------------------------------------------------------------------- the verdict
     def measured_sigmas(self) -> tuple[float, float] | None:
