@@ -37,6 +37,7 @@ from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipel
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.vision.landmarks import INVERSE_DEPTH, landmark_points
 from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
+from vtolpose.estimator.gnss.noise_check import GpsNoiseCheck, NoiseCheckOptions
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
 from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonitor, HealthOptions
 from vtolpose.estimator.inertial.imu_delta import DeltaRun, ImuDelta, ImuDownsampler
@@ -82,6 +83,7 @@ class FilterOptions:
     camera: CameraOptions = field(default_factory=CameraOptions)
     visual_inertial: VisualInertialOptions = field(default_factory=VisualInertialOptions)
     health: HealthOptions = field(default_factory=HealthOptions)
+    gps_noise: NoiseCheckOptions = field(default_factory=NoiseCheckOptions)
 
     def __post_init__(self) -> None:
         StateLayout(self.variant)  # validates the variant name
@@ -105,6 +107,8 @@ class Estimator:
         self.heading_placement: HeadingPlacement | None = None  # how the bank placed the heading
         self.reset_counter = 0
         self.events: list[EstimatorEvent] = []  # start-up, alignment, resets
+        self.gps_noise = GpsNoiseCheck(opts.gps_noise, opts.gps_sigma_floor_m,  # claimed sigmas checked
+                                       lambda t_ns, text: self._event(t_ns, EventKind.GPS_NOISE, text))
         heading, self._heading_sigma = self._known_heading()
         self._heading_known = heading is not None  # configuration: the dataset's or the operator's heading
         # The modes (estimator.modes): changed only by self.modes.fire(event), where the conditions below hold.
@@ -408,6 +412,7 @@ class Estimator:
             self._downsampler = ImuDownsampler(self.options.max_filter_rate_hz)  # no more holding the last sample
             self._reset(t_ns, "imu_gap", f"no IMU sample for {self.options.health.imu_gap_reset_s:g} s (samples lost "
                         "or a clock step): the state is held, not extrapolated; covariance widened", clear_map=False)
+            self.health.imu_missing(self._last_imu_t)  # until the next sample: the held pose is not published as good
         if self._gap.holding:
             state.t_ns = max(state.t_ns, t_ns)
 
@@ -424,6 +429,7 @@ class Estimator:
         gap_s = (t_ns - self._last_imu_t) * 1e-9 if self._last_imu_t is not None else 0.0
         if gap_s > self.options.max_imu_gap_s:
             self._in_gap(t_ns)
+            self.health.imu_missing(None)  # the IMU is back
             if not self._gap.holding:
                 self.counts["imu"].flag("gap_bridged")  # extrapolated over, widened
             else:
@@ -579,6 +585,8 @@ class Estimator:
             counts.reject("non_finite")
             self.health.measured("gps", fix.t_ns, used=False)  # alive, but not usable
             return None
+        # The GPS noise check: the fix weighed with the noise it really has when its claim is not believed.
+        raw, fix = fix, self.gps_noise.believed(fix)
         state = self.state
         if state is not None and fix.t_ns < state.t_ns:
             counts.reject("older_than_filter")
@@ -586,6 +594,8 @@ class Estimator:
         if state is None:
             self._gps_seen = True
             self._starter.hear(fix)
+            if self.gps_noise.before_start(raw):  # the GPS noise check: the fixes held weighed as it now believes
+                self._starter.reweigh(self.gps_noise.believed)
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)
@@ -607,6 +617,7 @@ class Estimator:
             counts.used += 1
             self.health.measured("gps", fix.t_ns, used=True)
             return UpdateOutcome(True, 0.0, 3, "position initialised")
+        self.gps_noise.before_update(state, raw, self.gps.model)  # the GPS noise check (1/2)
         if self.heading_aligned:
             outcome = self.gps.update(state, fix)
         else:
@@ -619,10 +630,17 @@ class Estimator:
         self.health.innovations("gps", fix.t_ns, outcome.accepted if gated else None,
                                 "" if outcome.accepted else f"fix refused by the gate (NIS {outcome.nis:.1f})")
         if self.health.measured("gps", fix.t_ns, outcome.accepted, gated=True):
-            self._reset_from_gps(fix)
+            self._reset_from_gps(raw)
+        self._noise_checked(raw, fix, outcome.accepted)  # the GPS noise check (2/2)
         if not self.heading_aligned:
             self._search_heading(fix)
         return outcome
+
+    def _noise_checked(self, raw: GpsFix, weighed: GpsFix, accepted: bool) -> None:
+        """The GPS noise check sees the fix's residual after its update; a change of belief is an event."""
+        self.gps_noise.after_update(raw.t_ns, self.gps.residual(self.state, raw), accepted)
+        if weighed is not raw:
+            self.counts["gps"].flag("sigma_not_believed")
 
     def _search_heading(self, fix: GpsFix) -> None:
         """Feed the heading hypotheses. After a reset they start again from the filter's state, but
@@ -653,6 +671,7 @@ class Estimator:
         that, the attitude is wrong too (a damaged gyro reading turned it): it starts again level,
         as a moving start does, and gravity and the heading hypotheses find it again.
         """
+        fix = self.gps_noise.on_reset(fix)  # from the second reset in a row: the noise the fixes really have
         state, after_s = self.state, self.options.gps_reset_after_s
         again = self._gps_reset_t is not None and (fix.t_ns - self._gps_reset_t) * 1e-9 <= 2.0 * after_s
         self._gps_reset_t = fix.t_ns
@@ -891,6 +910,7 @@ class Estimator:
             visual_start_waiting=visual.progress if waiting else None,
             visual_start_history=tuple(visual.history) if visual is not None else (),
             visual_start_attempts=visual.attempts if visual is not None else 0,
+            gps_noise=MappingProxyType(self.gps_noise.report()),
         )
 
     def record_with(self, recorder: FilterRecorder) -> None:

@@ -251,6 +251,7 @@ class HealthMonitor:
         self.frames: deque[FrameInnovations] = deque(maxlen=64)  # the camera's last second of frames
         self._cap_ns = int(round(options.innovation_cap_s * 1e9))
         self._lost_ns = int(round(options.innovation_reset_s * 1e9))
+        self.imu_missing_since_ns: int | None = None  # the last IMU sample before a hole the state is held over
 
     # ------------------------------------------------------------------------ measurements
     def measured(self, sensor: str, t_ns: int, used: bool, gated: bool = False) -> bool:
@@ -303,6 +304,11 @@ class HealthMonitor:
         return [(name, (t_ns - r.since_ns) * 1e-9, r.why) for name, r in sorted(self.runs.items())
                 if r.since_ns is not None and t_ns >= r.since_ns]
 
+    def imu_missing(self, last_sample_ns: int | None) -> None:
+        """The IMU has been silent past ``imu_gap_reset_s`` since ``last_sample_ns`` (None: it is back). Meanwhile
+        the state is held, not flown: the pose it gives is not one to navigate by (quality cap 0)."""
+        self.imu_missing_since_ns = last_sample_ns
+
     def gap_needs_reset(self, gap_s: float) -> bool:
         return gap_s > self.options.imu_gap_reset_s
 
@@ -349,6 +355,8 @@ class HealthMonitor:
     def quality_cap(self, t_ns: int) -> int:
         """Ceiling on the published quality: 100 when healthy (per-call cost: a few comparisons)."""
         cap = 100
+        if self.imu_missing_since_ns is not None:
+            return 0
         if self.resets and t_ns - self.resets[-1].t_ns < self._hold_ns:
             cap = self.options.reset_quality_cap
         for name, s in self.sensors.items():
@@ -381,6 +389,10 @@ class HealthMonitor:
                 degraded.append(f"{name}_innovations")
         if last is not None and t_ns is not None and t_ns - last.t_ns < self._hold_ns:
             degraded.append(f"recent_reset_{last.kind}")
+        if self.imu_missing_since_ns is not None:
+            degraded.append("imu_missing")
+            sensors["imu"] = {"stale": True, "used_age_s": None if t_ns is None
+                              else round((t_ns - self.imu_missing_since_ns) * 1e-9, 3)}
         return {
             "sensors": sensors,
             "resets": dict(sorted(self.reset_counts.items())),

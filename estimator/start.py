@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -81,6 +82,10 @@ class StartCoordinator:
     def hear(self, fix: GpsFix) -> None:
         """A usable fix before the start."""
         self.fixes.append(fix)
+
+    def reweigh(self, weigh: Callable[[GpsFix], GpsFix]) -> None:
+        """The fixes heard so far, each with the sigma ``weigh`` gives it (the GPS's claimed accuracy not believed)."""
+        self.fixes = deque(map(weigh, self.fixes), maxlen=MAX_FIXES_HELD)
 
     def from_imu(self, init: InitialAttitude, camera_received: bool, gps_heard: bool) -> Start:
         """The start the IMU's window gives, with the GPS heard meanwhile. A window that looks still to the IMU is

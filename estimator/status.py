@@ -24,6 +24,7 @@ class EventKind(Enum):
     GPS_JOINED = "gps_joined"  # a GPS joined a filter without a world frame
     HEADING_PLACED = "heading_placed"  # the heading hypotheses placed the heading
     RESET = "reset"  # reset_counter stepped: see ``reset_kind``
+    GPS_NOISE = "gps_noise"  # the GPS's claimed accuracy believed, or no longer, from its fixes' own scatter
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,6 +73,7 @@ class EstimatorStatus:
     visual_start_waiting: VisualStartProgress | None = None  # why the visual-inertial start has not come yet
     visual_start_history: tuple[VisualStartProgress, ...] = ()  # each change of the check that held it
     visual_start_attempts: int = 0
+    gps_noise: Mapping = field(default_factory=lambda: MappingProxyType({}))  # the GPS noise check's verdict
 
     @property
     def initialised(self) -> bool:

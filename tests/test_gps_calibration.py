@@ -12,7 +12,7 @@ from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset, DatasetWriter
 from vtolpose.drivers.files.euroc_import import default_mounting_path, import_euroc
 from vtolpose.drivers.files.series import GpsSeries
-from vtolpose.drivers.simulator import GpsErrorModel, ImuErrorModel, SimulationOptions, simulate_flight
+from vtolpose.drivers.simulator import GpsErrorModel, ImuErrorModel, SimulationOptions
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.gps_model import antenna_positions
 from vtolpose.drivers.simulator.imu_model import corrupt_imu

@@ -146,10 +146,15 @@ def test_a_reset_after_a_corrupted_attitude_restores_the_attitude(tmp_path):
 
 # --------------------------------------------------------------------------- files and run
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (a device whose writes fail: disk full)")
-def test_a_full_disk_still_ends_a_clean_stop(flight_dir, capsys):
-    assert main(["run", "--replay", str(flight_dir), "--out", "/dev/full"]) == 0
+def test_a_full_disk_still_ends_a_clean_stop_and_fails_the_command(flight_dir, capsys):
+    """The poses flow to the end, and the command fails: a script or a service manager must not take an
+    incomplete trajectory for success. The reason is the last line."""
+    assert main(["run", "--replay", str(flight_dir), "--out", "/dev/full"]) == 1
     out = capsys.readouterr().out
-    assert "stopped by end of data" in out and "the trajectory file is incomplete: No space left on device" in out
+    assert "stopped by end of data" in out
+    assert out.splitlines()[-1] == "the trajectory file /dev/full is incomplete: No space left on device"
+    assert main(["replay", str(flight_dir), "--no-progress", "--out", "/dev/full"]) == 1
+    assert capsys.readouterr().out.splitlines()[-1] == "the trajectory /dev/full is incomplete: No space left on device"
 
 
 def test_recording_on_replay_is_refused_or_said(flight_dir, tmp_path, capsys, caplog):

@@ -2,7 +2,6 @@
 and the estimator sees exactly what it sees one sample at a time (live)."""
 
 import asyncio
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -96,6 +96,7 @@ def read_numeric_csv(
     delimiter: str | None = ",",
     time_unit_ns: int = 1,
     require_header: bool = True,
+    in_order: bool = True,
 ) -> CsvData:
     """Read ``time, v1..vn`` lines; malformed or out-of-order data lines are skipped and counted.
 
@@ -103,11 +104,12 @@ def read_numeric_csv(
     Lines starting with ``#`` are comments; with ``require_header`` the first line must be one
     with ``n_values + 1`` columns (the column header). A data line is kept when it
     has exactly ``n_values + 1`` fields, all numeric and finite, and a time later than every
-    line before it.
+    line before it. ``in_order=False`` keeps the lines that parse in file order, whatever their times
+    (the caller undoes clock steps first, then drops what is still out of order: :func:`in_time_order`).
     """
     path = Path(path)
     try:
-        return _read_numeric_csv(path, n_values, header, delimiter, time_unit_ns, require_header)
+        return _read_numeric_csv(path, n_values, header, delimiter, time_unit_ns, require_header, in_order)
     finally:
         if path.is_file() and path.stat().st_size > _TRIM_AFTER_BYTES:
             return_freed_heap()
@@ -126,7 +128,7 @@ def return_freed_heap() -> None:
 
 
 def _read_numeric_csv(path: Path, n_values: int, header: str, delimiter: str | None, time_unit_ns: int,
-                      require_header: bool) -> CsvData:
+                      require_header: bool, in_order: bool = True) -> CsvData:
     n_fields = n_values + 1
     expected = f"{n_fields} columns" + (f" ({header})" if header else "")
     try:
@@ -174,7 +176,7 @@ def _read_numeric_csv(path: Path, n_values: int, header: str, delimiter: str | N
     for i in np.flatnonzero(~keep):
         bad.append((line_numbers[i], lines[line_numbers[i] - 1], "non-finite value"))
     # A line must be later than every valid line before it (prefix maximum of their times).
-    if t_ns.size:
+    if t_ns.size and in_order:
         valid_t = np.where(keep, t_ns, np.iinfo(np.int64).min)
         earlier_max = np.concatenate([[np.iinfo(np.int64).min], np.maximum.accumulate(valid_t)[:-1]])
         in_order = t_ns > earlier_max
@@ -189,6 +191,15 @@ def _read_numeric_csv(path: Path, n_values: int, header: str, delimiter: str | N
             path, len(bad), number, reason, line[:120],
         )
     return CsvData(t_ns[keep], values[keep], len(bad))
+
+
+def in_time_order(t_ns: np.ndarray) -> np.ndarray:
+    """Which rows are later than every row before them (the order check of :func:`read_numeric_csv`)."""
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    if t_ns.size == 0:
+        return np.ones(0, dtype=bool)
+    earlier_max = np.concatenate([[np.iinfo(np.int64).min], np.maximum.accumulate(t_ns)[:-1]])
+    return t_ns > earlier_max
 
 
 def format_rows(t_ns: np.ndarray, values: np.ndarray, formats: Sequence[str], delimiter: str = ",") -> list[str]:

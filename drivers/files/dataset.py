@@ -18,7 +18,8 @@ import pymap3d
 import yaml
 
 from vtolpose.drivers.files.calibration_yaml import DATASET_FORMAT, CalibrationError, calibration_from_yaml, calibration_to_yaml, load_yaml_file
-from vtolpose.drivers.files.csvio import read_numeric_csv, write_numeric_csv
+from vtolpose.drivers.files.clock_steps import ClockStep, reanchor
+from vtolpose.drivers.files.csvio import CsvData, in_time_order, read_numeric_csv, write_numeric_csv
 from vtolpose.drivers.files.frames_csv import MAX_FRAME_PIXELS, load_grey, read_frame_index, write_frame_index, write_png
 from vtolpose.drivers.files.lidar import LIDAR_CSV, LidarReturns, read_lidar, write_lidar
 from vtolpose.drivers.files.series import GpsSeries, ImuSeries, TruthSeries
@@ -48,6 +49,7 @@ GT_HEADER = ("#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q
              "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]")
 LEICA_HEADER = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m]"
 GPS_FRAMES = ("WGS84", "NED")
+SENSOR_FILES = {IMU_CSV: 6, GPS_CSV: 5}  # the streams whose clocks are checked against each other (columns)
 MAX_GPS_HEIGHT_M = 1.0e5  # a WGS84 fix beyond ±100 km is a corrupt row (it would also make a useless origin)
 
 
@@ -59,6 +61,7 @@ class Dataset:
     calibration: Calibration
     meta: dict
     skipped: dict[str, int] = field(default_factory=dict)
+    clock_steps: dict[str, list[ClockStep]] = field(default_factory=dict)  # per sensor file: steps undone
     # Each file is parsed (and its damage counted and warned about) once, however often it is asked
     # for: a replay, its report and its progress display all read the same series. Shared: read-only.
     _parsed: dict[str, object] = field(default_factory=dict, repr=False)
@@ -87,20 +90,72 @@ class Dataset:
 
     def _read(self, rel: str, n_values: int, header: str) -> tuple[np.ndarray, np.ndarray]:
         if rel not in self._parsed:
-            data = read_numeric_csv(self.root / rel, n_values, header=header)
-            self.skipped[rel] = data.skipped
-            if len(data.t_ns) == 0:
+            if rel in SENSOR_FILES:
+                t, values, skipped = self._anchored(rel, self._raw(rel, n_values, header))
+            else:
+                data = read_numeric_csv(self.root / rel, n_values, header=header)
+                t, values, skipped = data.t_ns, data.values, data.skipped
+            self.skipped[rel] = skipped
+            if len(t) == 0:
                 raise ValueError(f"{self.root / rel}: no valid data lines")
-            self._parsed[rel] = (data.t_ns, data.values)
+            self._parsed[rel] = (t, values)
         return self._parsed[rel]
 
+    def _raw(self, rel: str, n_values: int = 0, header: str = "") -> CsvData:
+        """A sensor file's rows that parse, in file order (kept until its own clock steps are undone)."""
+        key = f"{rel} raw"
+        if key not in self._parsed:
+            n_values = n_values or SENSOR_FILES[rel]
+            self._parsed[key] = read_numeric_csv(self.root / rel, n_values, header=header, in_order=False)
+        return self._parsed[key]
+
+    def _end(self, rel: str) -> int | None:
+        """The last stamp of another sensor file (its steps undone if it was read already); None: no such file,
+        or one that cannot be read (the error is its own replay's to raise)."""
+        if f"{rel} end" in self._parsed:
+            return self._parsed[f"{rel} end"]
+        if not (self.root / rel).is_file():
+            return None
+        try:
+            if rel == CAM_CSV:
+                frames, _ = read_frame_index(self.root / CAM_CSV, self.root / CAM_DIR, in_order=False)
+                self._parsed[f"{rel} end"] = robust_end(np.array([t for t, _ in frames], dtype=np.int64))
+                return self._parsed[f"{rel} end"]
+            t = self._raw(rel).t_ns
+        except (OSError, ValueError):
+            return None
+        return robust_end(t)
+
+    def _anchored(self, rel: str, data: CsvData) -> tuple[np.ndarray, np.ndarray, int]:
+        """``data`` with its clock steps undone against the other sensor files' end (clock_steps.py), then
+        the rows still out of order dropped and counted."""
+        ends = [end for end in (self._end(other) for other in (*SENSOR_FILES, CAM_CSV) if other != rel) if end is not None]
+        t, steps = reanchor(data.t_ns, max(ends) if ends else None)
+        self._parsed.pop(f"{rel} raw", None)
+        self._parsed[f"{rel} end"] = robust_end(t)
+        if steps:
+            self.clock_steps[rel] = steps
+            for step in steps:
+                log.warning("%s: %s", self.root / rel, step.describe())
+        keep = in_time_order(t)
+        dropped = int(np.count_nonzero(~keep))
+        if dropped:
+            first = int(np.flatnonzero(~keep)[0])
+            log.warning("%s: skipped %d line(s) with a time not after the previous line; first at row %d (t_ns=%d)",
+                        self.root / rel, dropped, first + 1, int(data.t_ns[first]))
+            return t[keep], data.values[keep], data.skipped + dropped
+        return t, data.values, data.skipped
+
     def camera_frames(self) -> list[tuple[int, Path]]:
-        """``(t_ns, image path)`` of every frame in ``cam0/data.csv``, in time order (bad lines counted)."""
+        """``(t_ns, image path)`` of every frame in ``cam0/data.csv``, in time order (bad lines counted; clock
+        steps undone against the IMU and GPS files, as theirs against each other and the camera's)."""
         if not (self.root / CAM_CSV).is_file():
             return []
-        frames, skipped = read_frame_index(self.root / CAM_CSV, self.root / CAM_DIR)
+        frames, skipped = read_frame_index(self.root / CAM_CSV, self.root / CAM_DIR, in_order=False)
+        t, values, skipped = self._anchored(CAM_CSV, CsvData(np.array([t for t, _ in frames], dtype=np.int64),
+                                                             np.arange(len(frames)).reshape(-1, 1), skipped))
         self.skipped[CAM_CSV] = skipped
-        return frames
+        return [(int(t_ns), frames[int(k)][1]) for t_ns, k in zip(t.tolist(), values[:, 0].tolist())]
 
     def load_frame(self, path: Path) -> np.ndarray | None:
         """A frame as a grey uint8 array; a missing or unreadable file is a counted skip (None)."""
@@ -188,6 +243,13 @@ class Dataset:
         if returns is not None:
             self.skipped[LIDAR_CSV] = returns.skipped
         return returns
+
+
+def robust_end(t_ns: np.ndarray, spare: int = 5) -> int | None:
+    """A stream's last stamp, passing over a few corrupt ones beyond it (the ``spare``-th largest)."""
+    if len(t_ns) == 0:
+        return None
+    return int(np.partition(t_ns, len(t_ns) - min(spare, len(t_ns)))[len(t_ns) - min(spare, len(t_ns))])
 
 
 def _gps_frame(path: Path) -> str:

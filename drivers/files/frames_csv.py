@@ -19,8 +19,9 @@ log = logging.getLogger(__name__)
 FRAMES_HEADER = "#timestamp [ns],filename"
 
 
-def read_frame_index(csv_path: Path, image_dir: Path) -> tuple[list[tuple[int, Path]], int]:
-    """``[(t_ns, image path)]`` in time order, and the number of lines skipped."""
+def read_frame_index(csv_path: Path, image_dir: Path, in_order: bool = True) -> tuple[list[tuple[int, Path]], int]:
+    """``[(t_ns, image path)]`` in time order, and the number of lines skipped. ``in_order=False``: in file order,
+    whatever the times (the caller undoes clock steps, then drops what is still out of order)."""
     try:
         lines = csv_path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
     except FileNotFoundError:
@@ -45,7 +46,7 @@ def read_frame_index(csv_path: Path, image_dir: Path) -> tuple[list[tuple[int, P
         if name.is_absolute() or ".." in name.parts:
             bad.append((number, line, "file name must be inside the image folder"))
             continue
-        if last is not None and t_ns <= last:
+        if in_order and last is not None and t_ns <= last:
             bad.append((number, line, "time not after the previous line"))
             continue
         last = t_ns

@@ -167,7 +167,7 @@ def jump_rows(name: str, dataset: Dataset, cfg: dict[str, Any], sensors: Sequenc
     own effect: a rejected fix must leave the estimate as if it never came)."""
     jump = traced_replay(dataset, cfg, sensors, [f"gps-jump:{start_s:g}:20,0,0"])
     missing = traced_replay(dataset, cfg, sensors, [f"gps-off:{start_s:g}:1"])
-    gate = lambda run: run.result.estimator.counts["gps"].rejected.get("chi2_gate", 0)  # noqa: E731
+    gate = lambda run: run.result.estimator.status().counts["gps"]["rejected"].get("chi2_gate", 0)  # noqa: E731
     jumped = jump.result.faults.report()[0]["samples_affected"]
     fixes = dataset.gps().t_ns
     return [
@@ -236,7 +236,7 @@ def fault_row(run: FaultRun, clean: FaultRun, fault: str, fixes_t_ns: np.ndarray
     end = start + (f.duration_s if np.isfinite(f.duration_s) else 0.0)
     ss = clean.rmse(20.0)
     before = run.between(start - 5.0, start)
-    est = run.result.estimator
+    status = run.result.estimator.status()
     return {
         "fault": fault,
         "max_error_m": float(run.error_m[run.between(start, end + 10.0)].max()),
@@ -245,8 +245,8 @@ def fault_row(run: FaultRun, clean: FaultRun, fault: str, fixes_t_ns: np.ndarray
         "quality_min": int(run.quality[run.between(start, end + 10.0)].min()),
         "quality_after": int(np.median(run.quality[run.between(end + 8.0, end + 10.0)])),
         "recovery_s": recovery_time_s(run, end, 2.0 * ss),
-        "resets": dict(est.health.reset_counts),
-        "counted": {k: {**v["rejected"], **v.get("flagged", {})} for k, v in est.counts_report().items()
+        "resets": dict(status.health["resets"]),
+        "counted": {k: {**v["rejected"], **v.get("flagged", {})} for k, v in status.counts.items()
                     if k in ("imu", "gps", "camera")},
         "late": {k: v["rejected"] for k, v in run.result.fusion_counts.items()},
         "deviation_cm": 100.0 * trajectory_deviation_m(run, clean, fixes_t_ns),
@@ -255,7 +255,7 @@ def fault_row(run: FaultRun, clean: FaultRun, fault: str, fixes_t_ns: np.ndarray
 
 def _table(name: str, dataset: Dataset, cfg: dict[str, Any], sensors: Sequence[str], faults: Sequence[str]) -> list[Row]:
     clean = traced_replay(dataset, cfg, sensors)
-    base = {k: {**v["rejected"], **v.get("flagged", {})} for k, v in clean.result.estimator.counts_report().items()}
+    base = {k: {**v["rejected"], **v.get("flagged", {})} for k, v in clean.result.estimator.status().counts.items()}
     rows: list[Row] = [(f"{name}: RMSE without faults", clean.rmse(20.0), "m", f"from 20 s on; counted {base}")]
     for fault in faults:
         r = fault_row(traced_replay(dataset, cfg, sensors, [fault]), clean, fault, dataset.gps().t_ns)

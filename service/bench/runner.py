@@ -24,6 +24,7 @@ from vtolpose.estimator import (
 )
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
+from vtolpose.service.bench.sensor_lies import bench_sensor_lies
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.camera import bench_camera, bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.euroc import bench_euroc
@@ -115,6 +116,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "soak-camera": bench_soak_camera,
     "fault-targets": bench_fault_targets,
     "fault-table": bench_fault_table,
+    "sensor-lies": bench_sensor_lies,
     "euroc": bench_euroc,
     "euroc-reference": bench_euroc_reference,
     "euroc-causes": bench_euroc_causes,
@@ -128,7 +130,8 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "euroc-reference", "euroc-causes",
+LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "sensor-lies", "euroc", "euroc-reference",
+                   "euroc-causes",
                    "zenoh-queries", "memory-paced", "smoothing-sim", "smoothing-landmarks", "smoothing-hour",
                    "smoothing-latency")
 

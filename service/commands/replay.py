@@ -109,10 +109,12 @@ def run(args: argparse.Namespace) -> int:
     progress.finish()
     report = build_report(result, dataset, cfg, args.score_from)
     filtered_out = args.filtered_out if args.smooth else args.out
+    incomplete = list(result.incomplete)  # each requested file not written in full: said last, and the command fails
     if filtered_out:
-        write_tum(filtered_out, result.trajectory.t_ns, result.trajectory.p, result.trajectory.q)
+        incomplete += written_or_why(f"the trajectory {filtered_out}", write_tum, filtered_out, result.trajectory.t_ns,
+                                     result.trajectory.p, result.trajectory.q)
     if args.report:
-        write_json(args.report, report)
+        incomplete += written_or_why(f"the report {args.report}", write_json, args.report, report)
     for line in event_lines(report) + summary_lines(report):
         print(line)
     if overlay is not None:
@@ -120,6 +122,20 @@ def run(args: argparse.Namespace) -> int:
     written = ([f"{'smoothed ' if args.smooth else ''}trajectory {args.out}"] if args.out else [])
     written += [f"filtered trajectory {args.filtered_out}"] if args.smooth and args.filtered_out else []
     written += ([f"covariances {args.cov}"] if args.cov else []) + ([f"report {args.report}"] if args.report else [])
+    if incomplete:
+        for line in incomplete:
+            print(line, flush=True)
+        return 1
     print(f"  wrote {' and '.join(written)}" if written else
           "  (nothing written: give --out TRAJ.txt for the trajectory, --report R.json for the full report)")
     return 0
+
+
+def written_or_why(what: str, write, *args) -> list[str]:
+    """Write a requested file; [] when done, else the line that says why it is not (a full disk), the others
+    still written."""
+    try:
+        write(*args)
+    except OSError as exc:
+        return [f"{what} is incomplete: {exc.strerror or exc}"]
+    return []

@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
         summary = asyncio.run(_live(cfg, args))
     for line in summary_lines(summary):
         print(line, flush=True)
-    return 0
+    return 1 if summary.incomplete else 0  # a requested file not written in full is a failure, said in the last line
 
 
 async def _live(cfg: dict, args: argparse.Namespace):
@@ -182,7 +182,10 @@ async def _live(cfg: dict, args: argparse.Namespace):
     live = live_sources(cfg, runtime, recorder)
     runtime.origin = live.origin
     try:
-        return await serve(runtime, live.sources, args.duration)
+        summary = await serve(runtime, live.sources, args.duration)
     finally:
         if recorder is not None:
             recorder.close()
+    if recorder is not None and recorder.status.startswith("stopped"):
+        summary.incomplete.append(f"the flight recording {recorder.root} is incomplete: {recorder.status}")
+    return summary

@@ -2,8 +2,9 @@
 
 Once a second the runtime hands the outputs its status document; :class:`StatusEvents` compares it
 with the previous one and names what an operator must know: a filter reset (and why), a sensor going
-stale or coming back, the heading placed (or lost), and while the visual-inertial start waits, why
-(once per change of the check that holds it, with what it measured). :class:`TextLimiter` lets at most ``per_minute``
+stale or coming back, the heading placed (or lost), while the visual-inertial start waits, why
+(once per change of the check that holds it, with what it measured), and a GPS whose claimed accuracy is not
+believed ("GPS claims 0.005 m, behaves like 1.9 m"). :class:`TextLimiter` lets at most ``per_minute``
 texts out (a short burst allowed), and says how many it held back once it lets one out again, so a
 flapping sensor cannot flood a radio link. Long texts are split into chunks that share an ``id``
 (the MAVLink 2 extension ground stations reassemble); at most four chunks, the rest cut.
@@ -33,6 +34,7 @@ class StatusEvents:
         self._resets = 0
         self._stale: set[str] = set()
         self._waiting: str | None = None  # the check holding the visual-inertial start, last said
+        self._gps_noise: str | None = None
 
     def changes(self, doc: dict[str, Any]) -> list[tuple[int, str]]:
         health = doc.get("health") or {}
@@ -52,7 +54,11 @@ class StatusEvents:
         waiting = doc.get("visual_start") or {}
         if waiting.get("check") != self._waiting and waiting.get("text"):
             out.append((mav.MAV_SEVERITY_INFO, waiting["text"]))
-        self._aligned, self._resets, self._stale = aligned, resets, stale
+        gps_noise = (doc.get("gps_noise") or {}).get("text")
+        if gps_noise != self._gps_noise:
+            out.append((mav.MAV_SEVERITY_WARNING, gps_noise) if gps_noise
+                       else (mav.MAV_SEVERITY_INFO, "GPS accuracy claims believed again"))
+        self._aligned, self._resets, self._stale, self._gps_noise = aligned, resets, stale, gps_noise
         self._waiting = waiting.get("check")
         return out
 

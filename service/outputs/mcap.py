@@ -67,6 +67,7 @@ class McapOutput:
         self.gps = _ros_channel(self.context, GPS_TOPIC, ros2_msgs.NAV_SAT_FIX)
         self.camera = _ros_channel(self.context, IMAGE_TOPIC, ros2_msgs.COMPRESSED_IMAGE)
         self.writer: Any = None
+        self.error: str | None = None  # why the file could not be finished (a full disk), if so
         self._seq = 0
         self._pose_json = PoseJson()  # the worker's: json.dumps(pose_message(...)) in less of the interpreter's time
         self.counts = {"estimates": 0, "imu": 0, "gps": 0, "frames": 0}
@@ -78,6 +79,14 @@ class McapOutput:
                                          writer_options=MCAPWriteOptions(compression_threads=0))
         self.worker.start()
         log.info("recording estimates, raw samples and the view into %s", self.path)
+
+    @property
+    def incomplete(self) -> str | None:
+        """Why the recording lacks what it was given (a write or the close failed), or None."""
+        if self.error is not None:
+            return self.error
+        failures = self.worker.stats["failures"]
+        return f"{failures} item(s) could not be written, the last: {self.worker.stats['last_failure']}" if failures else None
 
     @property
     def stats(self) -> dict[str, Any]:
@@ -135,9 +144,13 @@ class McapOutput:
             return
         self.worker.stop()
         origin = self.origin()
-        self.writer.write_metadata("vtolpose", {
-            "frame": "poses in /vtolpose/pose: local NED, body FRD; everything else REP 103 (map ENU, base_link FLU)",
-            "origin_lat_lon_alt": "" if origin is None else ",".join(repr(float(x)) for x in origin),
-        })
-        self.writer.close()
-        self.writer = None
+        writer, self.writer = self.writer, None
+        try:
+            writer.write_metadata("vtolpose", {
+                "frame": "poses in /vtolpose/pose: local NED, body FRD; everything else REP 103 (map ENU, base_link FLU)",
+                "origin_lat_lon_alt": "" if origin is None else ",".join(repr(float(x)) for x in origin),
+            })
+            writer.close()
+        except Exception as exc:  # the SDK's own error (a full disk): the file is incomplete, said in the summary
+            self.error = f"{getattr(exc, 'strerror', None) or exc}"
+            raise

@@ -11,6 +11,7 @@ first sample of the replay. ``--fault`` specs:
     gps-jump:START:DN,DE,DD[:DURATION]     fixes displaced by (DN, DE, DD) m for DURATION s (default 1)
     gps-multipath:START:DURATION:SIGMA:RATE  a fraction RATE of the fixes displaced by N(0, SIGMA²) per axis
     camera-freeze:START:DURATION           every frame in the window repeats the last image before it
+    gps-sigma:START:DURATION:SIGMA         fixes claim a 1-sigma of SIGMA m (e.g. 1e-300: a receiver that lies)
     clock-step:T:STEP                      every sample stamp from T on moves by STEP s (e.g. +2.0)
     nan:SENSOR:START:DURATION              SENSOR (imu | gps) values are NaN in the window
 
@@ -42,6 +43,7 @@ FAULT_KINDS: dict[str, tuple[str | None, str]] = {
     "imu-gap": ("imu", "START:DURATION"),
     "gps-jump": ("gps", "START:DN,DE,DD[:DURATION]"),
     "gps-multipath": ("gps", "START:DURATION:SIGMA:RATE"),
+    "gps-sigma": ("gps", "START:DURATION:SIGMA"),
     "camera-freeze": ("camera", "START:DURATION"),
     "clock-step": (None, "T:STEP"),
     "nan": (None, "SENSOR:START:DURATION"),
@@ -81,6 +83,8 @@ class Fault:
             doc["offset_m"] = list(self.offset_m)
         if self.kind == "gps-multipath":
             doc.update(sigma_m=self.sigma_m, rate=self.rate)
+        if self.kind == "gps-sigma":
+            doc["claimed_sigma_m"] = self.sigma_m
         if self.kind == "clock-step":
             doc["step_s"] = self.step_s
         return doc
@@ -139,6 +143,11 @@ def parse_fault(spec: str) -> Fault:
         if not 0.0 < rate <= 1.0:
             raise FaultError(f"--fault {spec!r}: RATE {parts[3]!r} must be a fraction of fixes in (0, 1]")
         return Fault(kind, sensor, _start(spec, parts[0]), _duration(spec, parts[1]), sigma_m=sigma, rate=rate, spec=spec)
+    if kind == "gps-sigma":
+        sigma = _number(spec, "SIGMA", parts[2])
+        if sigma <= 0.0:
+            raise FaultError(f"--fault {spec!r}: SIGMA {parts[2]!r} must be greater than 0 m (the claim, however wrong)")
+        return Fault(kind, sensor, _start(spec, parts[0]), _duration(spec, parts[1]), sigma_m=sigma, spec=spec)
     if kind == "clock-step":
         step = _number(spec, "STEP", parts[1])
         if step == 0.0 or abs(step) > MAX_CLOCK_STEP_S:
@@ -231,6 +240,8 @@ class FaultInjector:
             rng = self._rngs[k]
             hit, noise = rng.random() < fault.rate, rng.normal(0.0, fault.sigma_m, 3)  # both drawn: fixed stream
             return dataclasses.replace(sample, p_ned=np.asarray(sample.p_ned, float) + noise) if hit else sample
+        if kind == "gps-sigma":
+            return dataclasses.replace(sample, sigma_h=fault.sigma_m, sigma_v=fault.sigma_m)
         if kind == "camera-freeze":
             if k not in self._frozen:
                 self._frozen[k] = self._last_image if self._last_image is not None else sample.image

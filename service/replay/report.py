@@ -40,6 +40,8 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
         "reset_counter": status.reset_counter,
         "sensors": {name: dict(counts) for name, counts in status.counts.items()},
         "skipped_lines": dict(dataset.skipped),
+        "clock_steps": {rel: [step.describe() for step in steps] for rel, steps in dataset.clock_steps.items()},
+        "gps_noise": dict(status.gps_noise),
         "events": [{"t_s": round((e.t_ns - result.data_t0_ns) * 1e-9, 3), "message": e.message} for e in status.events],
         "notes": list(result.notes),
     }
@@ -395,6 +397,12 @@ def count_lines(report: dict) -> list[str]:
         lines.append(f"  {label}: {c['used']} used of {c['received']}; rejected: {rej}" + (f"; flagged: {flagged}" if flagged else ""))
     for fault in report.get("faults", []):
         lines.append(f"  fault {fault['spec']}: {fault['samples_affected']} samples dropped or changed")
+    for rel, steps in (report.get("clock_steps") or {}).items():
+        lines += [f"  {rel}: {step}" for step in steps]
+    noise = report.get("gps_noise") or {}
+    if noise.get("fixes_adjusted"):
+        lines.append(f"  GPS accuracy claims not believed: {noise['fixes_adjusted']} fixes weighed with the noise measured"
+                     + (f" ({noise['text']})" if noise.get("text") else ""))
     health = report.get("health") or {}
     if health.get("resets"):
         lines.append(f"  filter resets: {', '.join(f'{k} {v}' for k, v in health['resets'].items())} (see the events)")

@@ -113,6 +113,7 @@ class ReplayResult:
     data_t0_ns: int = 0  # the first IMU sample: event times are counted from here
     smoothing: Any = None  # replay --smooth: a service.replay.smoothing.SmoothingResult
     extract_cpu_ms: list[float] = field(default_factory=list)  # as extract_ms, CPU time of the extracting thread
+    incomplete: list[str] = field(default_factory=list)  # requested file outputs (an MCAP recording) not written in full
 
 
 class FrameProcessor:
@@ -216,6 +217,7 @@ def replay(
         processor.options.detector if processor else None, fusion_counts, injector, summary.status.get("health", {}),
         summary.status.get("failures", {}), int(imu_t[0]),
         extract_cpu_ms=list(processor.extract_cpu_ms) if processor else [],
+        incomplete=list(summary.incomplete),
     )
 
 

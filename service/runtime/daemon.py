@@ -199,8 +199,6 @@ def summary_lines(summary: RunSummary) -> list[str]:
         f"({summary.data_s:.1f} s of data), {summary.poses_published} poses published, "
         f"{summary.trajectory_lines} trajectory lines",
     ]
-    if summary.trajectory_error:
-        lines.append(f"the trajectory file is incomplete: {summary.trajectory_error}")
     if summary.latency_ms["p50"] == summary.latency_ms["p50"]:  # not NaN
         lines.append("latency IMU in -> outputs out: p50 {p50:.3f} ms, p99 {p99:.3f} ms, max {max:.3f} ms".format(**summary.latency_ms))
     status = summary.status
@@ -216,7 +214,11 @@ def summary_lines(summary: RunSummary) -> list[str]:
         lines.append(f"filter resets: {describe(health['resets'])}; the last: {last['reason']}")
     if health.get("degraded"):
         lines.append(f"degraded at the end: {', '.join(health['degraded'])}")
+    noise = status.get("gps_noise") or {}
+    if noise.get("fixes_adjusted"):
+        lines.append(f"GPS accuracy claims not believed: {noise['fixes_adjusted']} fixes weighed with the noise measured"
+                     + (f"; at the end: {noise['text']}" if noise.get("text") else ""))
     if status.get("failures"):
         lines.append("isolated failures: " + "; ".join(f"{part} x{f['failures']} ({f['last']})"
                                                     for part, f in status["failures"].items()))
-    return lines
+    return lines + summary.incomplete  # last: what was asked for and not done (the command then fails)

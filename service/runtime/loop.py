@@ -110,6 +110,7 @@ class RunSummary:
     latency_ms: dict[str, float]
     status: dict[str, Any]
     trajectory_error: str | None = None  # a write to the trajectory file failed (a full disk): it is incomplete
+    incomplete: list[str] = field(default_factory=list)  # each requested file output that is incomplete, and why
 
 
 class Runtime:
@@ -126,6 +127,7 @@ class Runtime:
     ) -> None:
         self.options = opts = options or RuntimeOptions()
         self.fused_hook = on_fused  # sees every fused pose (a replay's recorder)
+        self._close_errors: dict[str, str] = {}  # file outputs whose close failed: name -> why
         # Stamps enter on the IMU clock: each sensor's calibrated offset is added here, before the
         # fusion horizon orders them (so a late camera is fused at the time it really saw).
         cal = estimator.calibration
@@ -386,6 +388,7 @@ class Runtime:
             "outputs": links,
             "quality": pose_quality(self.last_pose) if self.last_pose is not None else 0,
             "pose_problem": pose_problem(self.last_pose) if self.last_pose is not None else "no pose yet",
+            **self._imu_missing(),
             "failures": self.failures.report(),  # isolated failures of outputs, sources, the trajectory file
         }
         # Input links with their own counters (the GPS over MAVLink on a link of its own), beside the outputs'.
@@ -396,6 +399,16 @@ class Runtime:
         if self.recorder is not None:  # a live run's flight recording (its own status, never an error here)
             extra["recording"] = {"status": self.recorder.status, "rows": dict(self.recorder.rows)}
         return self.status.snapshot(self.est, self.fusion, extra)
+
+    def _imu_missing(self) -> dict[str, Any]:
+        """The last pose is no longer one to use when the IMU has gone quiet: the filter holds its state over the
+        hole (it said so at the last measurement), or no sample has arrived for ``imu_gap_reset_s`` (host clock)."""
+        limit_s = self.est.options.health.imu_gap_reset_s
+        imu = self.status.sensors.get("imu")
+        age_s = None if imu is None or imu.last_arrival is None else self.status.clock() - imu.last_arrival
+        if self.est.health.imu_missing_since_ns is None and (age_s is None or age_s <= limit_s):
+            return {}
+        return {"quality": 0, "pose_problem": "IMU missing: the state is held, not flown"}
 
     async def _status_loop(self, stop: asyncio.Event) -> None:
         period = self.options.status_period_s
@@ -500,6 +513,8 @@ class Runtime:
                     out.close()
                 except Exception as exc:  # closing one link must not keep the others open
                     log.error("closing %s: %s", type(out).__name__, exc)
+                    if hasattr(out, "incomplete"):  # a file output that could not be finished
+                        self._close_errors[out.name] = f"{getattr(exc, 'strerror', None) or exc}"
             self._executor.shutdown(wait=True, cancel_futures=True)
             if opencv_threads is not None:
                 import cv2
@@ -522,4 +537,17 @@ class Runtime:
             latency_ms={"p50": p50, "p99": p99, "max": pmax},
             status=self.status_document(),
             trajectory_error=self.trajectory.error if self.trajectory is not None else None,
+            incomplete=self.incomplete_outputs(),
         )
+
+    def incomplete_outputs(self) -> list[str]:
+        """Each requested file output (the trajectory file, an MCAP recording) that could not be written in full,
+        with the reason: the run then did not do what was asked, whatever the poses did."""
+        out = []
+        if self.trajectory is not None and self.trajectory.error:
+            out.append(f"the trajectory file {self.trajectory.path} is incomplete: {self.trajectory.error}")
+        for output in self.outputs:
+            why = self._close_errors.get(output.name) or getattr(output, "incomplete", None)
+            if why:
+                out.append(f"the {output.name} output {getattr(output, 'path', '')} is incomplete: {why}".replace("  ", " "))
+        return out

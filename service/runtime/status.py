@@ -163,6 +163,7 @@ class StatusTracker:
     events: dict[str, int] = field(default_factory=dict)  # runtime-level counters (camera busy, errors)
 
     def __post_init__(self) -> None:
+        self._gps_noise_text: str | None = None  # the GPS noise check's verdict last logged
         self._last_wall = self.clock()
         self._last_cpu = time.process_time()
         self._logged_wait: str | None = None  # the visual-inertial start's last logged reason (logged on change)
@@ -194,6 +195,13 @@ class StatusTracker:
         status = est.status()
         health = dict(status.health)
         rejected = {name: c["rejected"] for name, c in status.counts.items() if c["rejected"]}
+        gps_noise = dict(status.gps_noise)
+        if gps_noise["text"] != self._gps_noise_text:  # the log says it once, when it changes
+            if gps_noise["text"] is not None:
+                log.warning("%s: its fixes are weighed with the noise measured", gps_noise["text"])
+            else:
+                log.info("GPS claims believed again")
+            self._gps_noise_text = gps_noise["text"]
         late = {name: c["rejected"] for name, c in fusion.counts_report().items() if c["rejected"]}
         doc = {
             "sensors": sensors,
@@ -215,6 +223,7 @@ class StatusTracker:
             },
             "filter_resets": status.reset_counter,
             "health": health,
+            "gps_noise": gps_noise,  # a GPS whose claimed sigma is not believed: the noise it really has
             "events": dict(self.events),
             "cpu_percent": round(cpu_percent, 1),
             "load_average": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
