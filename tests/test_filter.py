@@ -7,7 +7,9 @@ import pytest
 
 from vtolpose.estimator.core.calibration import Calibration, ImuCalibration, ImuNoise
 from vtolpose.estimator.core.measurements import GpsFix
-from vtolpose.estimator.filter import VELOCITY_FIT_S, Estimator, PoseEstimate
+from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.start import VELOCITY_FIT_S
+from vtolpose.estimator.status import EventKind
 from vtolpose.estimator.fusion import OutputPose
 from vtolpose.estimator.vision.features import FeatureOptions, extract_features
 from vtolpose.service.outputs.mavlink_odometry import odometry_fields
@@ -18,14 +20,12 @@ IMU_DT_NS = 8_000_000  # 125 Hz
 STILL_F = np.array([0.0, 0.0, -9.80665])
 
 
-def odometry_reset_counter(pose: PoseEstimate) -> int:
-    """The ``reset_counter`` an ODOMETRY message made from this pose carries."""
-    cov9 = np.zeros((9, 9))
-    cov9[0:3, 0:3], cov9[6:9, 6:9], cov9[0:3, 6:9], cov9[6:9, 0:3] = (
-        pose.pose_cov[0:3, 0:3], pose.pose_cov[3:6, 3:6], pose.pose_cov[0:3, 3:6], pose.pose_cov[3:6, 0:3])
-    cov9[3:6, 3:6] = pose.vel_cov
-    out = OutputPose(pose.t_ns, pose.p, pose.v, pose.q, pose.omega_b, cov9, pose.pose_cov, np.full(3, 1e-6),
-                     pose.heading_aligned, True, pose.reset_counter, pose.t_ns)
+def odometry_reset_counter(est: Estimator) -> int:
+    """The ``reset_counter`` an ODOMETRY message made from the estimator's present pose carries."""
+    state, cov9 = est.state, est.published_cov9()
+    pose_cov = cov9[np.ix_(np.r_[0:3, 6:9], np.r_[0:3, 6:9])]
+    out = OutputPose(state.t_ns, state.p, state.v, state.q, np.zeros(3), cov9, pose_cov, np.full(3, 1e-6),
+                     est.heading_aligned, True, est.reset_counter, state.t_ns)
     return odometry_fields(out)["reset_counter"]
 
 
@@ -43,7 +43,7 @@ def test_a_gps_joining_a_camera_frame_of_its_own_resets_once_onto_the_fixes() ->
         assert est.process_features(extract_features(textured(5 + k), EPOCH + frame_t, FeatureOptions())).accepted
     assert est.local_position and not est.heading_aligned
     before = est.reset_counter
-    assert odometry_reset_counter(est.pose()) == before % 256
+    assert odometry_reset_counter(est) == before % 256
 
     p0, velocity = np.array([12.0, -7.0, 1.5]), np.array([0.5, -0.2, 0.1])
     first_fix_ns = EPOCH + 3_200_000_000
@@ -59,13 +59,12 @@ def test_a_gps_joining_a_camera_frame_of_its_own_resets_once_onto_the_fixes() ->
         if outcome is not None and outcome.reason == "GPS joined":
             assert joined_at is None, "joined twice"
             joined_at = fix_t
-            pose = est.pose()
-            assert pose.p == pytest.approx(fix.p_ned, abs=1e-9)  # the last fix's position (no lever arm)
-            assert pose.v == pytest.approx(velocity, abs=1e-6)  # the fixes' velocity
-            assert odometry_reset_counter(pose) == (before + 1) % 256
+            assert est.state.p == pytest.approx(fix.p_ned, abs=1e-9)  # the last fix's position (no lever arm)
+            assert est.state.v == pytest.approx(velocity, abs=1e-6)  # the fixes' velocity
+            assert odometry_reset_counter(est) == (before + 1) % 256
     assert joined_at is not None and (joined_at - first_fix_ns) * 1e-9 == pytest.approx(VELOCITY_FIT_S)
     assert est.reset_counter == before + 1
     assert counters == [before if t < joined_at else before + 1 for t in fix_times]
-    joined = [text for t, text in est.events if "GPS joined" in text]
+    joined = [e.message for e in est.events if e.kind is EventKind.GPS_JOINED]
     assert len(joined) == 1 and f"reset #{before + 1}" in joined[0]
     assert not est.local_position
