@@ -16,7 +16,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from vtolpose.config import ConfigError
 
 # Subcommand name -> module in vtolpose.service.commands providing add_parser(subparsers) and run(args).
-COMMANDS = ("demo", "simulate", "import", "replay", "eval", "map", "export", "bench", "calibrate", "probe", "run")
+COMMANDS = ("demo", "simulate", "import", "replay", "eval", "map", "batch", "export", "bench", "calibrate", "probe", "run")
 
 DESCRIPTION = """\
 vtolpose: pose of a VTOL UAV from IMU, camera and GPS (EKF-SLAM), for the flight controller
