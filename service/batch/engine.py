@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 from vtolpose.service.batch.flights import FlightInput
 from vtolpose.service.batch.settings import BatchSettings
-from vtolpose.service.batch.task import run_flight
+from vtolpose.service.batch.task import clear_partials, run_flight
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +119,7 @@ def run_on_client(client, flights: list[FlightInput], settings: BatchSettings, o
             row = future.result()
         except Exception as exc:  # noqa: BLE001 - the worker died (KilledWorker) or the task was lost
             row = _lost_row(flights[k], exc, memory_limit)
+            clear_partials(Path(out_root), flights[k].name)  # what its last attempt left
         future.release()
         rows[k] = row
         state.done += row["status"] == "done"

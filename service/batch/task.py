@@ -49,7 +49,7 @@ def _publish(work: Path, out: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _clear_partials(out_root: Path, name: str) -> None:
+def clear_partials(out_root: Path, name: str) -> None:
     """Remove what an earlier attempt at this flight left (a worker killed mid-flight)."""
     for stale in out_root.glob(partial_prefix(name) + "*"):
         shutil.rmtree(stale, ignore_errors=True)
@@ -72,7 +72,7 @@ def run_flight(flight: FlightInput, settings: BatchSettings, out_root: str, forc
             if stored is not None:
                 return {**stored, "status": "skipped"}
         root.mkdir(parents=True, exist_ok=True)
-        _clear_partials(root, flight.name)
+        clear_partials(root, flight.name)
         work = root / f"{partial_prefix(flight.name)}{uuid.uuid4().hex[:8]}"
         work.mkdir()
         where = {"host": socket.gethostname(), "pid": os.getpid()}
