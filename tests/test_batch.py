@@ -239,11 +239,11 @@ def test_quality_is_binned_in_whole_tens_of_seconds_at_most_sixty_bins():
     assert summary["quality_usable_fraction"] == pytest.approx(10_500 / 10_800, abs=1e-4)
 
 
-def test_a_flight_lost_with_its_workers_says_so_and_leaves_nothing(tmp_path):
+def test_a_flight_lost_with_its_workers_says_why():
     from vtolpose.service.batch.engine import ALLOWED_FAILURES, _lost_row
     from vtolpose.service.batch.flights import FlightInput
 
     flight = FlightInput("big", "/data/big", "dataset")
-    row = _lost_row(flight, distributed.KilledWorker("vtolpose-flight-big", "tcp://127.0.0.1:1"), "2GB")
+    row = _lost_row(flight, distributed.KilledWorker("vtolpose-flight-big", "tcp://127.0.0.1:1", ALLOWED_FAILURES), "2GB")
     assert row["status"] == "failed" and row["flight"] == "big"
     assert f"died {ALLOWED_FAILURES + 1} times" in row["error"] and "2GB per worker" in row["error"]
