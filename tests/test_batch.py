@@ -247,3 +247,24 @@ def test_a_flight_lost_with_its_workers_says_why():
     row = _lost_row(flight, distributed.KilledWorker("vtolpose-flight-big", "tcp://127.0.0.1:1", ALLOWED_FAILURES), "2GB")
     assert row["status"] == "failed" and row["flight"] == "big"
     assert f"died {ALLOWED_FAILURES + 1} times" in row["error"] and "2GB per worker" in row["error"]
+
+
+def test_a_bag_and_a_euroc_folder_are_imported_in_the_flight(flights, settings, tmp_path, euroc_mh01):
+    """An MCAP bag of f1's streams gives f1's own smoothed trajectory; MH01 is imported with a GPS made from its truth."""
+    from rosbags.rosbag2 import StoragePlugin
+    from test_rosbag_import import write_bag
+
+    from vtolpose.service.batch.settings import BagImport
+
+    bag = tmp_path / "f1-bag"
+    write_bag(flights / "f1", bag, StoragePlugin.MCAP, False, "geometry_msgs/msg/PoseStamped")
+    mcap = next(bag.glob("*.mcap"))
+    with_topics = BatchSettings(settings.cfg, plots=False, bag=BagImport(
+        "/imu/data", "/fix", truth_topic="/truth", calibration=str(flights / "f1" / "dataset.yaml")),
+        euroc=EurocImport(gps_rate_hz=10.0, camera=False))
+    rows = run_in_loop(find_flights([str(mcap), str(flights / "f1"), str(euroc_mh01)]), with_topics, tmp_path / "out")
+    assert [(r["kind"], r["status"]) for r in rows] == [("rosbag", "done"), ("dataset", "done"), ("euroc", "done")], rows
+    bag_out, f1_out, mh01_out = (tmp_path / "out" / r["flight"] for r in rows)
+    assert (bag_out / "trajectory-smoothed.txt").read_bytes() == (f1_out / "trajectory-smoothed.txt").read_bytes()
+    assert not (bag_out / "dataset").exists() and not (mh01_out / "dataset").exists()  # imports are not kept
+    assert rows[2]["gps_received"] > 1000 and rows[2]["smoothed_position_rmse_m"] < 0.1

@@ -75,7 +75,8 @@ def _lost_row(flight: FlightInput, exc: BaseException, memory_limit: str | None)
 
     if isinstance(exc, KilledWorker):
         limit = f"{memory_limit} per worker" if memory_limit else "the cluster's per-worker limit"
-        error = (f"KilledWorker: the worker running this flight died {ALLOWED_FAILURES + 1} times (killed, or above its "
+        deaths = getattr(exc, "allowed_failures", ALLOWED_FAILURES) + 1  # the scheduler's setting, not ours on a cluster
+        error = (f"KilledWorker: the worker running this flight died {deaths} times (killed, or above its "
                  f"memory limit, {limit}); not tried again")
     else:
         error = f"{type(exc).__name__}: {exc}"
