@@ -88,7 +88,10 @@ def local_cluster(workers: int | None, memory_limit: str | None):
     import dask
     from distributed import LocalCluster
 
-    with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES}):
+    # No statistical profiler in the workers: it samples the running flight's stack every 10 ms, which
+    # costs a replay (deep Python stacks, the GIL) and nobody reads it without a dashboard.
+    with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES,
+                          "distributed.worker.profile.enabled": False}):
         return LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
                             host="127.0.0.1", dashboard_address=None, memory_limit=memory_limit or "auto",
                             silence_logs=logging.ERROR,

@@ -29,6 +29,7 @@ from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
+from vtolpose.service.bench.batch import bench_batch
 from vtolpose.service.bench.camera import bench_camera, bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.euroc import bench_euroc
 from vtolpose.service.bench.euroc_reference import bench_euroc_reference
@@ -126,13 +127,14 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "smoothing-landmarks": bench_smoothing_landmarks,
     "smoothing-hour": bench_smoothing_hour,
     "smoothing-latency": bench_smoothing_latency,
+    "batch": bench_batch,
 }
 
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
 LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "euroc", "euroc-reference",
                    "zenoh-queries", "memory-paced", "smoothing-sim", "smoothing-landmarks", "smoothing-hour",
-                   "smoothing-latency")
+                   "smoothing-latency", "batch")
 
 
 # Several of the above together (camera: features, then replay-camera): only when named.
