@@ -268,3 +268,24 @@ def test_a_bag_and_a_euroc_folder_are_imported_in_the_flight(flights, settings, 
     assert (bag_out / "trajectory-smoothed.txt").read_bytes() == (f1_out / "trajectory-smoothed.txt").read_bytes()
     assert not (bag_out / "dataset").exists() and not (mh01_out / "dataset").exists()  # imports are not kept
     assert rows[2]["gps_received"] > 1000 and rows[2]["smoothed_position_rmse_m"] < 0.1
+
+
+def test_the_progress_line_counts_flights_and_estimates_from_those_run(capsys):
+    import io
+
+    from vtolpose.service.batch.engine import BatchState
+    from vtolpose.service.commands.batch import BatchDisplay
+
+    state = BatchState(10, workers=2)
+    assert state.eta_s() is None and state.running == 2
+    state.started -= 20.0  # 20 s in: two flights run, three unchanged (free), one failed
+    state.done, state.skipped, state.failed = 2, 3, 1
+    assert state.eta_s() == pytest.approx(20.0 / 3 * 4, rel=0.01)
+    stream = io.StringIO()
+    display = BatchDisplay(10, stream, enabled=True)
+    display(state, {"flight": "f7", "status": "failed", "error": "ValueError: bad"})
+    assert "[6/10] f7: FAILED: ValueError: bad" in capsys.readouterr().out
+    line = stream.getvalue()
+    assert "6/10 finished (2 run, 3 unchanged, 1 failed), 2 running, eta 27 s" in line
+    state.done = 6
+    assert state.running == 0
