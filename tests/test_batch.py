@@ -289,3 +289,13 @@ def test_the_progress_line_counts_flights_and_estimates_from_those_run(capsys):
     assert "6/10 finished (2 run, 3 unchanged, 1 failed), 2 running, eta 27 s" in line
     state.done = 6
     assert state.running == 0
+
+
+def test_the_command_line_loads_dask_and_arrow_only_for_a_batch():
+    import subprocess
+    import sys
+
+    code = ("import sys; from vtolpose.service.cli import build_parser; build_parser(); "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'distributed', 'dask', 'pyarrow'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
