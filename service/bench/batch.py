@@ -30,7 +30,7 @@ SPEEDUP_TARGET = ">= 1.8"
 ROUNDS = 2
 
 
-def _warm(flight: FlightInput, settings: BatchSettings, out_root: str) -> str:
+def _warm(flight: FlightInput, settings: BatchSettings, out_root: str) -> int:
     """One flight run in this process and thrown away: the imports and kernels a process loads once."""
     row = run_flight(flight, settings, out_root, force=True)
     if row["status"] != "done":
