@@ -124,12 +124,12 @@ def run_on_client(client, flights: list[FlightInput], settings: BatchSettings, o
         except Exception as exc:  # noqa: BLE001 - the worker died (KilledWorker) or the task was lost
             row = _lost_row(flights[k], exc, memory_limit)
             clear_partials(Path(out_root), flights[k].name)  # what its last attempt left
+            state.workers = max(1, sum(client.nthreads().values()))  # workers died: count those there are now
         future.release()
         rows[k] = row
         state.done += row["status"] == "done"
         state.skipped += row["status"] == "skipped"
         state.failed += row["status"] == "failed"
-        state.workers = max(1, sum(client.nthreads().values()))
         if on_progress is not None:
             on_progress(state, row)
     return [row for row in rows if row is not None]

@@ -25,7 +25,7 @@ from vtolpose.service.batch.settings import BatchSettings
 from vtolpose.service.batch.task import run_flight
 
 FLIGHTS = 16
-FLIGHT_S = 30.0
+FLIGHT_S = 60.0
 SPEEDUP_TARGET = ">= 1.8"
 ROUNDS = 2
 
