@@ -74,6 +74,7 @@ PUBLIC: dict[str, str] = {
     'GroundFunction': 'vtolpose.estimator.mapping.survey',
     'MapScore': 'vtolpose.estimator.mapping.survey',
     'height_error': 'vtolpose.estimator.mapping.survey',
+    'mean_over_cells': 'vtolpose.estimator.mapping.survey',
     'score_map': 'vtolpose.estimator.mapping.survey',
     'chi2_band': 'vtolpose.estimator.metrics',
     'evaluate': 'vtolpose.estimator.metrics',

@@ -26,6 +26,7 @@ COMMANDS = {
     "replay": "run the estimator over a dataset, write the trajectory and a report",
     "eval": "score a trajectory against truth (RMSE, drift)",
     "map": "map a dataset's LIDAR returns with a trajectory (or live poses) and score the map",
+    "batch": "smooth, map and score many flights at once (this computer's cores or a Dask cluster)",
     "export": "a TUM trajectory as a WGS84 flight path with time and quality per point (GeoJSON, KML)",
     "bench": "speed figures on this machine (can it keep up?)",
     "calibrate": "calibrate IMU, camera, IMU-camera and GPS timing, GPS lever arm",

@@ -221,3 +221,26 @@ def test_demo_maps_the_flight_with_true_poses_and_each_kind_of_pose(tmp_path, ca
     for stem in ["imu-gps"] + (["imu-camera-gps"] if len(sets) == 2 else []):
         for kind in ("filtered", "fixed-lag", "smoothed"):
             assert (out_dir / f"trajectory-{stem}-{kind}.txt").stat().st_size > 10_000, (stem, kind)
+
+
+def test_the_volume_follows_the_height_error_over_the_cells_not_over_the_returns(mapped_dataset):
+    """0.5 m too high only during the climb (its returns packed into a few cells, low over the pad):
+    the mean over the returns weighs those cells by their many returns; the volume does not."""
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.service.mapping.mapper import pose_errors
+    from vtolpose.service.mapping.poses import truth_window
+
+    dataset = Dataset.open(mapped_dataset)
+    returns, truth = dataset.lidar(), truth_window(dataset)
+    p = truth.p.copy()
+    early = truth.t_ns < truth.t_ns[0] + 20_000_000_000  # the climb: returns from 13 s, 45 m up by 27 s
+    p[early, 2] -= 0.5
+    estimate = trajectory_window(truth.t_ns, p, truth.q)
+    maps = [map_returns(returns, window_poses(w), 1.0).grid.snapshot() for w in (truth, estimate)]
+    assert np.array_equal(maps[0].count, maps[1].count)  # a height error moves no return to another cell
+    covered = maps[0].covered
+    volume_change_m3 = float(np.sum(maps[1].height[covered] - maps[0].height[covered]))  # 1 m² cells, base below all
+    errors = pose_errors(estimate, truth, returns, 1.0)
+    assert errors["cells"] == int(covered.sum())
+    assert errors["height_error_mean_m"] * errors["cells"] == pytest.approx(volume_change_m3, rel=1e-6)
+    assert errors["height_error_mean_returns_m"] > 2 * errors["height_error_mean_m"] > 0

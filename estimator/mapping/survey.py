@@ -7,6 +7,10 @@
   covered cells of ``cell area × max(height − base, 0)``. The true volume is the same integral of
   the true ground over the same cells. Volume error = mapped − true; the two use the same cells,
   so it measures what the map got wrong, not what it did not see.
+- **A pose's height error as the volume sees it**: the mean over the map's cells of each cell's
+  mean error (:func:`mean_over_cells`), not the mean over the returns: a cell counts its area
+  once however many returns fell in it, so a climb that packs its returns into a few cells
+  weighs what those cells weigh in the volume, no more.
 - **Coverage**: the covered area, and the fraction of the cells inside the map's outline (the
   covered cells with their enclosed holes filled) that hold a return: 1.0 means no holes.
 """
@@ -70,6 +74,26 @@ def height_error(hmap: HeightMap, ground_down: GroundFunction, subsamples: int =
     """Map height minus true mean height per cell [m]; NaN where the map is empty."""
     true_up, _ = true_cell_means(hmap, ground_down, 0.0, subsamples)
     return hmap.height - true_up
+
+
+def mean_over_cells(points_ned: np.ndarray, values: np.ndarray, cell_m: float) -> tuple[float, int]:
+    """``(mean over cells of the per-cell mean of values, cells)``: each point's value goes to the
+    cell its ``points_ned`` row falls in (the height grid's cells); points with a non-finite
+    coordinate or value are left out, as the grid leaves them out. ``(nan, 0)`` for no points."""
+    points = np.asarray(points_ned, dtype=float).reshape(-1, 3)
+    values = np.asarray(values, dtype=float).reshape(-1)
+    if len(points) != len(values):
+        raise ValueError(f"mean_over_cells: {len(points)} points but {len(values)} values")
+    keep = np.all(np.isfinite(points), axis=1) & np.isfinite(values)
+    if not np.any(keep):
+        return float("nan"), 0
+    i = np.floor(points[keep, 0] / cell_m).astype(np.int64)
+    j = np.floor(points[keep, 1] / cell_m).astype(np.int64)
+    _, cell = np.unique(np.stack([i, j], axis=1), axis=0, return_inverse=True)
+    cell = cell.reshape(-1)
+    sums = np.bincount(cell, weights=values[keep])
+    counts = np.bincount(cell)
+    return float(np.mean(sums / counts)), int(len(counts))
 
 
 def coverage_fraction(covered: np.ndarray) -> float:

@@ -133,17 +133,18 @@ def run(args: argparse.Namespace) -> int:
     doc: dict = {"dataset": str(dataset.root), "lidar": spec.model, "map": flight.as_dict()}
     if args.explain:
         estimate, truth = file_window(args.trajectory), truth_window(dataset)
-        errors = pose_errors(estimate, truth, returns.t_ns + offset_ns)
+        errors = pose_errors(estimate, truth, returns, args.cell, offset_ns)
         maps = [flight if label == "trajectory" else map_and_score(label, returns, source, args.cell, args.base, ground,
                                                                    offset_ns)
                 for label, source in attribution_sources(estimate, truth).items()]
         print("\nwhat the map's error comes from (each map scored against the true ground):")
         for line in table_lines(maps):
             print(line)
-        print(f"  the trajectory's pose errors at the returns' times: height mean {errors['height_error_mean_m']:+.3f} m "
-              f"(RMS {errors['height_error_rms_m']:.3f} m), horizontal RMS {errors['horizontal_rms_m']:.3f} m, "
-              f"attitude RMS {errors['attitude_rms_deg']:.3f}°")
-        print(f"  height mean × mapped area = {errors['height_error_mean_m'] * flight.score.area_m2:+.0f} m³")
+        print(f"  the trajectory's pose errors at the returns' times: height mean over the map's "
+              f"{errors['cells']} cells {errors['height_error_mean_m']:+.3f} m (over its {errors['returns']} returns "
+              f"{errors['height_error_mean_returns_m']:+.3f} m; RMS {errors['height_error_rms_m']:.3f} m), horizontal RMS "
+              f"{errors['horizontal_rms_m']:.3f} m, attitude RMS {errors['attitude_rms_deg']:.3f}°")
+        print(f"  height mean over the cells × mapped area = {errors['height_error_mean_m'] * flight.score.area_m2:+.0f} m³")
         doc["explain"] = {"maps": [m.as_dict() for m in maps], "pose_errors": errors}
     if args.png:
         from vtolpose.service.mapping.plots import plot_error, plot_height

@@ -12,7 +12,8 @@ from vtolpose.client import OutsideHistory, PoseWindow
 from vtolpose.drivers.files.lidar import LidarReturns
 from vtolpose.drivers.simulator import make_scenario
 from vtolpose.estimator import (
-    GroundFunction, HeightGrid, LidarMount, place_returns, quat_from_euler, quat_to_rot, rotation_angle,
+    GroundFunction, HeightGrid, LidarMount, mean_over_cells, place_returns, quat_from_euler, quat_to_rot,
+    rotation_angle,
 )
 from vtolpose.service.mapping.poses import PoseSource
 
@@ -82,9 +83,17 @@ def true_ground(returns: LidarReturns) -> GroundFunction | None:
     return make_scenario(returns.ground_scenario).ground_height
 
 
-def pose_errors(estimate: PoseWindow, truth: PoseWindow, t_ns: np.ndarray) -> dict:
-    """The estimate's pose errors at the returns' times (where both cover them): height error mean
-    and RMS (up positive: a map raised by it), horizontal RMS, attitude RMS."""
+def pose_errors(estimate: PoseWindow, truth: PoseWindow, returns: LidarReturns, cell_m: float,
+                time_offset_ns: int = 0) -> dict:
+    """The estimate's pose errors at the returns' times (where both cover them), up positive (a map raised by it).
+
+    ``height_error_mean_m`` is the mean over the map's cells (``cell_m``, the returns placed with
+    the estimate, as its map places them) of each cell's mean error: what the map's volume error
+    follows (a cell's height is the mean of its returns; the volume sums cells, not returns).
+    ``height_error_mean_returns_m`` is the plain mean over the returns, for comparison: a climb or a
+    slow pass packs many returns into few cells and weighs in it far beyond its area. RMS heights,
+    horizontal and attitude errors are over the returns."""
+    t_ns = returns.t_ns + time_offset_ns
     inside = (t_ns >= max(estimate.t_ns[0], truth.t_ns[0])) & (t_ns <= min(estimate.t_ns[-1], truth.t_ns[-1]))
     t = t_ns[inside]
     if not t.size:
@@ -92,9 +101,14 @@ def pose_errors(estimate: PoseWindow, truth: PoseWindow, t_ns: np.ndarray) -> di
     p_e, q_e = estimate.interpolate(t)
     p_t, q_t = truth.interpolate(t)
     d = p_e - p_t
+    up_error = -d[:, 2]
+    placed = place_returns(p_e, q_e, returns.spec.mount, returns.angle[inside], returns.range_m[inside])
+    cell_mean, cells = mean_over_cells(placed, up_error, cell_m)
     return {
         "returns": int(t.size),
-        "height_error_mean_m": float(-np.mean(d[:, 2])),
+        "cells": cells,
+        "height_error_mean_m": cell_mean,
+        "height_error_mean_returns_m": float(np.mean(up_error)),
         "height_error_rms_m": float(np.sqrt(np.mean(d[:, 2] ** 2))),
         "horizontal_rms_m": float(np.sqrt(np.mean(np.sum(d[:, :2] ** 2, axis=1)))),
         "attitude_rms_deg": float(np.degrees(np.sqrt(np.mean(rotation_angle(q_e, q_t) ** 2)))),

@@ -7,11 +7,9 @@ computes it during the replay) and the smoothed one after the flight.
 
 from __future__ import annotations
 
-import numpy as np
-
 from vtolpose.client import PoseWindow
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.files.lidar import LIDAR_CSV
+from vtolpose.drivers.files.lidar import LIDAR_CSV, LidarReturns
 from vtolpose.service.mapping.mapper import pose_errors, true_ground
 from vtolpose.service.mapping.poses import trajectory_window, truth_window, window_poses
 from vtolpose.service.mapping.report import MappedFlight, map_and_score, table_lines
@@ -37,21 +35,24 @@ def map_side_by_side(dataset: Dataset, trajectories: dict[str, PoseWindow], cell
              "each against the true ground:", *table_lines(maps)]
     if trajectories:
         lines += ["", "the poses at the returns' times against the truth (a map's volume error is about its height",
-                  "mean × its area):", *pose_error_lines(trajectories, truth, returns.t_ns, maps[1:])]
+                  "error's mean over the map's cells × its area; the mean over the returns weighs a cell by how many it holds):",
+                  *pose_error_lines(trajectories, truth, returns, cell_m, maps[1:])]
     return maps, lines
 
 
-def pose_error_lines(trajectories: dict[str, PoseWindow], truth: PoseWindow, t_ns: np.ndarray,
+def pose_error_lines(trajectories: dict[str, PoseWindow], truth: PoseWindow, returns: LidarReturns, cell_m: float,
                      maps: list[MappedFlight]) -> list[str]:
-    """Each trajectory's height error mean and RMS, horizontal and attitude RMS, and the volume its height mean explains."""
+    """Each trajectory's height error mean over the map's cells and over the returns, RMS, horizontal and
+    attitude RMS, and the volume its mean over the cells explains."""
     width = max(len(label) for label in trajectories)
-    lines = [f"  {'poses':<{width}}  {'height mean m':>13}  {'RMS m':>6}  {'horiz. RMS m':>12}  {'att. RMS °':>10}  "
-             f"{'mean × area m³':>14}"]
+    lines = [f"  {'poses':<{width}}  {'height mean m':>13}  {'over returns':>12}  {'RMS m':>6}  {'horiz. RMS m':>12}  "
+             f"{'att. RMS °':>10}  {'mean × area m³':>14}"]
     for (label, window), flight in zip(trajectories.items(), maps):
-        e = pose_errors(window, truth, t_ns)
+        e = pose_errors(window, truth, returns, cell_m)
         if not e:
             continue
-        lines.append(f"  {label:<{width}}  {e['height_error_mean_m']:>+13.3f}  {e['height_error_rms_m']:>6.3f}  "
+        lines.append(f"  {label:<{width}}  {e['height_error_mean_m']:>+13.3f}  {e['height_error_mean_returns_m']:>+12.3f}  "
+                     f"{e['height_error_rms_m']:>6.3f}  "
                      f"{e['horizontal_rms_m']:>12.3f}  {e['attitude_rms_deg']:>10.3f}  "
                      f"{e['height_error_mean_m'] * flight.score.area_m2:>+14.0f}")
     return lines

@@ -1,0 +1,1 @@
+"""Many flights at once: each replayed, smoothed, mapped and scored as a task of a Dask cluster."""
