@@ -14,7 +14,7 @@ from typing import Any, Callable
 
 log = logging.getLogger(__name__)
 
-from vtolpose.config.mavlink import check_mavlink
+from vtolpose.config.mavlink_settings import check_mavlink
 
 ZENOH_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 ZENOH_OTHER_PROTOCOLS = ("unixsock-stream", "serial")

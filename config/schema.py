@@ -216,7 +216,7 @@ SCHEMA: dict[str, Field] = {
     "outputs.mavlink.component_id": Field("int", minimum=1, maximum=255),
     "outputs.mavlink.signing_key_file": Field("str", nullable=True),
     "outputs.mavlink.require_signing": Field("bool"),
-    "outputs.mavlink.endpoints": Field("list"),  # items checked in config/mavlink.py
+    "outputs.mavlink.endpoints": Field("list"),  # items checked in config/mavlink_settings.py
     "outputs.mavlink.max_udp_peers": Field("int", minimum=1, maximum=64),
     "outputs.mavlink.udp_peer_timeout_s": Field("float", positive=True, maximum=3600.0),
     "outputs.mavlink.statustext_per_minute": Field("int", minimum=0, maximum=600),

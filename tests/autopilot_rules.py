@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from vtolpose.service.outputs.mavlink import mavutil
+from vtolpose.service.outputs.mavlink_output import mavutil
 
 mav = mavutil.mavlink
 EV_ESTIMATORS = (mav.MAV_ESTIMATOR_TYPE_UNKNOWN, mav.MAV_ESTIMATOR_TYPE_NAIVE, mav.MAV_ESTIMATOR_TYPE_VISION,

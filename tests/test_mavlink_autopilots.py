@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 
 from vtolpose.config import load_config
-from vtolpose.config.mavlink import EndpointSpec
+from vtolpose.config.mavlink_settings import EndpointSpec
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.service.cli import main
-from vtolpose.service.outputs.mavlink import COMPONENT_ID, Endpoint, MavlinkOutput, mavutil
+from vtolpose.service.outputs.mavlink_output import COMPONENT_ID, Endpoint, MavlinkOutput, mavutil
 from vtolpose.service.outputs.mavlink_odometry import PROFILES, odometry_quality
 from vtolpose.service.runtime.daemon import build_runtime, serve
 from vtolpose.service.runtime.sources import ReplayClock, ReplaySource

@@ -14,12 +14,12 @@ import time
 import numpy as np
 import pytest
 
-from vtolpose.config.mavlink import EndpointSpec
+from vtolpose.config.mavlink_settings import EndpointSpec
 from vtolpose.drivers.links.mavlink_outbound import frame_v2, send_v2
 from vtolpose.estimator.core.rotation import quat_from_euler, quat_to_rot, skew
 from vtolpose.estimator.fusion import OutputPose
-from vtolpose.service.outputs import mavlink as mavlink_output
-from vtolpose.service.outputs.mavlink import (
+from vtolpose.service.outputs import mavlink_output as mavlink_output
+from vtolpose.service.outputs.mavlink_output import (
     COMPONENT_ID, Endpoint, MavlinkOutput, euler_jacobian, mavutil, odometry_covariances, odometry_fields,
 )
 from vtolpose.service.outputs.mavlink_frame import PublishedFrame

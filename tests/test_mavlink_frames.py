@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from vtolpose.estimator.core.rotation import quat_from_euler
-from vtolpose.service.outputs.mavlink import MavlinkOutput, mavutil
+from vtolpose.service.outputs.mavlink_output import MavlinkOutput, mavutil
 from vtolpose.service.outputs.mavlink_frame import PublishedFrame, turned_about_down
 
 from test_mavlink_out import endpoint, make_pose

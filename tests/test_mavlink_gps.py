@@ -10,7 +10,7 @@ import numpy as np
 import pymap3d
 import pytest
 
-from vtolpose.drivers.gps.mavlink import MavlinkGps, MavlinkGpsConfig
+from vtolpose.drivers.gps.mavlink_gps import MavlinkGps, MavlinkGpsConfig
 
 ORIGIN = (58.4, 15.6, 100.0)
 

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from vtolpose.config import ConfigError, load_config
-from vtolpose.drivers.gps import mavlink as gps_module
-from vtolpose.drivers.gps.mavlink import MavlinkGps, MavlinkGpsConfig, mavutil
+from vtolpose.drivers.gps import mavlink_gps as gps_module
+from vtolpose.drivers.gps.mavlink_gps import MavlinkGps, MavlinkGpsConfig, mavutil
 from vtolpose.drivers.links.mavlink_signing import signing_timestamp
 from vtolpose.service.runtime.sources import ThreadedSource
 
@@ -59,7 +59,7 @@ def read_until(gps: MavlinkGps, done, timeout_s: float = 5.0) -> list:
 
 FLOODER = r"""
 import os, socket, sys, time
-from vtolpose.drivers.gps.mavlink import mavutil
+from vtolpose.drivers.gps.mavlink_gps import mavutil
 kind, port, seconds, rate = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])
 mav = mavutil.mavlink
 s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -17,7 +17,7 @@ import pytest
 
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
-from vtolpose.service.outputs.mavlink import MavlinkOutput, mavutil
+from vtolpose.service.outputs.mavlink_output import MavlinkOutput, mavutil
 
 from test_mavlink_out import endpoint, free_udp_port, make_pose, settle
 
@@ -37,7 +37,7 @@ s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
 if kind == "random":
     blobs = [os.urandom(n) for n in (8, 64, 280, 1400)] + [b"\xfd" + os.urandom(279), b"\xfe" + os.urandom(200)]
 else:  # 20 000 GPS_RAW_INT signed with the wrong key, 400 to a datagram (each costs a checksum and a hash)
-    from vtolpose.service.outputs.mavlink import mavutil
+    from vtolpose.service.outputs.mavlink_output import mavutil
     mav = mavutil.mavlink
     enc = mav.MAVLink(None, 1, 1)
     enc.signing.secret_key, enc.signing.sign_outgoing, enc.signing.timestamp = bytes(range(1, 33)), True, 2**40

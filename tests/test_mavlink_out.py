@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from vtolpose.config import ConfigError, load_config
-from vtolpose.config.mavlink import EndpointSpec
+from vtolpose.config.mavlink_settings import EndpointSpec
 from vtolpose.drivers.links.mavlink_signing import SignatureCheck
 from vtolpose.estimator.core.rotation import euler_from_quat, quat_exp, quat_from_euler, quat_mul, quat_to_rot
 from vtolpose.estimator.fusion import OutputPose
-from vtolpose.service.outputs.mavlink import (
+from vtolpose.service.outputs.mavlink_output import (
     COMPONENT_ID, Endpoint, MavlinkOutput, OdometrySchedule, SigningKeyError, euler_jacobian, mavutil,
     odometry_covariances, odometry_fields, read_signing_key,
 )

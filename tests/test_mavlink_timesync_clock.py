@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 
-from vtolpose.service.outputs.mavlink import MavlinkOutput, SensorClock, mavutil
+from vtolpose.service.outputs.mavlink_output import MavlinkOutput, SensorClock, mavutil
 
 from test_mavlink_out import endpoint, make_pose
 

@@ -40,7 +40,7 @@ from vtolpose.drivers.files.csvio import parse_time_ns, read_numeric_csv, second
 from vtolpose.drivers.files.dataset import Dataset, DatasetWriter
 from vtolpose.drivers.emulators.nmea import nmea_sentence
 from vtolpose.drivers.files.frames_csv import read_frame_index
-from vtolpose.drivers.gps.mavlink import MavlinkGps, MavlinkGpsConfig, mavutil
+from vtolpose.drivers.gps.mavlink_gps import MavlinkGps, MavlinkGpsConfig, mavutil
 from vtolpose.drivers.gps.nmea import MAX_LINE, NmeaConfig, NmeaGps
 from vtolpose.drivers.files.tum import read_tum, write_tum
 from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, GpsCalibration, ImuCalibration, ImuNoise

@@ -16,7 +16,7 @@ from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
-from vtolpose.service.outputs.mavlink import mavutil
+from vtolpose.service.outputs.mavlink_output import mavutil
 from vtolpose.service.runtime.replay_feed import run_replay
 
 ANTENNA_B = np.array([0.0, 0.0, -0.3])  # the landfill helicopter's antenna: 0.3 m above the IMU (body FRD)

@@ -22,7 +22,7 @@ from vtolpose.drivers.files.tum import read_tum, write_tum
 from vtolpose.estimator.pose_history import interpolate_rows
 from vtolpose.estimator.core.rotation import rotation_angle
 from vtolpose.service.cli import main
-from vtolpose.service.outputs.mavlink import mavutil
+from vtolpose.service.outputs.mavlink_output import mavutil
 from vtolpose.service.outputs.pose_client import PoseClient, PoseUnavailable
 from vtolpose.service.replay.session import replay
 from vtolpose.service.runtime.replay_feed import run_replay

@@ -73,7 +73,7 @@ def test_autopilot_gps_on_the_output_link_feeds_the_fusion(tmp_path):
     from vtolpose.config import load_config
     from vtolpose.service.runtime.daemon import build_runtime
     from vtolpose.service.runtime.live import live_sources
-    from vtolpose.service.outputs.mavlink import mavutil
+    from vtolpose.service.outputs.mavlink_output import mavutil
 
     url = "udpout:127.0.0.1:14599"
     cfg = load_config(None, {

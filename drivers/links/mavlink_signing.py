@@ -16,7 +16,7 @@ import time
 from collections import OrderedDict
 from pathlib import Path
 
-from vtolpose.config.mavlink import key_file_problem
+from vtolpose.config.mavlink_settings import key_file_problem
 
 __all__ = ["SIGNATURE_LEN", "SignatureCheck", "SigningKeyError", "read_signing_key", "signing_timestamp"]
 

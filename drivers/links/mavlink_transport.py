@@ -23,7 +23,7 @@ import time
 from collections import Counter
 from typing import Any, Callable
 
-from vtolpose.config.mavlink import parse_mavlink_url
+from vtolpose.config.mavlink_settings import parse_mavlink_url
 from vtolpose.drivers.links.mavlink_frames import StreamFramer, split_datagram
 from vtolpose.drivers.links.serial_link import Backoff
 

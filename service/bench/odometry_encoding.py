@@ -1,7 +1,7 @@
 """``odometry-encoding``: what one ODOMETRY publish costs, framed by pymavlink and framed by hand.
 
 Both paths run in the same process on the same poses, in a warm loop, through a real
-:class:`~vtolpose.service.outputs.mavlink.Endpoint` sending over UDP on loopback (so the socket's
+:class:`~vtolpose.service.outputs.mavlink_output.Endpoint` sending over UDP on loopback (so the socket's
 ``sendto`` is in both). The pymavlink path is what ``MavlinkOutput.publish`` did per endpoint
 before: ``MAVLink_odometry_message(**fields)`` through pymavlink's ``send``. Live, between IMU
 samples, every figure is several times larger (cold caches); the ratio is what carries over.
@@ -16,10 +16,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from vtolpose.config.mavlink import EndpointSpec
+from vtolpose.config.mavlink_settings import EndpointSpec
 from vtolpose.estimator import OutputPose, quat_from_euler
 from vtolpose.service.bench.rows import Row
-from vtolpose.service.outputs.mavlink import COMPONENT_ID, Endpoint, mav
+from vtolpose.service.outputs.mavlink_output import COMPONENT_ID, Endpoint, mav
 from vtolpose.service.outputs.mavlink_odometry import (
     ODOMETRY_CRC_EXTRA, ODOMETRY_ID, PROFILES, odometry_fields, odometry_payload,
 )

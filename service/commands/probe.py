@@ -127,7 +127,7 @@ def _probe_gps(args: argparse.Namespace, cfg: dict) -> int:
         print(f"probe gps: NMEA on {conf.port} at {conf.baud} baud, {args.seconds:g} s")
         gps = NmeaGps(conf)
     elif kind == "mavlink":
-        from vtolpose.drivers.gps.mavlink import MavlinkGps, MavlinkGpsConfig
+        from vtolpose.drivers.gps.mavlink_gps import MavlinkGps, MavlinkGpsConfig
 
         conf = MavlinkGpsConfig.from_config(cfg, args.port)
         print(f"probe gps: MAVLink GPS_RAW_INT on {conf.url}, {args.seconds:g} s")

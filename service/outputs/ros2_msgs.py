@@ -17,7 +17,7 @@ from vtolpose.estimator import (
     body_covariance_frd_to_flu, frd_to_flu, ImuSample, OutputPose, pose_covariance_ned_to_enu,
     pose_ned_frd_to_enu_flu, quat_to_rot,
 )
-from vtolpose.service.outputs.mavlink import odometry_covariances
+from vtolpose.service.outputs.mavlink_output import odometry_covariances
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)  # message layouts (and RIHS01 hashes) of the current LTS
 ODOMETRY = "nav_msgs/msg/Odometry"

@@ -106,7 +106,7 @@ def build_runtime(
                       trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused)
     runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
     if cfg["outputs.mavlink.enabled"]:
-        from vtolpose.service.outputs.mavlink import MavlinkOutput, SensorClock
+        from vtolpose.service.outputs.mavlink_output import MavlinkOutput, SensorClock
 
         now = sensor_now if sensor_now is not None else time.monotonic_ns if live else None
         try:

@@ -5,7 +5,7 @@ device that cannot be opened at start is retried by its driver (with back-off) w
 others run; only a camera marked ``required`` stops the start. The autopilot's GPS can share
 the MAVLink output link (``sensors.gps.mavlink_url`` equal to ``outputs.mavlink.url``): its
 ``GPS_RAW_INT`` messages are then taken from that link, under that link's signing settings, rather than
-a second connection (config/mavlink.py refuses GPS signing settings that differ from the link's).
+a second connection (config/mavlink_settings.py refuses GPS signing settings that differ from the link's).
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def live_sources(cfg: dict[str, Any], runtime: Runtime, recorder: Any | None = N
         live.sources.append(ThreadedSource("gps", gps, lambda reading: reading.fix, tap=gps_tap(gps)))
         live.origin = lambda: gps.local.origin
     elif gps_type == "mavlink":
-        from vtolpose.drivers.gps.mavlink import MavlinkGps, MavlinkGpsConfig
+        from vtolpose.drivers.gps.mavlink_gps import MavlinkGps, MavlinkGpsConfig
 
         gps = MavlinkGps(MavlinkGpsConfig.from_config(cfg))
         live.origin = lambda: gps.local.origin

@@ -1,7 +1,7 @@
 """MAVLink 2 to the flight controller and ground stations: ODOMETRY, HEARTBEAT, STATUSTEXT, TIMESYNC answers.
 
 One output, several endpoints (``outputs.mavlink.url`` and ``outputs.mavlink.endpoints``, see
-config/mavlink.py). Each endpoint has its own transport, signing key, ODOMETRY rate, counters and
+config/mavlink_settings.py). Each endpoint has its own transport, signing key, ODOMETRY rate, counters and
 failure book: an endpoint that fails is counted and skipped, the others go on. ODOMETRY fields follow
 the autopilot's profile (:mod:`.mavlink_odometry`); ground stations get the generic fields. Only the
 flight controller's link (``url``) feeds the estimator (``handlers``, e.g. the autopilot's GPS).
@@ -29,7 +29,7 @@ import time
 from collections import Counter
 from typing import Any, Callable, Sequence
 
-from vtolpose.config.mavlink import EndpointSpec, mavlink_endpoints
+from vtolpose.config.mavlink_settings import EndpointSpec, mavlink_endpoints
 from vtolpose.drivers.links.mavlink_frames import Inbound
 from vtolpose.drivers.links.mavlink_outbound import send_v2
 from vtolpose.drivers.links.mavlink_signing import SigningKeyError, read_signing_key, signing_timestamp
