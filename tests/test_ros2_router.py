@@ -5,15 +5,18 @@ configurations (tests/data/rmw_zenoh/: the router's ``peers_failover_brokering: 
 gossip to the router), on loopback; only the router's port changes (7447 -> a free one, so that
 parallel runs cannot collide). vtolpose runs with the command line the docs give; the ROS side must
 see its liveliness tokens (``ros2 node list``) and its Odometry (``ros2 topic echo /odom``), stamped
-within a second of the system clock. On the project's Zenoh only: the version rmw_zenoh pins is not
-installed here.
+within a second of the system clock. Twice: the ROS side on the project's Zenoh, and on the Zenoh version
+rmw_zenoh pins (Jazzy's rmw_zenoh 0.2.5 and later: Zenoh 1.4.0), run from a second environment (``.ci/run``
+makes it as ``.venv-rmw-zenoh``; ``VTOLPOSE_RMW_ZENOH_PYTHON`` names another) by tests/rmw_zenoh_side.py.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 import shlex
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -30,6 +33,8 @@ from test_ros2_wire import ODOMETRY_HASH, TF_HASH, CdrReader
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = Path(__file__).parent / "data" / "rmw_zenoh"
+PINNED_ZENOH = "1.4.0"  # what rmw_zenoh's Jazzy releases (zenoh_cpp_vendor 0.2.5 on) build against
+PINNED_PYTHON = Path(os.environ.get("VTOLPOSE_RMW_ZENOH_PYTHON", REPO_ROOT / ".venv-rmw-zenoh" / "bin" / "python"))
 ODOM_KEY = f"0/odom/nav_msgs::msg::dds_::Odometry_/{ODOMETRY_HASH}"
 
 
@@ -103,3 +108,41 @@ def test_the_documented_setup_reaches_a_default_ros2_system(flight, capsys):
     late = [(arrived - stamp) * 1e-9 for stamp, arrived in ros.odometry]
     print(f"{len(ros.odometry)} Odometry through the router; stamp to arrival {min(late):.4f}..{max(late):.4f} s")
     assert max(abs(d) for d in late) < 1.0
+
+
+def _check_ros_side(tokens: set[str], odometry: list[tuple[int, int]]) -> list[float]:
+    """What a ROS 2 user must see: the node and its two publishers in the graph, Odometry stamped on the
+    system clock. Returns the stamp-to-arrival delays."""
+    node = [t for t in tokens if t.split("/")[5] == "NN"]
+    publishers = [t for t in tokens if t.split("/")[5] == "MP"]
+    assert len(node) == 1 and node[0].endswith("/NN/%/%/vtolpose"), tokens
+    assert any(f"/%odom/nav_msgs::msg::dds_::Odometry_/{ODOMETRY_HASH}/::,10:" in t for t in publishers), publishers
+    assert any(f"/%tf/tf2_msgs::msg::dds_::TFMessage_/{TF_HASH}/::,100:" in t for t in publishers), publishers
+    assert len(odometry) > 200, len(odometry)  # about 4 s of 200 Hz poses after the start
+    late = [(arrived - stamp) * 1e-9 for stamp, arrived in odometry]
+    assert max(abs(d) for d in late) < 1.0
+    return late
+
+
+def test_the_documented_setup_reaches_a_ros2_system_on_the_zenoh_rmw_zenoh_pins(flight, capsys):
+    if not PINNED_PYTHON.is_file():
+        pytest.skip(f"needs a Python with eclipse-zenoh=={PINNED_ZENOH} at {PINNED_PYTHON} (.ci/run makes it; "
+                    "VTOLPOSE_RMW_ZENOH_PYTHON names another)")
+    port = free_port()
+    side = subprocess.Popen([str(PINNED_PYTHON), str(Path(__file__).parent / "rmw_zenoh_side.py"), str(CONFIGS),
+                             str(port), ODOM_KEY], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert side.stdout.readline().strip() == "ready", "the pinned-Zenoh ROS side did not start"
+        args = [w.replace("7447", str(port)).replace("DATASET", str(flight)) for w in docs_command()[1:]]
+        code = main(args + ["--duration", "6", "--set", "outputs.ros2.stamp=system"])
+        time.sleep(0.5)
+        out, _ = side.communicate("stop\n", timeout=30)
+    finally:
+        if side.poll() is None:
+            side.kill()
+    assert code == 0, capsys.readouterr().err
+    seen = json.loads(out.strip().splitlines()[-1])
+    assert seen["zenoh"] == PINNED_ZENOH, f"the ROS side ran Zenoh {seen['zenoh']}, not {PINNED_ZENOH}"
+    late = _check_ros_side(set(seen["tokens"]), [tuple(x) for x in seen["odometry"]])
+    print(f"Zenoh {seen['zenoh']} ROS side: {len(seen['odometry'])} Odometry; stamp to arrival "
+          f"{min(late):.4f}..{max(late):.4f} s")
