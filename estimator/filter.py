@@ -789,11 +789,11 @@ class Estimator:
         return FrameReport(t_ns, True, "visual-inertial start", n_features=len(features), n_landmarks=len(start.landmarks))
 
     def _heading_weak(self) -> bool:
-        """(And before it, after a start in motion: a map in the frame of arbitrary yaw, with the horizontal
-        acceleration misplaced by the unknown heading, refused the GPS in a cruise until it reset twice.)
-        The bank placed the heading, but it is still tens of degrees uncertain: the camera waits. A map
+        """The bank placed the heading, but it is still tens of degrees uncertain: the camera waits. A map
         started under such a heading grows overconfident in it (and in the tilt) faster than the GPS
-        corrects it — a flight joined in the air ended 7-9 sigma off; the IMU and GPS narrow it alone."""
+        corrects it (a flight joined in the air ends 7-9 sigma off); the IMU and GPS narrow it alone. Before the
+        placement, after a start in motion, the camera waits too: a map in the frame of arbitrary yaw, with the
+        horizontal acceleration misplaced by the unknown heading, would refuse the GPS in a cruise."""
         return (self.heading_mode is HeadingMode.PLACED
                 and self.state.cov[YAW, YAW] > HEADING_WEAK_SIGMA_RAD**2)
 
