@@ -98,10 +98,11 @@ class ZenohPoses:
     A scan is placed once the service's history covers it with poses of at least ``kind``:
     ``filtered`` takes them once fused (filtered, or smoothed if the fixed lag has already passed;
     ~0.2 s behind), ``smoothed`` waits until every pose over the scan is smoothed (the daemon's
-    fixed-lag history, ~2-3 s behind). Until then the query is repeated every ``poll_s``. How far
-    the service has got comes from its live poses and from its status document (``<prefix>/status``,
-    once a second: the history's time span), so a scan the history no longer holds is skipped at
-    once rather than waited for.
+    fixed-lag history, ~2-3 s behind). Until then the query is repeated every ``poll_s``. Where the
+    service's history starts comes from its status document (``<prefix>/status``, once a second: the
+    history's time span); a scan is skipped as too old only when that span starts after it. An answer
+    refused for another reason (a second session claiming the prefix, say) is asked again until the
+    wait ends.
     """
 
     def __init__(self, client: PoseClient, wait_s: float = 10.0, poll_s: float = 0.05, kind: str = "filtered") -> None:
@@ -112,9 +113,8 @@ class ZenohPoses:
         self.poll_s = poll_s
         self.kind = kind
         self.queries = 0
-        self._newest_ns: int | None = None
+        self._oldest_ns: int | None = None  # where the service's history starts, by its last status
         self._lock = threading.Lock()
-        client.subscribe(lambda pose: self._note(pose.t_ns))
         self._status = client.session.declare_subscriber(f"{client.prefix}/status", self._on_status)
 
     def close(self) -> None:
@@ -122,20 +122,17 @@ class ZenohPoses:
 
     def _on_status(self, sample) -> None:
         try:
-            newest = json.loads(sample.payload.to_string())["history"]["to_t_ns"]
+            span = json.loads(sample.payload.to_string())["history"]
+            oldest = span["from_t_ns"]
         except (ValueError, KeyError, TypeError):
             return  # a status without the history's span says nothing about it
-        if isinstance(newest, int):
-            self._note(newest)
+        if isinstance(oldest, int):
+            with self._lock:
+                self._oldest_ns = oldest
 
-    def _note(self, t_ns: int) -> None:
+    def _oldest(self) -> int | None:
         with self._lock:
-            if self._newest_ns is None or t_ns > self._newest_ns:
-                self._newest_ns = int(t_ns)
-
-    def _newest(self) -> int | None:
-        with self._lock:
-            return self._newest_ns
+            return self._oldest_ns
 
     def _final(self, window: PoseWindow) -> bool:
         """Whether every pose of the answer is of the kind waited for."""
@@ -155,12 +152,11 @@ class ZenohPoses:
                 window = self.client.trajectory(t0, t1)
             except TimeoutError:  # no answer (the service not up yet, a link down): keep asking until the wait ends
                 pass
-            except PoseUnavailable:  # the scan and the history do not overlap: too old, or not reached yet
-                newest = self._newest()
-                if newest is not None and newest > t1:
+            except PoseUnavailable:  # too old, not reached yet, or refused for now (two sessions claiming the prefix)
+                oldest = self._oldest()
+                if oldest is not None and oldest > t1:
                     raise OutsideHistory(f"scan at t_ns={t0}..{t1} is older than the service's history") from None
             else:
-                self._note(int(window.t_ns[-1]))
                 if window.t_ns[0] > t0:
                     raise OutsideHistory(f"scan at t_ns={t0}..{t1} starts before the service's history")
                 if window.t_ns[-1] >= t1 and self._final(window):
