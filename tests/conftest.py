@@ -107,3 +107,27 @@ def rendered_book_dir(flight_folder) -> Path:
     """The rendered 24 s book flight (seed 1: 10 s on the spot, then the arm waves the platform), made once
     for every module that replays it (rendering takes seconds); skipped without the 'sim' extra."""
     return flight_folder("book", 24.0, 1, camera=True)
+
+
+# Tests that time real peers on loopback (Zenoh sessions, serial pseudo-terminals, a live map against a paced
+# replay) against wall-clock deadlines: on a loaded 2-core machine one of them now and then misses its deadline
+# (a Zenoh sample dropped under congestion, a packet read late) and passes when run again. They run once more
+# before failing, where pytest-rerunfailures is installed (the `test` extra); a broken behaviour fails both runs.
+WALL_CLOCK_TESTS = {
+    "test_crossbow.py::test_corrupted_stream_and_a_reboot_lose_only_the_damaged_packets",
+    "test_crossbow.py::test_stream_resumes_after_the_cable_is_pulled_mid_stream",
+    "test_map_zenoh.py::test_live_map_over_zenoh_equals_the_map_from_the_trajectory_file",
+    "test_map_zenoh.py::test_live_map_of_smoothed_poses_equals_the_map_from_the_fixed_lag_trajectory",
+    "test_pose_client.py::test_the_client_believes_only_the_service_session",
+    "test_runtime.py::test_camera_work_does_not_hold_up_poses_and_is_fused_at_the_frame_time",
+    "test_runtime.py::test_the_bare_sends_of_the_latency_bench_reach_their_peers",
+    "test_zenoh_pose_json.py::test_the_published_bytes_and_sequence_numbers_on_loopback",
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    if not config.pluginmanager.hasplugin("rerunfailures"):
+        return
+    for item in items:
+        if f"{item.path.name}::{item.originalname}" in WALL_CLOCK_TESTS:
+            item.add_marker(pytest.mark.flaky(reruns=1, reruns_delay=1))
