@@ -11,13 +11,16 @@ filter then works in a frame of arbitrary yaw, levelled by gravity, publishes th
 is unknown (a variance for a heading anywhere on the circle), and a bank of heading
 hypotheses (``inertial/heading_bank.py``) places it from GPS once the motion shows it.
 
-A vehicle that is moving from the start with a camera and no GPS is *initialising*: it runs
-from the accelerometer alone and what it says must not be used, until the visual-inertial
-start (``vtolpose.estimator.init``) has solved a window of tracked features and IMU deltas and
-the EKF-SLAM starts from it. Without GPS ever, position and (unless known) heading are then
-the filter's own frame's: its origin and heading where it started (``local_position``). A GPS
-that appears later places both, as at any start: the first fix the position, the heading bank
-the heading; while initialising, its first second of fixes the velocity too.
+A vehicle that is moving from the start with a camera and no GPS is *initialising*: there is no
+state (and nothing is published) until the visual-inertial start (``vtolpose.estimator.init``) has
+solved a window of tracked features and IMU deltas and the EKF-SLAM starts from it; the status
+says what the window still lacks. A GPS heard first gives the moving start a GPS gives, from its
+first second of fixes and the IMU's latest window. Without GPS ever, position and (unless known)
+heading are then the filter's own frame's: its origin and heading where it started
+(``local_position``). A GPS that appears later joins that frame: its first second of fixes gives
+the velocity, the last one the position, the heading bank the heading. Every running state was
+handed over complete by the start-up coordinator (``estimator/start.py``): the running filter has
+no half-started mode. A camera lost in its own frame drops the filter; the visual start begins again.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ from vtolpose.estimator.inertial.heading_bank import (
 from vtolpose.estimator.core.rotation import quat_from_euler, yaw_of
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.core.state import FilterState, StateLayout
-from vtolpose.estimator.start import StartCoordinator
+from vtolpose.estimator.start import VELOCITY_FIT_S, StartCoordinator
 from vtolpose.estimator.modes import FilterMode, HeadingMode, ModeEvent, ModeMachine
 from vtolpose.estimator.status import EstimatorEvent, EstimatorStatus, EventKind, HeadingPlacement
 from vtolpose.estimator.init.visual_inertial import VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
@@ -167,11 +170,6 @@ class Estimator:
         return self.modes.mode is FilterMode.GPS
 
     @property
-    def initialising(self) -> bool:
-        """Started moving with no GPS: nothing to stand on until the visual-inertial start (or a GPS's join)."""
-        return self.modes.mode.initialising
-
-    @property
     def local_position(self) -> bool:
         """No GPS heard at all, but the camera holds the filter's own frame: its origin where it started and,
         unless one was known, its heading the one it started with (the yaw gauge of an unknown heading)."""
@@ -213,6 +211,9 @@ class Estimator:
         if self.state is None:
             if delta is not None and self._visual_start_pending():
                 self.visual_inertial.add_delta(delta)
+            if self.mode is FilterMode.INITIALISING:  # the visual window gives the start (or a GPS heard meanwhile)
+                self._starter.initializer.keep(t_ns, gyro, accel)
+                return True
             # Not still within max_wait_s (rotors turning, carried, flying): start from the
             # accelerometer alone rather than wait for a rest or a manoeuvre that may never come.
             init = self._starter.initializer.add(t_ns, gyro, accel)
@@ -305,10 +306,10 @@ class Estimator:
         bookkeeping, the last sample's levelling or rest chunk if it has one, and ``after_step`` in turn,
         the state as :meth:`_propagate` leaves it.
         While the heading is unknown the steps have its extra noise, and the heading hypotheses take the same
-        steps in one compiled call of their own. Returns how many were taken: none while a visual start or a
+        steps in one compiled call of their own. Returns how many were taken: none while a
         recorder watches the steps, or where the propagator has no compiled sequence (a map, non-isotropic
         noise)."""
-        if self.recorder is not None or self._visual_start_pending():
+        if self.recorder is not None:
             return 0
         end = i
         while end < len(order):
@@ -346,8 +347,6 @@ class Estimator:
 
     def _propagate(self, delta: ImuDelta) -> None:
         extra = 0.0
-        if self._visual_start_pending():
-            self.visual_inertial.add_delta(delta)
         if not self.heading_aligned and self._bank is not None:
             self._bank.propagate(delta)
         if not (self.heading_aligned or self.local_position):  # a frame of its own needs no world heading
@@ -491,30 +490,38 @@ class Estimator:
         camera = self.counts.get("camera")
         start = self._starter.from_imu(init, camera is not None and camera.received > 0, self._gps_seen)
         self.modes.fire(start.event)
-        self._fixed_bias_var = start.fixed_bias_var
         self._moving_start = start.moving
+        if not self.mode.initialised:  # moving, camera only: the visual-inertial window will give the start
+            self._event(init.t_ns, EventKind.INITIALISING, start.message)
+            return
+        self._fixed_bias_var = start.fixed_bias_var
         self._begin(start.state, start.gravity, start.message)
-        if not (self.heading_aligned or self.initialising):
+        if not self.heading_aligned:
             self._bank = self._new_bank(start.state, None)
         if start.place_at is not None:  # a moving vehicle waits for the next fix
             self._init_position(start.place_at)
 
     def _visual_start_pending(self) -> bool:
-        """Whether the visual-inertial start is wanted: no GPS heard, and not started or still initialising."""
-        return self.visual_inertial is not None and not self._gps_seen and (self.state is None or self.initialising)
+        """Whether the visual-inertial start is wanted: a camera, no GPS heard, no running filter."""
+        return self.visual_inertial is not None and not self._gps_seen and self.state is None
+
+    def _start_from_gps_heard(self) -> None:
+        """Initialising, and a second of fixes heard: the moving start the GPS gives, from the IMU's latest window."""
+        if self.mode is not FilterMode.INITIALISING or not self._starter.heard_for(VELOCITY_FIT_S):
+            return
+        init = self._starter.initializer.latest()
+        if init is not None:
+            self._downsampler.flush()  # the filter starts at the window's last sample
+            self._start(init)
 
     def _apply_visual_start(self, window: VisualInertialStart) -> None:
-        """Start (or restart) EKF-SLAM from a converged visual-inertial window, its landmarks included. An
-        unknown heading stays unknown: the frame's yaw is a gauge (its variance zero, held by the camera)."""
+        """Start (or, after the camera was lost, start again) EKF-SLAM from a converged visual-inertial window,
+        its landmarks included. An unknown heading stays unknown: the frame's yaw is a gauge (its variance
+        zero, held by the camera)."""
         start = self._starter.from_window(window)
         state = start.state
         self._fixed_bias_var = start.fixed_bias_var
-        if self.state is None:
-            self._begin(state, start.gravity, start.message)
-        else:
-            self.state = state
-            self.reset_counter += 1  # the initialising estimate is replaced: a jump
-            self._event(state.t_ns, EventKind.VISUAL_START, start.message)
+        self._begin(state, start.gravity, start.message)
         self.modes.fire(ModeEvent.VISUAL_START)
         if not self.heading_aligned:
             self._forget_heading()
@@ -522,8 +529,7 @@ class Estimator:
         self.visual_inertial.reset()
 
     def _join_gps(self, fix: GpsFix) -> bool:
-        """A GPS heard for the first time by a filter without a world frame (initialising, or in the camera's
-        own frame): its fixes are collected for a second (estimator.start); then they give the velocity, the last
+        """A GPS heard for the first time by a filter in the camera's own frame: its fixes are collected for a second (estimator.start); then they give the velocity, the last
         one the position, the heading bank the heading — the moving start the GPS would have given. The
         map, placed in the old frame, goes. Returns True once joined."""
         joined = self._starter.join(fix)
@@ -596,11 +602,12 @@ class Estimator:
             self._starter.hear(fix)
             if self.gps_noise.before_start(raw):  # the GPS noise check: the fixes held weighed as it now believes
                 self._starter.reweigh(self.gps_noise.believed)
+            self._start_from_gps_heard()
             counts.reject("before_start")
             return None
         self._propagate_to(fix.t_ns)
         self._last_fix = fix
-        if self.mode.joining or self.initialising or self.local_position:
+        if self.mode.joining or self.local_position:
             self._gps_seen = True
             if not self.mode.joining:
                 self.modes.fire(ModeEvent.GPS_HEARD)
@@ -702,18 +709,24 @@ class Estimator:
 
     def _reset_camera_lost(self, t_ns: int, why: str) -> None:
         """The camera's innovations say the filter is lost: map cleared, velocity, attitude and biases
-        re-initialised as for a start in motion; without GPS the visual-inertial start begins again."""
+        re-initialised as for a start in motion. In the camera's own frame with a visual start at hand, the
+        filter is dropped instead (nothing else places it): the visual-inertial start begins again and
+        continues the frame where this one was lost."""
+        state, own_frame = self.state, self.mode is FilterMode.LOCAL and self.visual_inertial is not None
         self._reset(t_ns, "camera_lost", f"camera innovations out of band for {self.options.health.innovation_reset_s:g} s "
-                    f"({why}): map cleared, velocity, attitude and biases re-initialised")
-        state = self.state
+                    f"({why}): map cleared, " + ("the filter dropped until the visual-inertial start" if own_frame
+                                                 else "velocity, attitude and biases re-initialised"))
+        if own_frame:
+            self._starter.hold_gauge(state)
+            self.modes.fire(ModeEvent.CAMERA_LOST)
+            self.state = None
+            self.visual_inertial.reset()
+            return
         state.cov = self._reset_covariance(covariance.block_variances(state.cov, covariance.P))
         if not self.heading_aligned:
             self._forget_heading()
         if self.position_initialized and self._last_fix is not None and self.health.fresh("gps", t_ns):
             self._init_position(self._last_fix)
-        elif self.visual_inertial is not None and not self._gps_seen:
-            self.modes.fire(ModeEvent.CAMERA_LOST)
-            self.visual_inertial.reset()
 
     # ------------------------------------------------------------------------------ camera
     def process_features(self, features: FrameFeatures) -> FrameReport:
@@ -731,8 +744,6 @@ class Estimator:
             return self._visual_start_frame(features, counts)
         if reason == "before_start" and self.visual_inertial is not None:
             self.visual_inertial.observe(features)  # does the scene move? (a cruise feels still to the IMU)
-        if reason is None and self.initialising:
-            reason = "initialising"  # a GPS is joining: until then the state is the accelerometer's alone
         if reason is None and self._heading_weak():
             reason = "heading_weak"
         if reason is None and self._moving_start and not (self.heading_aligned or self.local_position):
@@ -773,13 +784,10 @@ class Estimator:
     def _visual_start_frame(self, features: FrameFeatures, counts: RejectionCounts) -> FrameReport:
         """A frame for the visual-inertial start (the IMU brought to its time first); the start once it converges."""
         t_ns = features.t_ns
-        if self.state is not None:
-            self._propagate_to(t_ns)
-        else:
-            for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
-                if delta is not None:
-                    self.visual_inertial.add_delta(delta)
-        start = self.visual_inertial.add_frame(features, self._starter.gauge(self.state))
+        for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
+            if delta is not None:
+                self.visual_inertial.add_delta(delta)
+        start = self.visual_inertial.add_frame(features, self._starter.gauge())
         self.health.measured("camera", t_ns, used=True)  # alive and in use, by the start
         if start is None:
             counts.reject("initialising")
@@ -894,8 +902,7 @@ class Estimator:
         """A frozen snapshot of what the service may know (modes, counters, health, events, map size)."""
         state, camera, visual = self.state, self.camera, self.visual_inertial
         t_ns = state.t_ns if state is not None else None
-        waiting = (visual is not None and visual.progress is not None and not self.position_initialized
-                   and (state is None or self.initialising))
+        waiting = visual is not None and visual.progress is not None and state is None
         heading_sigma = None if state is None else math.degrees(math.sqrt(self.published_cov9()[YAW, YAW]))
         return EstimatorStatus(
             t_ns=t_ns, mode=self.mode, heading=self.heading_mode, reset_counter=self.reset_counter,

@@ -95,7 +95,6 @@ class OutputPose:
     reset_counter: int
     fused_t_ns: int
     quality_cap: int = 100  # ceiling on the published quality from the filter's health (estimator.health)
-    initialising: bool = False  # started moving, no in-motion start yet: must not be used (quality −1)
     local_position: bool = False  # no absolute position: relative to the filter's own origin (camera, no GPS)
 
     @property
@@ -437,7 +436,7 @@ class FusionCore:
             t_ns=pred.t_ns, p=np.array(pred.p), v=np.array(pred.v), q=np.array(pred.q), omega_b=pred.gyro - s.b_g,
             cov9=cov9, pose_cov=pose_cov, omega_var=omega_var, heading_aligned=self.est.heading_aligned,
             position_initialized=self.est.position_initialized, reset_counter=self.est.reset_counter,
-            fused_t_ns=s.t_ns, quality_cap=self.est.health.quality_cap(s.t_ns), initialising=self.est.initialising,
+            fused_t_ns=s.t_ns, quality_cap=self.est.health.quality_cap(s.t_ns),
             local_position=self.est.local_position,
         )
 
@@ -491,7 +490,7 @@ class FusionCore:
         t = s.t_ns
         return OutputPose(  # in field order (positional: a quarter of this call's cost is keyword handling)
             t, s.p, s.v, s.q, gyro - s.b_g, cov9, _pose_cov(cov9), self._omega_var(), est.heading_aligned,
-            est.position_initialized, est.reset_counter, t, est.health.quality_cap(t), est.initialising,
+            est.position_initialized, est.reset_counter, t, est.health.quality_cap(t),
             est.local_position,
         )
 

@@ -1,9 +1,10 @@
 """The estimator's modes: what its position and its heading are referenced to, as two small state
 machines with every legal transition in one table.
 
-``FilterMode`` says where the position stands: no state yet, the accelerometer alone waiting for the
-visual-inertial start, running without a reference yet, the camera's own frame, a GPS joining such a
-frame, or the GPS's world frame. ``HeadingMode`` says whether the heading is unknown (a frame of
+``FilterMode`` says where the position stands: no state yet (the IMU's window filling, or the
+visual-inertial start's), running without a reference yet, the camera's own frame, a GPS joining such a
+frame, or the GPS's world frame. A running filter is only ever one that was handed a complete start
+(``estimator/start.py``): there is no half-started mode. ``HeadingMode`` says whether the heading is unknown (a frame of
 arbitrary yaw, levelled by gravity), known (dataset or operator) or placed from GPS by the heading
 hypotheses. The estimator changes either only through :meth:`ModeMachine.fire` with an event of
 :data:`TRANSITIONS`; a pair that is not in the table is a bug and raises. The conditions are the
@@ -19,32 +20,25 @@ from enum import Enum
 
 class FilterMode(Enum):
     WAITING = "waiting"  # no state yet: the IMU's start window fills
-    INITIALISING = "initialising"  # moving at the start, a camera, no GPS: the accelerometer alone until the visual start
+    INITIALISING = "initialising"  # no state yet: moving, a camera, no GPS; the visual-inertial window fills
     UNREFERENCED = "unreferenced"  # running, no position reference yet: no fix, no camera frame used
     LOCAL = "local"  # the camera's own frame: origin (and an unknown heading) where the camera started
-    REINITIALISING = "reinitialising"  # the camera was lost in its own frame: the visual-inertial start again
     JOINING = "joining"  # a GPS joins the camera's frame: its first second of fixes is collected
-    JOINING_BLIND = "joining_blind"  # a GPS joins while initialising: nothing to stand on meanwhile
     GPS = "gps"  # the world frame, placed by GPS
 
     @property
     def initialised(self) -> bool:
-        """A state exists (it may still be unusable: see :attr:`initialising`)."""
-        return self is not FilterMode.WAITING
-
-    @property
-    def initialising(self) -> bool:
-        """Running on the accelerometer alone: what it says must not be used."""
-        return self in (FilterMode.INITIALISING, FilterMode.REINITIALISING, FilterMode.JOINING_BLIND)
+        """A running filter exists (nothing is published before)."""
+        return self not in (FilterMode.WAITING, FilterMode.INITIALISING)
 
     @property
     def joining(self) -> bool:
-        return self in (FilterMode.JOINING, FilterMode.JOINING_BLIND)
+        return self is FilterMode.JOINING
 
     @property
     def local_position(self) -> bool:
         """Position (and, unless known, heading) in the camera's own frame: no GPS has been heard."""
-        return self in (FilterMode.LOCAL, FilterMode.REINITIALISING)
+        return self is FilterMode.LOCAL
 
     @property
     def position_from_gps(self) -> bool:
@@ -86,20 +80,19 @@ class Transition:
 F, H, E = FilterMode, HeadingMode, ModeEvent
 TRANSITIONS: tuple[Transition, ...] = (
     Transition(F.WAITING, E.START_BLIND, F.INITIALISING,
-               "moving at the start, camera frames received, the visual start enabled, no GPS heard"),
+               "moving at the start, camera frames received, the visual start enabled, no GPS heard: no state yet"),
     Transition(F.WAITING, E.START_PLACED, F.GPS, "still at the start and a fix within the last second"),
     Transition(F.WAITING, E.START_UNREFERENCED, F.UNREFERENCED, "any other start"),
     Transition(F.WAITING, E.VISUAL_START, F.LOCAL, "the visual-inertial window converged before the IMU's start"),
     Transition(F.INITIALISING, E.VISUAL_START, F.LOCAL, "the visual-inertial window converged"),
-    Transition(F.REINITIALISING, E.VISUAL_START, F.LOCAL, "the visual-inertial window converged"),
+    Transition(F.INITIALISING, E.START_UNREFERENCED, F.UNREFERENCED,
+               "a second of GPS fixes heard first: the moving start the GPS gives, from the IMU's latest window"),
     Transition(F.UNREFERENCED, E.CAMERA_USED, F.LOCAL, "a camera frame fused and no GPS heard"),
     Transition(F.UNREFERENCED, E.GPS_HEARD, F.GPS, "a usable fix: the position from it"),
-    Transition(F.INITIALISING, E.GPS_HEARD, F.JOINING_BLIND, "a usable fix"),
-    Transition(F.REINITIALISING, E.GPS_HEARD, F.JOINING_BLIND, "a usable fix"),
     Transition(F.LOCAL, E.GPS_HEARD, F.JOINING, "a usable fix"),
-    Transition(F.LOCAL, E.CAMERA_LOST, F.REINITIALISING, "camera innovations out of band, the visual start enabled"),
+    Transition(F.LOCAL, E.CAMERA_LOST, F.INITIALISING,
+               "camera innovations out of band, the visual start enabled: the filter is dropped, the visual start again"),
     Transition(F.JOINING, E.GPS_JOINED, F.GPS, "a second of fixes: velocity from them, position from the last"),
-    Transition(F.JOINING_BLIND, E.GPS_JOINED, F.GPS, "a second of fixes: velocity from them, position from the last"),
     Transition(H.UNKNOWN, E.HEADING_PLACED, H.PLACED, "one hypothesis outweighs the others and its sigma is small"),
     Transition(H.PLACED, E.HEADING_SEARCH, H.UNKNOWN, "every fix refused for the reset time: the placed heading suspected"),
     Transition(H.PLACED, E.RELEVEL, H.UNKNOWN, "fixes still refused right after a GPS reset"),

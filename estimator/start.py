@@ -6,7 +6,8 @@ the filter only adopts them. Three kinds:
 - from the IMU's window (``inertial/initializer.py``): still, or moving when the window is not still,
   when the GPS heard meanwhile moves (steady flight feels still to an IMU) or when the camera sees the
   scene move; the fixes of the last second give a moving start its velocity, the last fix places a
-  still one;
+  still one. Moving with a camera and no GPS there is no start from the IMU: the filter waits,
+  *initialising*, for the visual window, or for a second of fixes and then takes the IMU's latest window;
 - from a converged visual-inertial window (``init/visual_inertial.py``): the robot, the landmarks and
   their joint covariance;
 - a GPS joining a filter that has no world frame (:meth:`StartCoordinator.join`): the velocity fitted to
@@ -78,10 +79,16 @@ class StartCoordinator:
         self.initializer = StaticInitializer(init, gravity, heading_rad or 0.0)
         self.visual_inertial = visual_inertial
         self.fixes: deque[GpsFix] = deque(maxlen=MAX_FIXES_HELD)
+        self._held_gauge: tuple[np.ndarray, float] | None = None  # where a dropped filter was lost
+
 
     def hear(self, fix: GpsFix) -> None:
         """A usable fix before the start."""
         self.fixes.append(fix)
+
+    def heard_for(self, seconds: float) -> bool:
+        """Whether the fixes held span ``seconds``."""
+        return len(self.fixes) > 1 and (self.fixes[-1].t_ns - self.fixes[0].t_ns) * 1e-9 >= seconds
 
     def reweigh(self, weigh: Callable[[GpsFix], GpsFix]) -> None:
         """The fixes heard so far, each with the sigma ``weigh`` gives it (the GPS's claimed accuracy not believed)."""
@@ -109,7 +116,7 @@ class StartCoordinator:
         placed = init.static and window and (init.t_ns - window[-1].t_ns) < 1e9  # the last fix places a still vehicle
         if not init.static and not gps_heard and self.visual_inertial is not None and camera_received:
             event = ModeEvent.START_BLIND
-            how += "; initialising until the visual-inertial start"
+            how += "; no state until the visual-inertial start"
         else:
             event = ModeEvent.START_PLACED if placed else ModeEvent.START_UNREFERENCED
         return Start(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2",
@@ -126,13 +133,16 @@ class StartCoordinator:
         moved = float(np.linalg.norm((np.asarray(last.p_ned) - np.asarray(first.p_ned))[:2]))
         return moved > 5.0 * math.hypot(first.sigma_h, last.sigma_h)
 
-    def gauge(self, state: FilterState | None) -> Gauge:
-        """What a visual-inertial start cannot observe: the filter's position and heading, or the known heading."""
-        if state is not None:
-            p, heading = state.p.copy(), yaw_of(state.q)
-        else:
-            p, heading = np.zeros(3), self.initializer.heading_rad
-        return Gauge(p, heading, self.heading_sigma if self.heading_known else None)
+    def hold_gauge(self, state: FilterState) -> None:
+        """A running filter is dropped (the camera lost in its own frame): the visual start that follows
+        takes its position and heading where it was lost, so the frame goes on."""
+        self._held_gauge = (state.p.copy(), yaw_of(state.q))
+
+    def gauge(self) -> Gauge:
+        """What a visual-inertial start cannot observe: where a dropped filter was lost, or the origin and the
+        known heading (zero when unknown)."""
+        p, heading = self._held_gauge or (np.zeros(3), self.initializer.heading_rad)
+        return Gauge(p.copy(), heading, self.heading_sigma if self.heading_known else None)
 
     def from_window(self, start: VisualInertialStart) -> Start:
         """The start a converged visual-inertial window gives, its landmarks included."""

@@ -18,8 +18,8 @@ from vtolpose.estimator.modes import FilterMode, HeadingMode
 
 
 class EventKind(Enum):
-    STARTED = "started"  # the filter's first state (IMU window, or the visual-inertial start)
-    VISUAL_START = "visual_start"  # an initialising estimate replaced by the visual-inertial start
+    INITIALISING = "initialising"  # moving at the start, camera only: no state until the visual-inertial start
+    STARTED = "started"  # a running filter from a complete start (IMU window, GPS, or the visual-inertial window)
     POSITION_INITIALISED = "position_initialised"  # the position placed at a fix
     GPS_JOINED = "gps_joined"  # a GPS joined a filter without a world frame
     HEADING_PLACED = "heading_placed"  # the heading hypotheses placed the heading
@@ -81,8 +81,8 @@ class EstimatorStatus:
 
     @property
     def initialising(self) -> bool:
-        """No pose to use yet: before the start, or on the accelerometer alone."""
-        return not self.mode.initialised or self.mode.initialising
+        """No pose yet: before the start (the IMU's window or the visual-inertial one filling)."""
+        return not self.mode.initialised
 
     @property
     def local_position(self) -> bool:

@@ -56,11 +56,11 @@ def random_pose(rng: np.random.Generator) -> OutputPose:
         cov9[:] = math.nan
     q = quat_from_euler(*rng.uniform(-math.pi, math.pi, 3) * (0.45, 0.45, 1.0))
     t_ns = int(rng.integers(0, 2**52))
-    flags = rng.random(5) < (0.1, 0.9, 0.9, 0.1, 0.1)  # initialising, positioned, aligned, local position, health 0
+    flags = rng.random(4) < (0.9, 0.9, 0.1, 0.1)  # positioned, aligned, local position, health 0
     return OutputPose(t_ns, rng.normal(size=3) * 10.0 ** rng.uniform(-2, 4), rng.normal(size=3) * 20.0, q,
                       rng.normal(size=3), cov9, cov9[np.ix_(POSE, POSE)], 10.0 ** rng.uniform(-8, -2, 3),
-                      bool(flags[2]), bool(flags[1]), int(rng.integers(0, 1000)), t_ns - int(rng.integers(0, 10**8)),
-                      0 if flags[4] else int(rng.integers(1, 101)), bool(flags[0]), bool(flags[3]))
+                      bool(flags[1]), bool(flags[0]), int(rng.integers(0, 1000)), t_ns - int(rng.integers(0, 10**8)),
+                      0 if flags[3] else int(rng.integers(1, 101)), bool(flags[2]))
 
 
 def zero_tail_fields(rng: np.random.Generator) -> dict:

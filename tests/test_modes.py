@@ -63,12 +63,20 @@ def test_gps_frame_is_terminal_and_waiting_has_no_way_back():
     assert not [t for t in TRANSITIONS if t.target is FilterMode.WAITING]
 
 
+def test_a_running_filter_is_only_entered_by_a_start():
+    """No half-started mode: every edge from a mode without a state into one with it is a start."""
+    starts = {ModeEvent.START_PLACED, ModeEvent.START_UNREFERENCED, ModeEvent.VISUAL_START}
+    into_running = [t for t in TRANSITIONS if isinstance(t.source, FilterMode) and not t.source.initialised
+                    and t.target.initialised]
+    assert into_running and {t.event for t in into_running} == starts
+    assert [t.event for t in TRANSITIONS if isinstance(t.source, FilterMode) and t.source.initialised
+            and not t.target.initialised] == [ModeEvent.CAMERA_LOST]  # the one way back: the filter dropped
+
+
 def test_flags_read_off_the_mode():
-    assert not FilterMode.WAITING.initialised and FilterMode.INITIALISING.initialised
-    assert {m for m in FilterMode if m.initialising} == {FilterMode.INITIALISING, FilterMode.REINITIALISING,
-                                                         FilterMode.JOINING_BLIND}
-    assert {m for m in FilterMode if m.local_position} == {FilterMode.LOCAL, FilterMode.REINITIALISING}
-    assert {m for m in FilterMode if m.joining} == {FilterMode.JOINING, FilterMode.JOINING_BLIND}
+    assert {m for m in FilterMode if not m.initialised} == {FilterMode.WAITING, FilterMode.INITIALISING}
+    assert {m for m in FilterMode if m.local_position} == {FilterMode.LOCAL}
+    assert {m for m in FilterMode if m.joining} == {FilterMode.JOINING}
     assert {m for m in FilterMode if m.position_from_gps} == {FilterMode.GPS}
     assert {h for h in HeadingMode if h.aligned} == {HeadingMode.KNOWN, HeadingMode.PLACED}
 

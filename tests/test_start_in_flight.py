@@ -2,7 +2,7 @@
 
 Rendered flights that begin mid-trajectory (``simulate --start-in-flight``) and recordings joined
 later (``run --replay … --start-at``), through the runtime. What must hold: until a start has
-converged every pose says quality −1; IMU+camera converges within 10 s or stays at −1; IMU+GPS has
+converged nothing is published; IMU+camera converges within 10 s or publishes nothing; IMU+GPS has
 its heading within 20 s; no usable pose, least of all the last, is further than 5 σ from the truth;
 a filter whose innovations say it is lost caps its quality, resets and says why. ORB keeps it fast.
 """
@@ -25,8 +25,10 @@ from vtolpose.estimator.core.rotation import quat_exp, quat_mul  # noqa: E402
 from vtolpose.estimator.filter import Estimator  # noqa: E402
 from vtolpose.estimator.fusion import FusionCore, FusionOptions, OutputPose  # noqa: E402
 from vtolpose.estimator.metrics import nees, pose_errors_for_nees  # noqa: E402
+from vtolpose.estimator.status import EventKind  # noqa: E402
 from vtolpose.estimator.vision.features import extract_features  # noqa: E402
-from vtolpose.estimator.core.measurements import ImuSample  # noqa: E402
+from vtolpose.estimator.core.measurements import GpsFix, ImuSample  # noqa: E402
+from vtolpose.estimator.modes import FilterMode  # noqa: E402
 from vtolpose.service.cli import main  # noqa: E402
 from vtolpose.service.replay.report import build_report, start_alignment  # noqa: E402
 from vtolpose.service.replay.session import replay  # noqa: E402
@@ -76,12 +78,6 @@ def sigmas_off(result, dataset: Dataset, poses: list[OutputPose]) -> np.ndarray:
     return np.sqrt(nees(err, cov))
 
 
-def initialising(pose: OutputPose) -> bool:
-    """Published as not to be use because the filter is initialising: MAVLink quality −1, Zenoh status."""
-    return (pose_problem(pose) == "initialising" and odometry_quality(pose) == -1
-            and pose_status(pose, pose_quality(pose)) == "initialising")
-
-
 def first_usable_s(poses: list[OutputPose], t_first: int) -> float | None:
     usable = [p.t_ns for p in poses if pose_quality(p) > 0]
     return None if not usable else (usable[0] - t_first) * 1e-9
@@ -92,7 +88,9 @@ def test_imu_camera_in_flight_starts_within_10_s_and_never_says_nonsense(book):
     t_first = int(book.imu().t_ns[0])
     start = first_usable_s(poses, t_first)
     assert start is not None and start <= 10.0
-    assert all(initialising(p) for p in poses if (p.t_ns - t_first) * 1e-9 < start)  # never before
+    started = [e.t_ns for e in result.estimator.events if e.kind is EventKind.STARTED]
+    assert len(started) == 1 and result.estimator.events[0].kind in (EventKind.INITIALISING, EventKind.STARTED)
+    assert poses[0].t_ns >= started[0]  # nothing before the start
     assert any("visual-inertial start" in e.message for e in result.estimator.events)
     assert report["heading_source"] == "own frame (visual-inertial start)"
     assert report["position_reference"]["heading_aligned"] and "heading_note" in report["position_reference"]
@@ -104,19 +102,58 @@ def test_imu_camera_in_flight_starts_within_10_s_and_never_says_nonsense(book):
 
 
 def test_imu_camera_in_a_steady_cruise_stays_initialising(landfill):
-    """No acceleration, no scale: the poses stay at −1 until a start converges, and are sound after it."""
+    """No acceleration, no scale: nothing is published until a start converges, and it is sound after it."""
     result, poses, report = traced(landfill, ["imu", "camera"])
     t_first = int(landfill.imu().t_ns[0])
     start = first_usable_s(poses, t_first)
-    before = [p for p in poses if start is None or (p.t_ns - t_first) * 1e-9 < start]
-    assert before and all(initialising(p) for p in before)
-    assert "moving" in result.estimator.events[0].message  # the camera saw it move: no start at rest
+    first = result.estimator.events[0]
+    assert first.kind is EventKind.INITIALISING and "moving" in first.message  # the camera saw it move: no start at rest
+    started = [e.t_ns for e in result.estimator.events if e.kind is EventKind.STARTED]
+    assert all(p.t_ns >= started[0] for p in poses) if started else not poses
     if start is not None:  # converged in the turn: then it must be right
         assert start <= 10.0 and sigmas_off(result, landfill, poses)[-1] < 5.0
     else:
-        assert report.get("never_valid") and result.estimator.initialising
+        assert report.get("no_scores") and result.estimator.status().initialising
         waiting = report["visual_start"]["still_waiting"]  # and it says why, with what it measured
         assert waiting["check"] in ("motion", "scale") and waiting["text"].startswith("initialising: ")
+
+
+def test_a_gps_heard_while_the_visual_window_fills_gives_the_start(landfill):
+    """In a cruise with a camera and no GPS the estimator waits, initialising, with no state; fixes that begin
+    then give the moving start a GPS gives (its first second of fixes, the IMU's latest window): one start,
+    no visual-inertial start, no reset, nothing published before it, the position placed at the next fix."""
+    cal = landfill.calibration
+    est = Estimator(cal, filter_options(load_config(None, ORB), cal.imu.noise))
+    poses: list[OutputPose] = []
+    fusion = FusionCore(est, FusionOptions(delay_s=0.0), on_fused=poses.append)
+    options = feature_options(load_config(None, ORB))
+    imu, gps = landfill.imu(), landfill.gps()
+    t_first = int(imu.t_ns[0])
+    t_gps = t_first + 3_500_000_000  # the GPS comes up after the IMU's window has said "moving"
+    events = sorted([(int(t), 0, i) for i, t in enumerate(imu.t_ns)] + [(int(t), 1, 0) for t, _ in landfill.camera_frames()
+                    if t < t_first + 5_000_000_000] + [(int(t), 2, i) for i, t in enumerate(gps.t_ns) if t >= t_gps])
+    frames = dict(landfill.camera_frames())
+    modes = []
+    for t, kind, i in events:
+        if kind == 0:
+            fusion.add_imu(ImuSample(t, imu.gyro[i], imu.accel[i]))
+        elif kind == 1:
+            features = extract_features(landfill.load_frame(frames[t]), t, options, (cal.camera.height, cal.camera.width))
+            fusion.add_measurement(t, lambda e, f=features: e.process_features(f), "camera")
+        else:
+            fix = GpsFix(t, gps.p_ned[i], float(gps.sigma_h[i]), float(gps.sigma_v[i]))
+            fusion.add_measurement(t, lambda e, f=fix: e.process_gps(f), "gps")
+        if not modes or modes[-1] is not est.mode:
+            modes.append(est.mode)
+        assert (est.state is None) == (not est.mode.initialised)  # no half-started filter, ever
+    fusion.flush()
+    assert modes[:4] == [FilterMode.WAITING, FilterMode.INITIALISING, FilterMode.UNREFERENCED, FilterMode.GPS], modes
+    kinds = [e.kind for e in est.events]
+    assert kinds[:2] == [EventKind.INITIALISING, EventKind.STARTED] and "GPS" in est.events[1].message
+    started = est.events[1].t_ns
+    assert (started - t_gps) * 1e-9 == pytest.approx(1.0, abs=0.15)  # a second of fixes
+    assert est.reset_counter == 0 and kinds.count(EventKind.STARTED) == 1  # no visual-inertial start after it
+    assert poses and poses[0].t_ns >= started
 
 
 @pytest.fixture(scope="module")
@@ -167,20 +204,21 @@ def test_a_lost_filter_caps_its_quality_resets_and_says_why(book, caplog):
         else:
             features = extract_features(book.load_frame(frames[t]), t, options, (cal.camera.height, cal.camera.width))
             fusion.add_measurement(t, lambda e, f=features: e.process_features(f), "camera")
-        if not waiting and est.initialising and est.visual_inertial.progress is not None:
+        if not waiting and not est.mode.initialised and est.visual_inertial.progress is not None:
             with caplog.at_level(logging.INFO, logger="vtolpose.service.runtime.status"):
                 waiting.append(tracker.snapshot(est, fusion))
-        if not kicked and est.state is not None and not est.initialising and t >= kick_ns:
+        if not kicked and est.state is not None and t >= kick_ns:
             est.state.q = quat_mul(quat_exp(np.radians([0.0, 5.0, 20.0])), est.state.q)
             est.state.v = est.state.v + np.array([0.3, 0.0, 0.0])
             kicked = True
         out = est.health.out_of_band(est.state.t_ns) if est.state is not None else []
-        if out and out_of_band_since is None:
-            out_of_band_since = est.state.t_ns
-        if out_of_band_since is not None and est.state.t_ns - out_of_band_since >= 1_000_000_000 and out:
-            assert all(pose_quality(p) <= 50 for p in poses if p.t_ns >= est.state.t_ns - 10_000_000)
         if not out:
             out_of_band_since = None
+            continue
+        if out_of_band_since is None:
+            out_of_band_since = est.state.t_ns
+        if est.state.t_ns - out_of_band_since >= 1_000_000_000:
+            assert all(pose_quality(p) <= 50 for p in poses if p.t_ns >= est.state.t_ns - 10_000_000)
     fusion.flush()
     said = waiting[0]["visual_start"]
     assert said["text"].startswith("initialising: ") and said["check"] in ("window", "tracks", "motion", "scale")
@@ -192,7 +230,9 @@ def test_a_lost_filter_caps_its_quality_resets_and_says_why(book, caplog):
     assert (resets[0].t_ns - kick_ns) * 1e-9 < 5.0
     restarts = [e.t_ns for e in est.events if "visual-inertial start" in e.message and e.t_ns > resets[0].t_ns]
     assert restarts, "the visual-inertial start did not run again after the reset"
-    assert poses[-1].reset_counter >= 2 and pose_quality(poses[-1]) > 50  # back, and says so through the counter
+    assert poses[-1].reset_counter == 1 and pose_quality(poses[-1]) > 50  # back, and says so through the counter
+    dropped = [p for p in poses if resets[0].t_ns < p.t_ns < restarts[0]]
+    assert not dropped  # nothing published between the filter dropped and the visual start again
     capped = [p for p in poses if resets[0].t_ns - 2_000_000_000 <= p.t_ns < resets[0].t_ns]
     assert capped and max(pose_quality(p) for p in capped[-5:]) <= 50
 
@@ -227,7 +267,7 @@ def test_the_daemon_restarted_mid_flight_with_and_without_gps(book, tmp_path, ca
     assert "outside the recording" in capsys.readouterr().err
 
 
-def test_quality_is_minus_one_while_initialising_and_counts_a_camera_only_frame():
+def test_quality_is_minus_one_without_a_position_and_counts_a_camera_only_frame():
     import dataclasses
 
     pose = OutputPose(0, np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3), np.eye(9) * 1e-6,
@@ -237,6 +277,6 @@ def test_quality_is_minus_one_while_initialising_and_counts_a_camera_only_frame(
     assert pose_problem(own) is None and odometry_quality(own) == 100  # the camera's own frame
     # ... its heading too, when none was known: the frame's own, not "not aligned"
     assert pose_problem(dataclasses.replace(own, heading_aligned=False)) is None
-    assert pose_problem(dataclasses.replace(pose, position_initialized=True, heading_aligned=False)) == "heading not aligned"
-    for p in (dataclasses.replace(own, initialising=True), dataclasses.replace(pose, position_initialized=True, initialising=True)):
-        assert initialising(p) and pose_quality(p) == 0
+    unaligned = dataclasses.replace(pose, position_initialized=True, heading_aligned=False)
+    assert pose_problem(unaligned) == "heading not aligned" and odometry_quality(unaligned) == -1
+    assert pose_status(pose, pose_quality(pose)) == "no_position" and pose_status(unaligned, 0) == "heading_unaligned"

@@ -22,7 +22,7 @@ from vtolpose.service.outputs.zenoh_session import ZenohSettings
 from conftest import free_port
 
 POSE = [0, 1, 2, 6, 7, 8]
-FLAGS = ("heading_aligned", "position_initialized", "initialising", "local_position", "fused")
+FLAGS = ("heading_aligned", "position_initialized", "local_position", "fused")
 SPECIAL = (math.nan, math.inf, -math.inf, 0.0, -0.0, 1e-300, 5e-324, 1.7976931348623157e308, 1e16, 1e-5, 123456789.0)
 
 
@@ -47,8 +47,7 @@ def random_pose(rng: np.random.Generator, flags: dict[str, bool], cap: int, spec
     t_ns = int(rng.integers(0, 1 << 62))
     return OutputPose(t_ns, vectors[0], vectors[2], vectors[1], vectors[3], cov9, cov9[np.ix_(POSE, POSE)],
                       np.full(3, 1e-6), flags["heading_aligned"], flags["position_initialized"], 3,
-                      t_ns if flags["fused"] else t_ns - int(rng.integers(1, 10**9)), cap, flags["initialising"],
-                      flags["local_position"])
+                      t_ns if flags["fused"] else t_ns - int(rng.integers(1, 10**9)), cap, flags["local_position"])
 
 
 def test_every_kind_of_pose_is_written_as_json_dumps_writes_it():
@@ -70,7 +69,7 @@ def test_every_kind_of_pose_is_written_as_json_dumps_writes_it():
                 qualities.add(document["quality"])
                 fallbacks += "null" in expected.partition('"p"')[2]  # a number that is not finite: the reference's path
     # The poses above covered every status, capped and uncapped qualities, and both of the writer's paths.
-    assert statuses == {"ok", "poor", "heading_weak", "heading_unaligned", "no_position", "initialising"}
+    assert statuses == {"ok", "poor", "heading_weak", "heading_unaligned", "no_position"}
     assert {0, 20} <= qualities and max(qualities) > 20
     assert 0 < fallbacks < 0.9 * 2 * 3 * (1 + len(SPECIAL)) * 2 ** len(FLAGS)
 

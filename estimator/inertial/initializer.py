@@ -87,14 +87,8 @@ class StaticInitializer:
         opts = self.options
         if self._first_t is None:
             self._first_t = t_ns
-        self._t.append(t_ns)
-        self._gyro.append(gyro)
-        self._accel.append(accel)
+        self.keep(t_ns, gyro, accel)
         window_ns = int(opts.static_window_s * 1e9)
-        while self._t[-1] - self._t[0] > window_ns:
-            self._t.popleft()
-            self._gyro.popleft()
-            self._accel.popleft()
         full = self._t[-1] - self._t[0] >= 0.95 * window_ns and len(self._t) >= 10
         if not full:
             return None
@@ -106,6 +100,25 @@ class StaticInitializer:
         if not (static or timed_out):
             return None
         return self._solve(t_ns, g, a, g_means, static)
+
+    def keep(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Only hold the sample in the window (no judgement): for :meth:`latest` later."""
+        window_ns = int(self.options.static_window_s * 1e9)
+        self._t.append(t_ns)
+        self._gyro.append(gyro)
+        self._accel.append(accel)
+        while self._t[-1] - self._t[0] > window_ns:
+            self._t.popleft()
+            self._gyro.popleft()
+            self._accel.popleft()
+
+    def latest(self) -> InitialAttitude | None:
+        """A moving start from the window as it is now (None while it holds fewer than ten samples)."""
+        if len(self._t) < 10:
+            return None
+        g = np.array(self._gyro)
+        return self._solve(self._t[-1], g, np.array(self._accel), block_means(np.array(self._t), g, self.options.average_s),
+                           False)
 
     def as_moving(self, init: InitialAttitude) -> InitialAttitude:
         """``init`` judged again as a moving start (the GPS says the "still" window was steady motion)."""

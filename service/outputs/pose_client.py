@@ -61,7 +61,7 @@ class Pose:
     cov: np.ndarray  # 6 × 6 over [δp, δθ] (attitude error in the NED frame)
     origin: Origin
     fused: bool
-    status: str | None = None  # publications only: ok | poor | heading_weak | heading_unaligned | no_position | initialising
+    status: str | None = None  # publications only: ok | poor | heading_weak | heading_unaligned | no_position
     seq: int | None = None  # publications only
     kind: str = "filtered"  # predicted | filtered | smoothed (see README, "Which pose to use")
 

@@ -26,8 +26,6 @@ Origin = tuple[float, float, float] | None
 
 def pose_status(pose: OutputPose, quality: int, diagonal: list[float] | None = None) -> str:
     """``ok`` or why not; ``diagonal``: ``pose.cov9``'s diagonal as a list, when the caller has it."""
-    if pose.initialising:
-        return "initialising"
     if not pose.position_initialized:
         return "no_position"
     if not pose.heading_aligned:

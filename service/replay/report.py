@@ -73,7 +73,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
     valid = traj.valid
     if not np.any(valid):
         report["truth"] = None
-        report["never_valid"] = "no pose could be scored: every one was initialising (not to be used) or had no position"
+        report["never_valid"] = "no pose could be scored: every one came before the position"
         report["no_scores"] = report["never_valid"]
         return report
     if not np.all(valid):

@@ -39,7 +39,7 @@ class Trajectory:
     p: np.ndarray
     v: np.ndarray
     q: np.ndarray
-    unscored: np.ndarray | None = None  # (N,) bool: initialising (not to be used), or no position yet
+    unscored: np.ndarray | None = None  # (N,) bool: no position yet
 
     @property
     def valid(self) -> np.ndarray:
@@ -77,8 +77,8 @@ class Recorder:
         self._cov: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
 
     def record(self, pose: OutputPose) -> None:
-        # A pose offered as not to be used (initialising), or before the position it is to have, is not scored.
-        unscored = pose.initialising or (self.absolute_position and not pose.position_initialized)
+        # A pose before the position it is to have is not scored.
+        unscored = self.absolute_position and not pose.position_initialized
         self._rows.append((pose.t_ns, pose.p, pose.v, pose.q, unscored))
         if not unscored and pose.t_ns >= self._next_cov_t:
             self._cov.append((pose.t_ns, pose.p, pose.q, pose.pose_cov))

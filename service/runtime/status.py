@@ -29,16 +29,13 @@ _ATT_DECADES = math.log10(_ATT_SIGMA_POOR_RAD / _ATT_SIGMA_GOOD_RAD)
 
 
 def pose_problem(pose: OutputPose, diagonal: list[float] | None = None) -> str | None:
-    """Why ``pose`` must not be used for navigation, or None: the filter is initialising (it started
-    moving and has no start it can stand on yet), no position yet, heading not aligned, a covariance
+    """Why ``pose`` must not be used for navigation, or None: no position yet, heading not aligned, a covariance
     that is not finite (or a negative variance), or the filter's health capping it to 0.
 
     A camera-only filter that never heard a GPS works in a frame of its own (``local_position``):
     its origin is where it started and its heading, unless one was known, the one it started with.
     Such a pose is usable relative to that frame, and its covariance says so (``published_cov9``).
     ``diagonal``: ``pose.cov9``'s diagonal as a list, when the caller already has it."""
-    if pose.initialising:
-        return "initialising"
     if not (pose.position_initialized or pose.local_position):
         return "no position"
     if not (pose.heading_aligned or pose.local_position):
@@ -206,7 +203,7 @@ class StatusTracker:
         doc = {
             "sensors": sensors,
             "initialized": status.initialised,
-            "initialising": status.initialising,  # no pose to use yet (quality −1)
+            "initialising": status.initialising,  # no running filter yet: nothing published, the start window fills
             "mode": status.mode.value,
             "heading": status.heading.value,
             "heading_aligned": status.heading_aligned,
