@@ -54,7 +54,7 @@ from vtolpose.estimator.core.rotation import quat_from_euler, yaw_of
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.start import VELOCITY_FIT_S, StartCoordinator
-from vtolpose.estimator.modes import FilterMode, HeadingMode, ModeEvent, ModeMachine
+from vtolpose.estimator.modes import FilterMode, HeadingMode, ModeEvent, ModeMachine, heading_aligned
 from vtolpose.estimator.status import EstimatorEvent, EstimatorStatus, EventKind, HeadingPlacement
 from vtolpose.estimator.init.visual_inertial import VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.smoothing.recorder import FilterRecorder
@@ -162,12 +162,11 @@ class Estimator:
 
     @property
     def heading_aligned(self) -> bool:
-        """A running filter whose heading is known or placed (before the start there is no heading to speak of)."""
-        return self.modes.mode is not FilterMode.WAITING and self.modes.heading.aligned
+        return heading_aligned(self.modes.mode, self.modes.heading)
 
     @property
     def position_initialized(self) -> bool:
-        return self.modes.mode is FilterMode.GPS
+        return self.modes.mode.position_from_gps
 
     @property
     def local_position(self) -> bool:

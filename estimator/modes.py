@@ -55,6 +55,11 @@ class HeadingMode(Enum):
         return self is not HeadingMode.UNKNOWN
 
 
+def heading_aligned(mode: FilterMode, heading: HeadingMode) -> bool:
+    """A running filter whose heading is known or placed (before the start there is no heading to speak of)."""
+    return mode.initialised and heading.aligned
+
+
 class ModeEvent(Enum):
     START_BLIND = "start, moving, camera only"
     START_PLACED = "start, still, a recent fix"

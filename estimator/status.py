@@ -14,7 +14,7 @@ from types import MappingProxyType
 from typing import Mapping
 
 from vtolpose.estimator.init.visual_inertial import VisualStartProgress
-from vtolpose.estimator.modes import FilterMode, HeadingMode
+from vtolpose.estimator.modes import FilterMode, HeadingMode, heading_aligned
 
 
 class EventKind(Enum):
@@ -94,7 +94,7 @@ class EstimatorStatus:
 
     @property
     def heading_aligned(self) -> bool:
-        return self.mode.initialised and self.heading.aligned
+        return heading_aligned(self.mode, self.heading)
 
     @property
     def heading_source(self) -> str:
