@@ -4,7 +4,8 @@ Each field is named like the last part of its key (``sensors.gps.uere_m`` is ``G
 and :func:`build_section` fills a section from its key prefix by those names, so a section cannot
 drift from the schema: a field without a key fails at start, and a test checks that every key
 has a field or is one the estimator's options take (:data:`ESTIMATOR_PREFIXES`).
-Lists become tuples so that a section shared by several parts cannot be changed by one of them.
+Lists become the tuples their fields declare (a matrix's rows too), so that a section shared by
+several parts cannot be changed by one of them.
 """
 
 from __future__ import annotations
@@ -205,9 +206,16 @@ class Sections:
 S = TypeVar("S")
 
 
-def _frozen(value: Any) -> Any:
-    """Lists as tuples, all the way down (a matrix is a list of rows); mappings left as they are."""
-    return tuple(_frozen(v) for v in value) if isinstance(value, list) else value
+def _as_declared(value: Any, hint: Any) -> Any:
+    """A list as the tuple its field declares, rows too when the items are declared tuples; anything else
+    (a mapping in a list, say) as it is, so that a check's message shows it as it was written."""
+    if not isinstance(value, list):
+        return value
+    declared = typing.get_args(hint)
+    item = declared[0] if declared else None
+    if typing.get_origin(item) is tuple:
+        return tuple(_as_declared(v, item) for v in value)
+    return tuple(value)
 
 
 def build_section(cls: type[S], values: Mapping[str, Any], prefix: str) -> S:
@@ -218,7 +226,7 @@ def build_section(cls: type[S], values: Mapping[str, Any], prefix: str) -> S:
     for f in fields(cls):  # type: ignore[arg-type]
         key = f"{prefix}.{f.name}" if prefix else f.name
         kind = hints[f.name]
-        given[f.name] = build_section(kind, values, key) if is_dataclass(kind) else _frozen(values[key])
+        given[f.name] = build_section(kind, values, key) if is_dataclass(kind) else _as_declared(values[key], kind)
     return cls(**given)
 
 
