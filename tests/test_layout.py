@@ -201,10 +201,13 @@ def _looks_like_a_key(node: ast.AST) -> bool:
 
 
 def _flat_config_lookups(path: Path) -> list[str]:
-    """``cfg["a.b"]``, ``cfg.get("a.b")``, ``get(cfg, "a")``, ``k.startswith("a.b.")`` and the like in ``path``."""
+    """``cfg["a.b"]``, ``cfg.get("a.b")``, ``get(cfg, "a")``, ``k.startswith("a.b.")`` and the like in ``path``,
+    and an import of :func:`vtolpose.config.get` (a section by its prefix, dotted or not)."""
     found = []
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-        if isinstance(node, ast.Subscript) and _looks_like_a_key(node.slice):
+        if isinstance(node, ast.ImportFrom) and node.module == "vtolpose.config" and "get" in [a.name for a in node.names]:
+            found.append(f"line {node.lineno}: {ast.unparse(node)}")
+        elif isinstance(node, ast.Subscript) and _looks_like_a_key(node.slice):
             found.append(f"line {node.lineno}: {ast.unparse(node)}")
         elif isinstance(node, ast.Call):
             name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
@@ -223,8 +226,11 @@ def test_only_config_and_the_wiring_read_the_flat_configuration():
 
 def test_the_check_sees_every_spelling_of_a_flat_lookup(tmp_path):
     probe = tmp_path / "probe.py"
-    probe.write_text("a = cfg['sensors.gps.type']\nb = cfg[\"outputs.zenoh.tls.mutual\"]\nc = cfg.get('vehicle.system_id')\n"
-                     "d = get(cfg, 'estimator.init')\ne = cfg[f'smoothing.{k}']\nf = [k for k in cfg if k.startswith('sensors.imu.')]\n"
-                     "log.warning('outputs.ros2: a message, not a look-up')\ng = check('outputs.ros2.namespace', name)\n"
-                     "h = row['t.s']\n")
-    assert sorted(int(hit.split(":")[0].split()[1]) for hit in _flat_config_lookups(probe)) == [1, 2, 3, 4, 5, 6]
+    probe.write_text("\n".join([
+        "a = cfg['sensors.gps.type']", 'b = cfg["outputs.zenoh.tls.mutual"]', "c = cfg.get('vehicle.system_id')",
+        "d = get(cfg, 'estimator.init')", "e = cfg[f'smoothing.{k}']", "f = [k for k in cfg if k.startswith('sensors.imu.')]",
+        "from vtolpose.config import ConfigError, get",
+        # not look-ups: a message, a key named in a check's error, a dotted name that is no configuration section
+        "log.warning('outputs.ros2: a message')", "g = check('outputs.ros2.namespace', name)", "h = row['t.s']",
+    ]))
+    assert sorted(int(hit.split(":")[0].split()[1]) for hit in _flat_config_lookups(probe)) == [1, 2, 3, 4, 5, 6, 7]
