@@ -124,9 +124,9 @@ def add_zenoh_output(runtime: Runtime, sections: Sections) -> None:
     from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
     zenoh = sections.outputs.zenoh
-    runtime.outputs.append(ZenohOutput(ZenohSettings.from_section(zenoh), zenoh_prefix(zenoh.prefix, sections.vehicle.name),
-                                       runtime.history, runtime.history_lock, lambda: runtime.origin(),
-                                       QueryLimits.from_section(zenoh)))
+    prefix = zenoh_prefix(zenoh.prefix, sections.vehicle.name)
+    runtime.outputs.append(ZenohOutput(ZenohSettings.from_section(zenoh), prefix, runtime.history, runtime.history_lock,
+                                       lambda: runtime.origin(), QueryLimits.from_section(zenoh)))
     # The history is read by mappers: keep it smoothed after the configured lag.
     smoothing = sections.smoothing
     runtime.enable_smoothing(smoothing.fixed_lag_s, smoothing.steps_per_sample, smoothing.max_window_s)
