@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from vtolpose.config.sections import MavlinkSection, build_section
+
 __all__ = ["AUTOPILOT_RATES", "EndpointSpec", "OUTPUT_SCHEMES", "check_gps_link", "check_mavlink", "gps_shared_link",
            "key_file_problem", "mavlink_endpoints", "parse_mavlink_url"]
 
@@ -92,17 +94,14 @@ def _rate_problem(rate: float, autopilot: str) -> str | None:
     return None
 
 
-def mavlink_endpoints(cfg: dict[str, Any]) -> list[EndpointSpec]:
+def mavlink_endpoints(mavlink: MavlinkSection) -> list[EndpointSpec]:
     """Every configured link, the flight controller's ``url`` first; ValueError('KEY: problem') when one is wrong."""
-    autopilot = cfg["outputs.mavlink.autopilot"]
-    rate = cfg["outputs.mavlink.rate_hz"]
-    fc_rate = AUTOPILOT_RATES[autopilot][2] if rate is None else rate
+    fc_rate = AUTOPILOT_RATES[mavlink.autopilot][2] if mavlink.rate_hz is None else mavlink.rate_hz
     specs = []
-    if cfg["outputs.mavlink.url"] is not None:
-        specs.append(EndpointSpec("flight_controller", cfg["outputs.mavlink.url"], "autopilot", fc_rate,
-                                  cfg["outputs.mavlink.signing_key_file"], cfg["outputs.mavlink.require_signing"],
-                                  "outputs.mavlink"))
-    for i, item in enumerate(cfg["outputs.mavlink.endpoints"]):
+    if mavlink.url is not None:
+        specs.append(EndpointSpec("flight_controller", mavlink.url, "autopilot", fc_rate, mavlink.signing_key_file,
+                                  mavlink.require_signing, "outputs.mavlink"))
+    for i, item in enumerate(mavlink.endpoints):
         key = f"outputs.mavlink.endpoints[{i}]"
         if not isinstance(item, dict):
             raise ValueError(f"{key}: expected a mapping {{name, url, role, ...}}, got {item!r}")
@@ -130,10 +129,14 @@ def mavlink_endpoints(cfg: dict[str, Any]) -> list[EndpointSpec]:
     return specs
 
 
+def _mavlink_section(cfg: dict[str, Any]) -> MavlinkSection:
+    return build_section(MavlinkSection, cfg, "outputs.mavlink")
+
+
 def check_mavlink(cfg: dict[str, Any], fail: Callable[[str, str], Exception]) -> None:
     """Raise ``fail(key, problem)`` for the first MAVLink setting that cannot work."""
     try:
-        specs = mavlink_endpoints(cfg)
+        specs = mavlink_endpoints(_mavlink_section(cfg))
     except ValueError as exc:
         key, _, problem = str(exc).partition(": ")
         raise fail(key, problem) from None
@@ -168,7 +171,7 @@ def gps_shared_link(cfg: dict[str, Any]) -> EndpointSpec | None:
     """The output's flight-controller link the MAVLink GPS is read from (same URL), or None for a link of its own."""
     if not cfg["outputs.mavlink.enabled"]:
         return None
-    primary = next((spec for spec in mavlink_endpoints(cfg) if spec.role == "autopilot"), None)
+    primary = next((spec for spec in mavlink_endpoints(_mavlink_section(cfg)) if spec.role == "autopilot"), None)
     return primary if primary is not None and primary.url == cfg["sensors.gps.mavlink_url"] else None
 
 

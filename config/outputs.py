@@ -57,9 +57,9 @@ def check_key_prefix(prefix: str) -> None:
         raise ValueError(f"{prefix!r} is not a plain Zenoh key (no wildcards, spaces or empty chunks)")
 
 
-def zenoh_prefix(cfg: dict[str, Any]) -> str:
-    """The configured key prefix, default ``vtolpose/<vehicle.name>``."""
-    return cfg["outputs.zenoh.prefix"] or f"vtolpose/{cfg['vehicle.name']}"
+def zenoh_prefix(prefix: str | None, vehicle_name: str) -> str:
+    """The key prefix: ``outputs.zenoh.prefix``, default ``vtolpose/<vehicle.name>``."""
+    return prefix or f"vtolpose/{vehicle_name}"
 
 
 def _protocol(endpoint: str) -> str:
@@ -92,7 +92,7 @@ def check_outputs(cfg: dict[str, Any], origin: str | Callable[..., str]) -> None
                    "outputs.zenoh.mode")
     prefix_key = "outputs.zenoh.prefix" if cfg["outputs.zenoh.prefix"] is not None else "vehicle.name"
     try:
-        check_key_prefix(zenoh_prefix(cfg))
+        check_key_prefix(zenoh_prefix(cfg["outputs.zenoh.prefix"], cfg["vehicle.name"]))
     except ValueError as exc:
         raise fail(prefix_key, f"as the Zenoh key prefix: {exc}") from None
     if cfg["outputs.zenoh.enabled"]:

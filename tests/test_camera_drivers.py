@@ -10,6 +10,7 @@ import pytest
 
 import vtolpose.drivers.camera.dc1394 as dc
 from vtolpose.config import load_config
+from vtolpose.config.sections import build_sections
 from vtolpose.drivers.camera.common import CameraUnavailable
 from vtolpose.drivers.camera.select import camera_from_config
 from vtolpose.drivers.camera.opencv import OpenCvCamera, OpenCvCameraConfig
@@ -50,10 +51,10 @@ def test_opencv_video_file_gives_grey_frames_in_order(video):
 def test_opencv_missing_source_and_type_none_say_so(tmp_path):
     with pytest.raises(CameraUnavailable, match="could not open"):
         OpenCvCamera(OpenCvCameraConfig(str(tmp_path / "nothing.avi"))).open()
-    cfg = load_config(overrides={"sensors": {"camera": {"type": "none"}}})
+    camera = build_sections(load_config(overrides={"sensors": {"camera": {"type": "none"}}})).sensors.camera
     with pytest.raises(CameraUnavailable, match="no camera configured"):
-        camera_from_config(cfg)
-    opencv = camera_from_config(cfg, kind="opencv", device="3")
+        camera_from_config(camera)
+    opencv = camera_from_config(camera, kind="opencv", device="3")
     assert isinstance(opencv, OpenCvCamera) and opencv.config.source == 3
 
 

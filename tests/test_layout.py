@@ -179,3 +179,58 @@ def test_every_public_name_resolves_to_its_module():
         owner = importlib.import_module(module)
         expected = getattr(owner, name) if hasattr(owner, name) else importlib.import_module(f"{module}.{name}")
         assert getattr(estimator, name) is expected, name
+
+
+# The flat ``{"a.b": value}`` configuration is read in config/ and in the wiring only; the rest takes typed
+# sections (config/sections.py) or options built there, so a key renamed in the schema cannot be missed.
+FLAT_CONFIG_READERS = ("config", "service/runtime/wiring.py")
+_LOOKUP_CALLS = {"get", "pop", "setdefault", "startswith"}
+
+
+def _looks_like_a_key(node: ast.AST) -> bool:
+    """A string (or an f-string's start) of the form ``section.name``, ``section.`` being a schema section."""
+    from vtolpose.config.schema import SCHEMA
+
+    if isinstance(node, ast.JoinedStr):
+        node = node.values[0] if node.values else node
+    if not (isinstance(node, ast.Constant) and isinstance(node.value, str)):
+        return False
+    section, dot, rest = node.value.partition(".")
+    return bool(dot) and section in {k.split(".")[0] for k in SCHEMA} and all(
+        part.isidentifier() for part in rest.rstrip(".").split(".") if rest)
+
+
+def _flat_config_lookups(path: Path) -> list[str]:
+    """``cfg["a.b"]``, ``cfg.get("a.b")``, ``get(cfg, "a")``, ``k.startswith("a.b.")`` and the like in ``path``,
+    and an import of :func:`vtolpose.config.get` (a section by its prefix, dotted or not)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.module == "vtolpose.config" and "get" in [a.name for a in node.names]:
+            found.append(f"line {node.lineno}: {ast.unparse(node)}")
+        elif isinstance(node, ast.Subscript) and _looks_like_a_key(node.slice):
+            found.append(f"line {node.lineno}: {ast.unparse(node)}")
+        elif isinstance(node, ast.Call):
+            name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+            if name in _LOOKUP_CALLS and any(_looks_like_a_key(arg) for arg in node.args):
+                found.append(f"line {node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def test_only_config_and_the_wiring_read_the_flat_configuration():
+    files = [p for part in ("service", "drivers") for p in sorted((REPO / part).rglob("*.py"))] + [REPO / "client.py"]
+    readers = [REPO / r for r in FLAT_CONFIG_READERS]
+    found = {str(p.relative_to(REPO)): hits for p in files
+             if not any(p == r or r in p.parents for r in readers) and (hits := _flat_config_lookups(p))}
+    assert found == {}, "take a section from config/sections.py (built in service/runtime/wiring.py) instead"
+
+
+def test_the_check_sees_every_spelling_of_a_flat_lookup(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("\n".join([
+        "a = cfg['sensors.gps.type']", 'b = cfg["outputs.zenoh.tls.mutual"]', "c = cfg.get('vehicle.system_id')",
+        "d = get(cfg, 'estimator.init')", "e = cfg[f'smoothing.{k}']", "f = [k for k in cfg if k.startswith('sensors.imu.')]",
+        "from vtolpose.config import ConfigError, get",
+        # not look-ups: a message, a key named in a check's error, a dotted name that is no configuration section
+        "log.warning('outputs.ros2: a message')", "g = check('outputs.ros2.namespace', name)", "h = row['t.s']",
+    ]))
+    assert sorted(int(hit.split(":")[0].split()[1]) for hit in _flat_config_lookups(probe)) == [1, 2, 3, 4, 5, 6, 7]

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from vtolpose.config import ConfigError, load_config
+from vtolpose.config.sections import build_sections
 from vtolpose.drivers.gps import mavlink_gps as gps_module
 from vtolpose.drivers.gps.mavlink_gps import MavlinkGps, MavlinkGpsConfig, mavutil
 from vtolpose.drivers.links.mavlink_signing import signing_timestamp
@@ -417,6 +418,11 @@ def test_a_tcp_link_that_is_not_there_yet_is_waited_for_and_read():
 # ------------------------------------------------------------------------------ configuration
 
 
+def gps_config(cfg: dict) -> MavlinkGpsConfig:
+    sections = build_sections(cfg)
+    return MavlinkGpsConfig.from_section(sections.sensors.gps, sections.vehicle.system_id)
+
+
 def write_key(tmp_path, name="gps.key", mode=0o600):
     path = tmp_path / name
     path.write_bytes(KEY)
@@ -426,7 +432,7 @@ def write_key(tmp_path, name="gps.key", mode=0o600):
 
 def test_the_default_listens_on_loopback_and_takes_only_the_vehicle_system():
     cfg = load_config(None, {"sensors": {"gps": {"type": "mavlink"}}})
-    conf = MavlinkGpsConfig.from_config(cfg)
+    conf = gps_config(cfg)
     assert conf.url.startswith("udpin:127.0.0.1:") and conf.system_id == cfg["vehicle.system_id"] == 1
     assert conf.signing_key is None and conf.require_signing is False
 
@@ -434,11 +440,11 @@ def test_the_default_listens_on_loopback_and_takes_only_the_vehicle_system():
 def test_signing_settings_are_read_and_a_bad_key_names_the_key(tmp_path):
     key = write_key(tmp_path)
     cfg = load_config(None, {"sensors": {"gps": {"type": "mavlink", "signing_key_file": key, "require_signing": True}}})
-    conf = MavlinkGpsConfig.from_config(cfg)
+    conf = gps_config(cfg)
     assert conf.signing_key == KEY and conf.require_signing
     Path(key).write_bytes(b"x" * 31)  # changed after the check at load: caught when read
     with pytest.raises(ConfigError, match=r"key 'sensors.gps.signing_key_file': .*32 raw bytes"):
-        MavlinkGpsConfig.from_config(cfg)
+        gps_config(cfg)
 
 
 @pytest.mark.parametrize("gps, outputs, key, message", [

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from vtolpose.config import ConfigError, load_config
+from vtolpose.config.sections import build_sections
 from vtolpose.config.mavlink_settings import EndpointSpec
 from vtolpose.drivers.links.mavlink_signing import SignatureCheck
 from vtolpose.estimator.core.rotation import euler_from_quat, quat_exp, quat_from_euler, quat_mul, quat_to_rot
@@ -501,6 +502,11 @@ def test_a_tcp_link_reconnects_without_blocking():
 # ------------------------------------------------------------------------------ configuration
 
 
+def output_from(cfg: dict) -> MavlinkOutput:
+    sections = build_sections(cfg)
+    return MavlinkOutput.from_section(sections.outputs.mavlink, sections.vehicle.system_id)
+
+
 def write_key(tmp_path, mode=0o600):
     path = tmp_path / "link.key"
     path.write_bytes(bytes(range(32)))
@@ -511,7 +517,7 @@ def write_key(tmp_path, mode=0o600):
 def test_the_old_single_url_configuration_still_works(tmp_path):
     cfg = load_config(None, {"outputs": {"mavlink": {"enabled": True, "url": "udpout:127.0.0.1:14540",
                                                      "signing_key_file": str(write_key(tmp_path)), "require_signing": True}}})
-    out = MavlinkOutput.from_config(cfg)
+    out = output_from(cfg)
     (fc,) = out.endpoints
     assert (fc.name, fc.spec.role, fc.spec.rate_hz, fc.inbound.require_signing) == ("flight_controller", "autopilot", 50.0, True)
     assert out.url == "udpout:127.0.0.1:14540"
@@ -546,7 +552,7 @@ def test_a_world_readable_key_file_is_refused_naming_the_key(tmp_path):
         load_config(None, {"outputs": {"mavlink": {"enabled": True, "endpoints": endpoints}}})
     key.chmod(0o640)  # the owner's group may read it (a service group)
     cfg = load_config(None, {"outputs": {"mavlink": {"enabled": True, "endpoints": endpoints}}})
-    assert [e.name for e in MavlinkOutput.from_config(cfg).endpoints] == ["flight_controller", "gcs"]
+    assert [e.name for e in output_from(cfg).endpoints] == ["flight_controller", "gcs"]
 
 
 def test_a_flight_controller_of_another_kind_than_configured_is_named(caplog):

@@ -18,6 +18,7 @@ import zenoh
 import zenoh.ext
 
 from vtolpose.config import ConfigError, load_config
+from vtolpose.config.sections import Ros2Section, build_sections
 from vtolpose.service.outputs import ros2_msgs
 from vtolpose.service.outputs.ros2 import (
     LEGACY_ATTACHMENT, Ros2Names, Ros2Output, attachment, gid_of, qos_field,
@@ -168,7 +169,8 @@ def test_type_hashes_gid_and_attachment_are_rmw_zenohs():
 
 
 def names(**ros2) -> Ros2Names:
-    return Ros2Names.from_config(load_config(None, {"outputs": {"ros2": {"enabled": True, **ros2}}}))
+    cfg = load_config(None, {"outputs": {"ros2": {"enabled": True, **ros2}}})
+    return Ros2Names.from_section(build_sections(cfg).outputs.ros2)
 
 
 def test_qos_fields_read_back_as_meant_by_rmw_zenohs_parser():
@@ -192,9 +194,10 @@ def test_topic_names_agree_between_key_and_token():
     assert "/%vtol1%nav%odom/" in n.publisher_token("z", 1, n.odometry_topic, ros2_msgs.ODOMETRY, 10)
 
 
-def output_config(port: int, stamp: str) -> dict:
-    return load_config(None, {"outputs": {"zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
-                                          "ros2": {"enabled": True, "stamp": stamp}}})
+def output_config(port: int, stamp: str) -> Ros2Section:
+    cfg = load_config(None, {"outputs": {"zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
+                                         "ros2": {"enabled": True, "stamp": stamp}}})
+    return build_sections(cfg).outputs.ros2
 
 
 class Receiver:

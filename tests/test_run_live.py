@@ -72,6 +72,7 @@ def test_autopilot_gps_on_the_output_link_feeds_the_fusion(tmp_path):
     """``sensors.gps.type: mavlink`` on the same link as ODOMETRY: no second connection, fixes fused."""
     from vtolpose.config import load_config
     from vtolpose.service.runtime.daemon import build_runtime
+    from vtolpose.config.sections import build_sections
     from vtolpose.service.runtime.live import live_sources
     from vtolpose.service.outputs.mavlink_output import mavutil
 
@@ -82,7 +83,7 @@ def test_autopilot_gps_on_the_output_link_feeds_the_fusion(tmp_path):
         "outputs": {"mavlink": {"enabled": True, "url": url}},
     })
     runtime = build_runtime(cfg, simulate_flight("landfill", 5.0, 1).calibration)
-    live = live_sources(cfg, runtime)
+    live = live_sources(build_sections(cfg), runtime)
     link = runtime.outputs[0]
     assert link.name == "mavlink" and "GPS_RAW_INT" in link.handlers
     assert len(live.sources) == 1  # the IMU only: the GPS rides on the output link

@@ -93,16 +93,17 @@ def test_parallel_frame_extraction_gives_the_same_replay(book: Dataset):
     """A full-speed replay extracts several frames at once (replay.camera_workers, two per core by
     default); lock-step fuses them in time order, so the trajectory is the one a single worker gives."""
     import numpy as np
+    from vtolpose.config.sections import build_sections
     from vtolpose.service.runtime.daemon import replay_camera_workers
 
     trajectories = {}
     for workers in (1, 3):
         cfg = load_config(None, {"features": {"detector": "orb"}, "replay": {"camera_workers": workers}})
-        assert replay_camera_workers(cfg) == workers
+        assert replay_camera_workers(build_sections(cfg).replay) == workers
         result = replay(book, cfg, ["imu", "camera", "gps"])
         trajectories[workers] = result.trajectory
         assert len(result.frames) == int(DURATION_S * 7.5)
     one, three = trajectories[1], trajectories[3]
     assert np.array_equal(one.t_ns, three.t_ns)
     assert np.array_equal(one.p, three.p) and np.array_equal(one.q, three.q)
-    assert replay_camera_workers(load_config(None, {})) == min(2 * (os.cpu_count() or 1), 16)  # two per core
+    assert replay_camera_workers(build_sections(load_config(None, {})).replay) == min(2 * (os.cpu_count() or 1), 16)  # two per core

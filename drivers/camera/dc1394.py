@@ -18,10 +18,11 @@ import select
 import time
 from ctypes import POINTER, Structure, byref, c_char_p, c_int, c_int32, c_uint16, c_uint32, c_uint64, c_void_p
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
+from vtolpose.config.sections import CameraSection
 from vtolpose.drivers.camera.common import CameraUnavailable
 from vtolpose.estimator.core.measurements import CameraFrame
 
@@ -203,13 +204,13 @@ class Dc1394Config:
     dma_buffers: int = 4
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any], device: str | None = None) -> "Dc1394Config":
-        text = device if device is not None else cfg["sensors.camera.device"]
-        mode = cfg["sensors.camera.mode"].lower()
+    def from_section(cls, camera: CameraSection, device: str | None = None) -> "Dc1394Config":
+        text = device if device is not None else camera.device
+        mode = camera.mode.lower()
         if mode not in VIDEO_MODES:
             raise ValueError(f"sensors.camera.mode: {mode!r} is not an IIDC mode; use one of {', '.join(VIDEO_MODES)}")
-        return cls(None if text is None else int(str(text), 16), mode, cfg["sensors.camera.width"],
-                   cfg["sensors.camera.height"], cfg["sensors.camera.fps"], cfg["sensors.camera.latency_s"])
+        return cls(None if text is None else int(str(text), 16), mode, camera.width, camera.height, camera.fps,
+                   camera.latency_s)
 
 
 def format7_packet_size(width: int, height: int, fps: float, unit_bytes: int, max_bytes: int) -> int:

@@ -10,11 +10,12 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Callable
 
 import cv2
 import numpy as np
 
+from vtolpose.config.sections import CameraSection
 from vtolpose.drivers.camera.common import CameraUnavailable
 from vtolpose.estimator.core.measurements import CameraFrame
 
@@ -32,11 +33,10 @@ class OpenCvCameraConfig:
     latency_s: float = 0.0
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any], device: str | None = None) -> "OpenCvCameraConfig":
-        text = device if device is not None else cfg["sensors.camera.device"]
+    def from_section(cls, camera: CameraSection, device: str | None = None) -> "OpenCvCameraConfig":
+        text = device if device is not None else camera.device
         source: int | str = 0 if text is None else int(text) if str(text).isdigit() else str(text)
-        return cls(source, cfg["sensors.camera.fps"], cfg["sensors.camera.width"], cfg["sensors.camera.height"],
-                   cfg["sensors.camera.latency_s"])
+        return cls(source, camera.fps, camera.width, camera.height, camera.latency_s)
 
 
 class OpenCvCamera:

@@ -33,9 +33,10 @@ import select
 import time
 from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any, Callable
 
 from vtolpose.config import ConfigError
+from vtolpose.config.sections import GpsSection
 from vtolpose.drivers.gps.common import GpsReading, LocalNed, dop_sigmas, horizontal_per_axis
 from vtolpose.drivers.links.mavlink_frames import Inbound, frame_header
 from vtolpose.drivers.links.mavlink_signing import SigningKeyError, read_signing_key
@@ -71,21 +72,18 @@ class MavlinkGpsConfig:
     require_signing: bool = False             # refuse every message not signed with the key
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any], url: str | None = None) -> "MavlinkGpsConfig":
-        """From ``sensors.gps.*`` and ``vehicle.system_id``; ConfigError naming the key of an unusable signing key."""
-        origin = cfg["sensors.gps.origin"]
-        key_file = cfg["sensors.gps.signing_key_file"]
+    def from_section(cls, gps: GpsSection, system_id: int | None, url: str | None = None) -> "MavlinkGpsConfig":
+        """From ``sensors.gps`` and ``vehicle.system_id``; ConfigError naming the key of an unusable signing key."""
         key = None
-        if key_file is not None:
+        if gps.signing_key_file is not None:
             try:
-                key = read_signing_key(key_file)
+                key = read_signing_key(gps.signing_key_file)
             except SigningKeyError as exc:
                 raise ConfigError(f"key 'sensors.gps.signing_key_file': {exc}") from None
-        if cfg["sensors.gps.require_signing"] and key is None:
+        if gps.require_signing and key is None:
             raise ConfigError("key 'sensors.gps.require_signing': needs sensors.gps.signing_key_file")
-        return cls(url or cfg["sensors.gps.mavlink_url"], cfg["sensors.gps.uere_m"],
-                   None if origin is None else tuple(origin), cfg.get("vehicle.system_id"), key,
-                   cfg["sensors.gps.require_signing"])
+        return cls(url or gps.mavlink_url, gps.uere_m, None if gps.origin is None else tuple(gps.origin), system_id, key,
+                   gps.require_signing)
 
 
 class MavlinkGps:

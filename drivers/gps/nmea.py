@@ -18,10 +18,11 @@ import re
 import time
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any, Callable
 
 import pynmea2
 
+from vtolpose.config.sections import SensorsSection
 from vtolpose.drivers.gps.common import GpsReading, LocalNed, dop_sigmas, horizontal_per_axis
 from vtolpose.drivers.links.serial_link import LINK_ERRORS, Backoff, SerialLink
 from vtolpose.estimator.core.measurements import GpsFix
@@ -49,11 +50,12 @@ class NmeaConfig:
     reconnect_max_s: float = 10.0
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any], port: str | None = None, baud: int | None = None) -> "NmeaConfig":
-        origin = cfg["sensors.gps.origin"]
-        return cls(port or cfg["sensors.gps.port"], int(baud or cfg["sensors.gps.baud"]), cfg["sensors.gps.uere_m"],
-                   None if origin is None else tuple(origin), cfg["sensors.gps.silence_timeout_s"],
-                   cfg["sensors.reconnect_min_s"], cfg["sensors.reconnect_max_s"])
+    def from_section(cls, sensors: SensorsSection, port: str | None = None, baud: int | None = None) -> "NmeaConfig":
+        """From ``sensors.gps`` and the drivers' shared back-off (``sensors.reconnect_*``), with optional
+        command-line overrides."""
+        gps = sensors.gps
+        return cls(port or gps.port, int(baud or gps.baud), gps.uere_m, None if gps.origin is None else tuple(gps.origin),
+                   gps.silence_timeout_s, sensors.reconnect_min_s, sensors.reconnect_max_s)
 
 
 @dataclass(slots=True)

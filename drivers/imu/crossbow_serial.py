@@ -11,10 +11,11 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import Callable
 
 import numpy as np
 
+from vtolpose.config.sections import SensorsSection
 from vtolpose.drivers.imu.crossbow import CrossbowScale, Frame, PacketFramer, TimeCounter, checksum
 from vtolpose.drivers.links.serial_link import LINK_ERRORS, Backoff, DeviceError, SerialLink
 from vtolpose.estimator.core.measurements import ImuSample
@@ -51,16 +52,17 @@ class CrossbowConfig:
             raise ValueError(f"sensors.imu.R_BI: must be a proper rotation (orthonormal, det +1), got {self.R_BI.tolist()}")
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any], port: str | None = None, baud: int | None = None) -> "CrossbowConfig":
-        """From the flat configuration (``sensors.imu.*``), with optional command-line overrides."""
-        imu = {k[len("sensors.imu."):]: v for k, v in cfg.items() if k.startswith("sensors.imu.")}
+    def from_section(cls, sensors: SensorsSection, port: str | None = None, baud: int | None = None) -> "CrossbowConfig":
+        """From ``sensors.imu`` and the drivers' shared back-off (``sensors.reconnect_*``), with optional
+        command-line overrides."""
+        imu = sensors.imu
         return cls(
-            port=port or imu["port"], baud=int(baud or imu["baud"]),
-            scale=CrossbowScale(imu["rate_range_dps"], imu["accel_range_g"]),
-            counter=TimeCounter(imu["counter_tick_s"], imu["counter_direction"] == "down"),
-            R_BI=np.asarray(imu["R_BI"], dtype=float), reply_timeout_s=imu["reply_timeout_s"],
-            silence_timeout_s=imu["silence_timeout_s"],
-            reconnect_min_s=cfg["sensors.reconnect_min_s"], reconnect_max_s=cfg["sensors.reconnect_max_s"],
+            port=port or imu.port, baud=int(baud or imu.baud),
+            scale=CrossbowScale(imu.rate_range_dps, imu.accel_range_g),
+            counter=TimeCounter(imu.counter_tick_s, imu.counter_direction == "down"),
+            R_BI=np.asarray(imu.R_BI, dtype=float), reply_timeout_s=imu.reply_timeout_s,
+            silence_timeout_s=imu.silence_timeout_s,
+            reconnect_min_s=sensors.reconnect_min_s, reconnect_max_s=sensors.reconnect_max_s,
         )
 
 

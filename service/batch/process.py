@@ -29,6 +29,7 @@ from vtolpose.service.replay.report import build_report
 from vtolpose.service.replay.session import Trajectory
 from vtolpose.service.replay.smoothing import replay_smoothed
 from vtolpose.service.runtime.status import pose_quality
+from vtolpose.service.runtime.wiring import config_sections
 
 QUALITY_BINS = 60  # at most this many quality figures per flight in the table, whatever its length
 QUALITY_MIN_BIN_S = 10.0
@@ -115,7 +116,7 @@ def process_flight(flight: FlightInput, settings: BatchSettings, work: Path) -> 
     try:
         dataset = Dataset.open(dataset_path)
         cfg = settings.cfg
-        sensors = list(settings.sensors or cfg["replay.sensors"])
+        sensors = list(settings.sensors or config_sections(cfg).replay.sensors)
         quality = QualityTrack()
         result = replay_smoothed(dataset, cfg, work / "trajectory-smoothed.txt", work / "covariance-smoothed.csv",
                                  sensors=sensors, on_fused=quality.add)

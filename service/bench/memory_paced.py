@@ -35,6 +35,7 @@ from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.service.runtime.replay_feed import replay_async
 from vtolpose.service.runtime.status import resident_memory_mb
+from vtolpose.service.runtime.wiring import config_sections
 
 Row = tuple[str, float, str, str]
 
@@ -58,7 +59,7 @@ def bench_memory_paced(minutes: float = 60.0, echo: Callable[[str], None] = prin
     cfg = load_config(None, {"outputs": {
         "mavlink": {"enabled": True, "url": f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"},
         "zenoh": {"enabled": True, "listen": [f"tcp/127.0.0.1:{_free_port()}"]}}})
-    fill_s = cfg["outputs.zenoh.history_s"] + 30.0
+    fill_s = config_sections(cfg).outputs.zenoh.history_s + 30.0
     rss: list[tuple[float, float]] = []
     traced: list[tuple[float, float]] = []
     top: list[str] = []

@@ -39,7 +39,7 @@ from vtolpose.service.runtime.daemon import build_runtime, serve
 from vtolpose.service.commands.run import camera_processor
 from vtolpose.service.runtime.loop import set_thread_priority
 from vtolpose.service.runtime.sources import ReplayClock, ReplaySource, ThreadedSource
-from vtolpose.service.runtime.wiring import feature_options
+from vtolpose.service.runtime.wiring import camera_options, feature_options
 from vtolpose.service.runtime.status import LatencyProbe, resident_memory_mb
 from vtolpose.service.bench.rows import Row
 
@@ -355,7 +355,7 @@ def bench_runtime_hour(duration_s: float = 3600.0, every_s: float = 300.0, camer
     if camera:
         frames_used = status.counts["camera"]["used"] if "camera" in status.counts else 0
         rows.append(("landmarks in the map (max over the run)", float(max(s[5] for s in samples)), "landmarks",
-                     f"cap estimator.camera.max_landmarks = {cfg['estimator.camera.max_landmarks']}; "
+                     f"cap estimator.camera.max_landmarks = {camera_options(cfg).map.max_landmarks}; "
                      f"{frames_used} frames used of {len(frames)}"))
     return rows + [(f"  memory at {s[0] / 60:.0f} min", s[1], "MB",
                     f"history {s[2]} (capacity {s[3]})" + (f", landmarks {s[5]}" if camera else "")) for s in samples]

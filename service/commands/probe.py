@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from vtolpose.config.sections import Sections
 from vtolpose.drivers.camera.common import CameraUnavailable
 from vtolpose.drivers.camera.select import camera_from_config
 from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, CrossbowImu, ImuReading
@@ -48,8 +49,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = config_from(args)
-    return {"imu": _probe_imu, "gps": _probe_gps, "camera": _probe_camera}[args.sensor](args, cfg)
+    from vtolpose.service.runtime.wiring import config_sections
+
+    sections = config_sections(config_from(args))
+    return {"imu": _probe_imu, "gps": _probe_gps, "camera": _probe_camera}[args.sensor](args, sections)
 
 
 def _failed(sensor: str, message: object) -> int:
@@ -64,8 +67,8 @@ def _rate(t_ns: list[int]) -> str:
     return f"{(len(t_ns) - 1) / span:.2f} Hz over {span:.2f} s ({len(t_ns)} samples)"
 
 
-def _probe_imu(args: argparse.Namespace, cfg: dict) -> int:
-    conf = CrossbowConfig.from_config(cfg, args.port, args.baud)
+def _probe_imu(args: argparse.Namespace, sections: Sections) -> int:
+    conf = CrossbowConfig.from_section(sections.sensors, args.port, args.baud)
     print(f"probe imu: Crossbow IMU400CC on {conf.port} at {conf.baud} baud, {args.seconds:g} s")
     imu = CrossbowImu(conf)
     try:
@@ -86,7 +89,7 @@ def _probe_imu(args: argparse.Namespace, cfg: dict) -> int:
     for r in readings[: args.samples]:
         values = ",".join(f"{v:.6f}" for v in (*r.gyro, *r.accel))
         print(f"{(r.t_ns - readings[0].t_ns) * 1e-9:.6f},{values},{r.temperature_c:.2f},{r.counter}")
-    print(f"rate: {_rate([r.t_ns for r in readings])} (nominal {cfg['sensors.imu.rate_hz']:g} Hz)")
+    print(f"rate: {_rate([r.t_ns for r in readings])} (nominal {sections.sensors.imu.rate_hz:g} Hz)")
     counts = imu.counts()
     print("packets: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in counts.items()))
     print(_counter_report(readings, conf))
@@ -118,18 +121,18 @@ def _counter_report(readings: list[ImuReading], conf: CrossbowConfig) -> str:
             f"counting {direction}: {verdict}")
 
 
-def _probe_gps(args: argparse.Namespace, cfg: dict) -> int:
-    kind = args.kind or cfg["sensors.gps.type"]
+def _probe_gps(args: argparse.Namespace, sections: Sections) -> int:
+    kind = args.kind or sections.sensors.gps.type
     if kind == "nmea":
         from vtolpose.drivers.gps.nmea import NmeaConfig, NmeaGps
 
-        conf = NmeaConfig.from_config(cfg, args.port, args.baud)
+        conf = NmeaConfig.from_section(sections.sensors, args.port, args.baud)
         print(f"probe gps: NMEA on {conf.port} at {conf.baud} baud, {args.seconds:g} s")
         gps = NmeaGps(conf)
     elif kind == "mavlink":
         from vtolpose.drivers.gps.mavlink_gps import MavlinkGps, MavlinkGpsConfig
 
-        conf = MavlinkGpsConfig.from_config(cfg, args.port)
+        conf = MavlinkGpsConfig.from_section(sections.sensors.gps, sections.vehicle.system_id, args.port)
         print(f"probe gps: MAVLink GPS_RAW_INT on {conf.url}, {args.seconds:g} s")
         gps = MavlinkGps(conf)
     else:
@@ -159,15 +162,15 @@ def _probe_gps(args: argparse.Namespace, cfg: dict) -> int:
     return 0 if fixes else _failed("gps", "no usable fix arrived; " + gps.status)
 
 
-def _probe_camera(args: argparse.Namespace, cfg: dict) -> int:
-    kind = args.kind or cfg["sensors.camera.type"]
+def _probe_camera(args: argparse.Namespace, sections: Sections) -> int:
+    kind = args.kind or sections.sensors.camera.type
     try:
         if kind == "dc1394":
             from vtolpose.drivers.camera.dc1394 import list_cameras
 
             found = list_cameras()
             print("IIDC cameras: " + ("; ".join(c.describe() for c in found) or "none"))
-        camera = camera_from_config(cfg, kind, args.port)
+        camera = camera_from_config(sections.sensors.camera, kind, args.port)
         print(f"probe camera: {camera.open()}, {args.seconds:g} s")
     except (CameraUnavailable, ValueError) as exc:
         return _failed("camera", exc)

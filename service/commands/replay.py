@@ -63,9 +63,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def requested_sensors(args: argparse.Namespace, cfg: dict, dataset: Dataset) -> list[str]:
     """The sensors to replay: those named with --sensors must all be in the dataset (an error
     says which is missing); --overlay without --sensors adds the camera, since it draws frames."""
+    from vtolpose.service.runtime.wiring import config_sections
+
     named = parse_sensors(args.sensors)
     if named is None:
-        sensors = list(cfg["replay.sensors"])
+        sensors = list(config_sections(cfg).replay.sensors)
         if args.overlay and "camera" not in sensors:
             sensors.append("camera")
     else:

@@ -132,15 +132,17 @@ def run(args: argparse.Namespace) -> int:
     if args.replay:
         from vtolpose.drivers.files.dataset import Dataset
         from vtolpose.service.runtime.replay_feed import replay_async
+        from vtolpose.service.runtime.wiring import config_sections
 
         if args.record:
             raise ConfigError("--record writes what live sensors deliver; a replay reads a recording already "
                               "(copy the dataset folder to keep it)")
-        if cfg["run.record_dir"]:
-            log.warning("run.record_dir (%s) is not used with --replay: the dataset is the recording", cfg["run.record_dir"])
+        sections = config_sections(cfg)
+        if sections.run.record_dir:
+            log.warning("run.record_dir (%s) is not used with --replay: the dataset is the recording", sections.run.record_dir)
 
         dataset = Dataset.open(args.replay)
-        sensors = parse_sensors(args.sensors) or cfg["replay.sensors"]
+        sensors = parse_sensors(args.sensors) or sections.replay.sensors
         processor = camera_processor(cfg, dataset.calibration) if "camera" in sensors else None
         injector = injector_from(args)
         summary, _ = asyncio.run(replay_async(dataset, cfg, sensors, trajectory_path=args.out, camera_processor=processor,
@@ -162,24 +164,26 @@ def run(args: argparse.Namespace) -> int:
 async def _live(cfg: dict, args: argparse.Namespace):
     from vtolpose.service.runtime.daemon import build_runtime, load_calibration_file, serve
     from vtolpose.service.runtime.live import live_sources
+    from vtolpose.service.runtime.wiring import config_sections, with_gps_origin
 
-    if cfg["run.calibration_file"] is None:
+    sections = config_sections(cfg)
+    if sections.run.calibration_file is None:
         raise ConfigError("key 'run.calibration_file': a live run needs the vehicle's calibration "
                           "(a dataset.yaml-format file, e.g. from a recording made with this vehicle)")
-    calibration = load_calibration_file(cfg["run.calibration_file"])
-    if cfg["sensors.gps.origin"] is None and calibration.gps.origin_lla is not None:
+    calibration = load_calibration_file(sections.run.calibration_file)
+    if sections.sensors.gps.origin is None and calibration.gps.origin_lla is not None:
         # One local frame for the whole vehicle: the calibration's origin unless the GPS section sets one.
-        cfg = {**cfg, "sensors.gps.origin": list(calibration.gps.origin_lla)}
-    processor = camera_processor(cfg, calibration) if cfg["sensors.camera.type"] != "none" else None
+        sections = with_gps_origin(sections, tuple(calibration.gps.origin_lla))
+    processor = camera_processor(cfg, calibration) if sections.sensors.camera.type != "none" else None
     runtime = build_runtime(cfg, calibration, trajectory_path=args.out, live=True, camera_processor=processor)
     recorder = None
-    if cfg["run.record_dir"]:
+    if sections.run.record_dir:
         from vtolpose.service.outputs.recorder import FlightRecorder
 
-        recorder = FlightRecorder(recording_folder(cfg["run.record_dir"]), calibration,
+        recorder = FlightRecorder(recording_folder(sections.run.record_dir), calibration,
                                   description="recorded live by vtolpose run")
         runtime.recorder = recorder
-    live = live_sources(cfg, runtime, recorder)
+    live = live_sources(sections, runtime, recorder)
     runtime.origin = live.origin
     try:
         summary = await serve(runtime, live.sources, args.duration)

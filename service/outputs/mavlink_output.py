@@ -30,6 +30,7 @@ from collections import Counter
 from typing import Any, Callable, Sequence
 
 from vtolpose.config.mavlink_settings import EndpointSpec, mavlink_endpoints
+from vtolpose.config.sections import MavlinkSection
 from vtolpose.drivers.links.mavlink_frames import Inbound
 from vtolpose.drivers.links.mavlink_outbound import send_v2
 from vtolpose.drivers.links.mavlink_signing import SigningKeyError, read_signing_key, signing_timestamp
@@ -234,20 +235,21 @@ class MavlinkOutput:
         self.pose_age = LatencyProbe(POSE_AGE_WINDOW)  # IMU stamp to ODOMETRY sent, on the sensor clock
 
     @classmethod
-    def from_config(cls, cfg: dict[str, Any], clock: SensorClock | None = None) -> "MavlinkOutput":
-        """Endpoints from ``outputs.mavlink.*``; ValueError naming the key of an unusable signing key."""
-        profile = PROFILES[cfg["outputs.mavlink.autopilot"]]
+    def from_section(cls, mavlink: MavlinkSection, system_id: int, clock: SensorClock | None = None) -> "MavlinkOutput":
+        """Endpoints from ``outputs.mavlink``, sending as ``vehicle.system_id``; ValueError naming the key of an
+        unusable signing key."""
+        profile = PROFILES[mavlink.autopilot]
         endpoints = []
-        for spec in mavlink_endpoints(cfg):
+        for spec in mavlink_endpoints(mavlink):
             key = None
             if spec.signing_key_file is not None:
                 try:
                     key = read_signing_key(spec.signing_key_file)
                 except SigningKeyError as exc:
                     raise ValueError(f"key '{spec.key}.signing_key_file': {exc}") from None
-            endpoints.append(Endpoint(spec, key, profile, cfg["vehicle.system_id"], cfg["outputs.mavlink.component_id"],
-                                      cfg["outputs.mavlink.max_udp_peers"], cfg["outputs.mavlink.udp_peer_timeout_s"]))
-        return cls(endpoints, cfg["outputs.mavlink.autopilot"], cfg["outputs.mavlink.statustext_per_minute"], clock)
+            endpoints.append(Endpoint(spec, key, profile, system_id, mavlink.component_id, mavlink.max_udp_peers,
+                                      mavlink.udp_peer_timeout_s))
+        return cls(endpoints, mavlink.autopilot, mavlink.statustext_per_minute, clock)
 
     # ------------------------------------------------------------------------------ lifetime
     def open(self) -> None:

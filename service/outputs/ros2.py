@@ -42,6 +42,7 @@ import xxhash
 import zenoh
 
 from vtolpose.config import ConfigError
+from vtolpose.config.sections import Ros2Section
 from vtolpose.estimator import OutputPose
 from vtolpose.service.outputs import ros2_msgs
 from vtolpose.service.outputs.zenoh_session import ZenohSettings
@@ -116,16 +117,17 @@ class Ros2Names:
     tf_topic: str
 
     @classmethod
-    def from_config(cls, cfg: dict[str, Any]) -> "Ros2Names":
-        ns = _check_name("outputs.ros2.namespace", cfg["outputs.ros2.namespace"], True, allow_empty=True).strip("/")
+    def from_section(cls, ros2: Ros2Section) -> "Ros2Names":
+        ns = _check_name("outputs.ros2.namespace", ros2.namespace, True, allow_empty=True).strip("/")
         namespace = f"/{ns}" if ns else "/"
 
-        def qualified(key: str) -> str:
-            name = _check_name(key, cfg[key], True)
+        def qualified(key: str, name: str) -> str:
+            name = _check_name(key, name, True)
             return name if name.startswith("/") else f"{namespace.rstrip('/')}/{name}"
 
-        return cls(cfg["outputs.ros2.domain_id"], namespace, _check_name("outputs.ros2.node_name", cfg["outputs.ros2.node_name"], False),
-                   qualified("outputs.ros2.odometry_topic"), qualified("outputs.ros2.tf_topic"))
+        return cls(ros2.domain_id, namespace, _check_name("outputs.ros2.node_name", ros2.node_name, False),
+                   qualified("outputs.ros2.odometry_topic", ros2.odometry_topic),
+                   qualified("outputs.ros2.tf_topic", ros2.tf_topic))
 
     def topic_key(self, topic: str, typename: str) -> str:
         return f"{self.domain_id}/{topic.strip('/')}/{dds_type_name(typename)}/{ros2_msgs.type_hash(typename)}"
@@ -174,14 +176,14 @@ class Ros2Output:
 
     name = "ros2"
 
-    def __init__(self, cfg: dict[str, Any], settings: ZenohSettings,
+    def __init__(self, ros2: Ros2Section, settings: ZenohSettings,
                  shared_session: Callable[[], zenoh.Session | None] = lambda: None, live: bool = False) -> None:
-        self.names = Ros2Names.from_config(cfg)
+        self.names = Ros2Names.from_section(ros2)
         self.frames = ros2_msgs.RosFrames(
-            _check_name("outputs.ros2.map_frame", cfg["outputs.ros2.map_frame"], False),
-            None if cfg["outputs.ros2.odom_frame"] is None else _check_name("outputs.ros2.odom_frame", cfg["outputs.ros2.odom_frame"], False),
-            _check_name("outputs.ros2.base_frame", cfg["outputs.ros2.base_frame"], False))
-        stamp = cfg["outputs.ros2.stamp"]
+            _check_name("outputs.ros2.map_frame", ros2.map_frame, False),
+            None if ros2.odom_frame is None else _check_name("outputs.ros2.odom_frame", ros2.odom_frame, False),
+            _check_name("outputs.ros2.base_frame", ros2.base_frame, False))
+        stamp = ros2.stamp
         self.system_stamps = stamp == "system" or (stamp == "auto" and live)
         self.live = live
         self.settings = settings

@@ -33,6 +33,7 @@ from typing import Any, Callable
 import numpy as np
 import zenoh
 
+from vtolpose.config.sections import ZenohSection
 from vtolpose.estimator import OutputPose, OutsideHistory, PoseHistory, PoseWindow
 from vtolpose.service.outputs.pose_json import Origin, PoseJson, origin_json
 from vtolpose.service.outputs.pose_json import pose_message, pose_status  # noqa: F401 - also imported from here
@@ -60,9 +61,8 @@ class QueryLimits:
     max_wait_s: float = 2.0
 
     @classmethod
-    def from_config(cls, cfg: dict[str, Any]) -> "QueryLimits":
-        return cls(cfg["outputs.zenoh.max_window_s"], cfg["outputs.zenoh.max_queries_per_s"],
-                   cfg["outputs.zenoh.max_pending_queries"])
+    def from_section(cls, zenoh_section: ZenohSection) -> "QueryLimits":
+        return cls(zenoh_section.max_window_s, zenoh_section.max_queries_per_s, zenoh_section.max_pending_queries)
 
 
 def _floats(values: np.ndarray) -> list:

@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
+
+if TYPE_CHECKING:  # the mapper's client builds its settings by hand and never loads the configuration
+    from vtolpose.config.sections import ZenohSection
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7448"  # outputs.zenoh.listen's default: loopback only
 
@@ -31,14 +34,14 @@ class ZenohSettings:
     config_file: str | None = None  # a Zenoh JSON5 configuration applied first (ACL, authentication, …)
 
     @classmethod
-    def from_config(cls, cfg: dict[str, Any]) -> "ZenohSettings":
-        peer = cfg["outputs.zenoh.mode"] == "peer"  # a client never listens (the default endpoint is a peer's)
+    def from_section(cls, zenoh_section: ZenohSection) -> "ZenohSettings":
+        peer = zenoh_section.mode == "peer"  # a client never listens (the default endpoint is a peer's)
+        tls = zenoh_section.tls
         return cls(
-            mode=cfg["outputs.zenoh.mode"], listen=list(cfg["outputs.zenoh.listen"]) if peer else [],
-            connect=list(cfg["outputs.zenoh.connect"]), multicast_scouting=cfg["outputs.zenoh.multicast_scouting"],
-            root_ca_certificate=cfg["outputs.zenoh.tls.root_ca_certificate"],
-            certificate=cfg["outputs.zenoh.tls.certificate"], private_key=cfg["outputs.zenoh.tls.private_key"],
-            mutual_tls=cfg["outputs.zenoh.tls.mutual"], config_file=cfg["outputs.zenoh.config_file"],
+            mode=zenoh_section.mode, listen=list(zenoh_section.listen) if peer else [],
+            connect=list(zenoh_section.connect), multicast_scouting=zenoh_section.multicast_scouting,
+            root_ca_certificate=tls.root_ca_certificate, certificate=tls.certificate, private_key=tls.private_key,
+            mutual_tls=tls.mutual, config_file=zenoh_section.config_file,
         )
 
     def to_zenoh(self) -> zenoh.Config:

@@ -15,6 +15,7 @@ from vtolpose.estimator import (
 )
 from vtolpose.drivers.files.series import TruthSeries
 from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory
+from vtolpose.service.runtime.wiring import estimator_variant
 
 REPORT_VERSION = 1
 
@@ -27,7 +28,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
         "report_version": REPORT_VERSION,
         "dataset": dataset.meta["name"],
         "dataset_path": str(dataset.root),
-        "variant": cfg["estimator.variant"],
+        "variant": estimator_variant(cfg),
         "sensor_set": result.sensors,
         "duration_s": round(result.duration_s, 6),
         "wall_s": round(result.wall_s, 6),

@@ -25,7 +25,7 @@ from vtolpose.estimator import (
 from vtolpose.service.replay.faults import Fault, FaultInjector
 from vtolpose.service.runtime.replay_feed import checked_sensors, run_replay
 from vtolpose.service.runtime.threads import limit_blas_threads
-from vtolpose.service.runtime.wiring import feature_options
+from vtolpose.service.runtime.wiring import config_sections, feature_options
 
 log = logging.getLogger(__name__)
 
@@ -167,7 +167,8 @@ def replay(
     stream; ``start_at_s``: joined that far into the recording, as a service restarted in flight.
 
     ``prepare(runtime)`` runs once the runtime is built (``replay --smooth`` attaches its recorder there)."""
-    sensors = checked_sensors(sensors or cfg["replay.sensors"])
+    configured = config_sections(cfg).replay
+    sensors = checked_sensors(sensors or configured.sensors)
     notes: list[str] = []
     lidar = lidar_summary(dataset.root)
     if lidar is not None:  # an extra stream the estimator does not fuse: said, not read
@@ -185,7 +186,7 @@ def replay(
         cam = dataset.calibration.camera
         processor = FrameProcessor(feature_options(cfg), (cam.height, cam.width), on_frame)
         limit_blas_threads(1)  # idle BLAS threads would spin on the core feature extraction needs
-    recorder = Recorder(int(1e9 / cfg["replay.nees_rate_hz"]), absolute_position=has_gps)
+    recorder = Recorder(int(1e9 / configured.nees_rate_hz), absolute_position=has_gps)
     imu_t = dataset.imu_raw().t_ns
     if len(imu_t) == 0:
         raise ValueError(f"{dataset.root}: the IMU stream has no valid samples")

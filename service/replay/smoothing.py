@@ -26,7 +26,9 @@ from vtolpose.drivers.files.csvio import seconds_text
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.tum import tum_line
 from vtolpose.estimator import BackwardPass, ChunkBuilder, SmoothedChunk, SmoothedPose, Step, StepChunk
+from vtolpose.config.sections import SmoothingSection
 from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory, replay
+from vtolpose.service.runtime.wiring import config_sections
 
 COV_HEADER = "# t [s], upper triangle of the 6x6 covariance of [dp (m), dtheta (rad, world frame)], row by row\n"
 _UPPER = np.triu_indices(6)
@@ -41,9 +43,9 @@ class SmoothingOptions:
     temp_dir: str | None = None
 
     @classmethod
-    def from_config(cls, cfg: dict[str, Any]) -> "SmoothingOptions":
-        return cls(*(cfg[f"smoothing.{k}"] for k in ("fixed_lag_s", "steps_per_sample", "max_window_s", "chunk_steps",
-                                                     "temp_dir")))
+    def from_section(cls, smoothing: SmoothingSection) -> "SmoothingOptions":
+        return cls(smoothing.fixed_lag_s, smoothing.steps_per_sample, smoothing.max_window_s, smoothing.chunk_steps,
+                   smoothing.temp_dir)
 
 
 def _save(folder: Path, arrays: dict[str, np.ndarray]) -> int:
@@ -254,7 +256,8 @@ def replay_smoothed(dataset: Dataset, cfg: dict[str, Any], out: str | Path | Non
     """:func:`~vtolpose.service.replay.session.replay` with the backward pass after it: the result's
     ``smoothing`` holds the smoothed and fixed-lag trajectories; ``out``/``cov_out`` get the smoothed
     trajectory (TUM) and its covariances."""
-    smoothing = ReplaySmoothing(SmoothingOptions.from_config(cfg), int(1e9 / cfg["replay.nees_rate_hz"]))
+    sections = config_sections(cfg)
+    smoothing = ReplaySmoothing(SmoothingOptions.from_section(sections.smoothing), int(1e9 / sections.replay.nees_rate_hz))
     try:
         result = replay(dataset, cfg, prepare=smoothing.attach, **replay_args)
         cov = result.covariances

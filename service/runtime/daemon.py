@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import os
 import signal
 import time
@@ -17,28 +16,24 @@ from typing import Any, AsyncIterator, Callable, Sequence
 
 from vtolpose.config import ConfigError
 from vtolpose.config.outputs import zenoh_prefix
+from vtolpose.config.sections import FusionSection, OutputsSection, ReplaySection, Sections
 from vtolpose.drivers.files.calibration_yaml import CalibrationError, calibration_from_yaml, load_yaml_file
 from vtolpose.estimator import (
-    Calibration, Estimator, FusionOptions, gps_kernel, ImuRange, OutputPose, propagation_kernel, rts_kernel,
-    sample_kernel, STANDARD_GRAVITY, update_kernel,
+    Calibration, Estimator, FusionOptions, gps_kernel, OutputPose, propagation_kernel, rts_kernel, sample_kernel,
+    update_kernel,
 )
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
 from vtolpose.service.text import describe
-from vtolpose.service.runtime.wiring import calibration_with_overrides, filter_options
+from vtolpose.service.runtime.wiring import calibration_with_overrides, config_sections, filter_options, imu_range
 
 log = logging.getLogger(__name__)
 
 Origin = tuple[float, float, float] | None
 
 
-def fusion_options(cfg: dict[str, Any]) -> FusionOptions:
-    return FusionOptions(cfg["fusion.delay_s"], cfg["fusion.max_pending"], cfg["fusion.max_imu_buffer"])
-
-
-def imu_range(cfg: dict[str, Any]) -> ImuRange:
-    """``estimator.imu.gyro_range_dps`` and ``accel_range_g`` in SI (rad/s, m/s^2)."""
-    return ImuRange(math.radians(cfg["estimator.imu.gyro_range_dps"]), cfg["estimator.imu.accel_range_g"] * STANDARD_GRAVITY)
+def fusion_options(fusion: FusionSection) -> FusionOptions:
+    return FusionOptions(fusion.delay_s, fusion.max_pending, fusion.max_imu_buffer)
 
 
 def load_calibration_file(path: str | Path) -> Calibration:
@@ -53,12 +48,12 @@ def load_calibration_file(path: str | Path) -> Calibration:
     return calibration_from_yaml(doc, str(path))
 
 
-def replay_camera_workers(cfg: dict[str, Any]) -> int:
+def replay_camera_workers(replay: ReplaySection) -> int:
     """Frames a full-speed replay extracts at once: ``replay.camera_workers``, 0 meaning two per core
     (while the loop fuses one frame and waits for the next, the others keep every core busy: SIFT on
     book ~5.6 × real time against ~4.9 × with one per core on 2 cores). Lock-step fuses them in time
     order whatever order they finish in, so the result does not change."""
-    return cfg["replay.camera_workers"] or max(1, min(2 * (os.cpu_count() or 1), 16))
+    return replay.camera_workers or max(1, min(2 * (os.cpu_count() or 1), 16))
 
 
 def load_compiled_kernels(backward_pass: bool = False, runs: bool = True) -> None:
@@ -93,65 +88,76 @@ def build_runtime(
     stamps are on the monotonic clock (ROS 2 stamps and TIMESYNC answers follow from it). ``sensor_now``:
     the sensor clock now, when it is not the monotonic one (a paced replay's); TIMESYNC answers on it.
     """
+    sections = config_sections(cfg)
     calibration = calibration_with_overrides(cfg, calibration)
     estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
+    outputs = sections.outputs
     options = RuntimeOptions(
-        fusion=fusion_options(cfg), history_s=cfg["outputs.zenoh.history_s"],
-        camera_workers=replay_camera_workers(cfg) if lockstep else cfg["fusion.camera_workers"],
-        lockstep=lockstep, measure_latency=measure_latency, realtime_priority=cfg["run.realtime_priority"] if live else None,
-        imu_range=imu_range(cfg),
+        fusion=fusion_options(sections.fusion), history_s=outputs.zenoh.history_s,
+        camera_workers=replay_camera_workers(sections.replay) if lockstep else sections.fusion.camera_workers,
+        lockstep=lockstep, measure_latency=measure_latency,
+        realtime_priority=sections.run.realtime_priority if live else None, imu_range=imu_range(cfg),
     )
-    path = trajectory_path or cfg["run.trajectory"]
+    path = trajectory_path or sections.run.trajectory
     runtime = Runtime(estimator, options, camera_processor=camera_processor,
                       trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused)
     runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
-    if cfg["outputs.mavlink.enabled"]:
+    if outputs.mavlink.enabled:
         from vtolpose.service.outputs.mavlink_output import MavlinkOutput, SensorClock
 
         now = sensor_now if sensor_now is not None else time.monotonic_ns if live else None
         try:
-            runtime.outputs.append(MavlinkOutput.from_config(cfg, SensorClock(now=now)))
+            runtime.outputs.append(MavlinkOutput.from_section(outputs.mavlink, sections.vehicle.system_id,
+                                                              SensorClock(now=now)))
         except ValueError as exc:  # an unusable signing key file: the message names its key
             raise ConfigError(str(exc)) from None
-    if cfg["outputs.zenoh.enabled"]:
-        from vtolpose.service.outputs.zenoh import QueryLimits, ZenohOutput
-        from vtolpose.service.outputs.zenoh_session import ZenohSettings
-
-        runtime.outputs.append(ZenohOutput(ZenohSettings.from_config(cfg), zenoh_prefix(cfg), runtime.history,
-                                           runtime.history_lock, lambda: runtime.origin(), QueryLimits.from_config(cfg)))
-        # The history is read by mappers: keep it smoothed after the configured lag.
-        runtime.enable_smoothing(cfg["smoothing.fixed_lag_s"], cfg["smoothing.steps_per_sample"],
-                                 cfg["smoothing.max_window_s"])
-    add_interop_outputs(runtime, cfg, camera_processor, live)
+    if outputs.zenoh.enabled:
+        add_zenoh_output(runtime, sections)
+    add_interop_outputs(runtime, outputs, camera_processor, live)
     load_compiled_kernels(runs=runtime.fuses_runs)  # now, not on the first IMU step or fix
     return runtime
 
 
-def add_interop_outputs(runtime: Runtime, cfg: dict[str, Any], camera_processor: CameraProcessor | None,
+def add_zenoh_output(runtime: Runtime, sections: Sections) -> None:
+    """Poses and history queries over Zenoh (``outputs.zenoh``), with the history kept smoothed."""
+    from vtolpose.service.outputs.zenoh import QueryLimits, ZenohOutput
+    from vtolpose.service.outputs.zenoh_session import ZenohSettings
+
+    zenoh = sections.outputs.zenoh
+    prefix = zenoh_prefix(zenoh.prefix, sections.vehicle.name)
+    runtime.outputs.append(ZenohOutput(ZenohSettings.from_section(zenoh), prefix, runtime.history, runtime.history_lock,
+                                       lambda: runtime.origin(), QueryLimits.from_section(zenoh)))
+    # The history is read by mappers: keep it smoothed after the configured lag.
+    smoothing = sections.smoothing
+    runtime.enable_smoothing(smoothing.fixed_lag_s, smoothing.steps_per_sample, smoothing.max_window_s)
+
+
+def add_interop_outputs(runtime: Runtime, outputs: OutputsSection, camera_processor: CameraProcessor | None,
                         live: bool = False) -> None:
     """ROS 2 over Zenoh, the Foxglove view and the MCAP recording (``outputs.ros2|foxglove|mcap``); the
     latter two also see raw samples (``Runtime.sample_taps``) and camera frames (the processor's ``on_frame``)."""
     origin = lambda: runtime.origin()  # noqa: E731 - read late: a live GPS fixes its origin at its first fix
-    if cfg["outputs.ros2.enabled"]:
+    if outputs.ros2.enabled:
         from vtolpose.service.outputs.ros2 import Ros2Output
         from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
         zenoh_out = next((o for o in runtime.outputs if o.name == "zenoh"), None)  # opened before this one
-        runtime.outputs.append(Ros2Output(cfg, ZenohSettings.from_config(cfg),
+        runtime.outputs.append(Ros2Output(outputs.ros2, ZenohSettings.from_section(outputs.zenoh),
                                           lambda: zenoh_out.session if zenoh_out is not None else None,
                                           live=live))
     viewers: list[Any] = []
-    if cfg["outputs.foxglove.enabled"] or cfg["outputs.mcap.file"]:
+    foxglove, mcap_file = outputs.foxglove, outputs.mcap.file
+    if foxglove.enabled or mcap_file:
         from vtolpose.service.outputs.foxglove import FoxgloveOutput, estimator_landmarks
 
-        view = dict(rate_hz=cfg["outputs.foxglove.rate_hz"], path_points=cfg["outputs.foxglove.path_points"],
+        view = dict(rate_hz=foxglove.rate_hz, path_points=foxglove.path_points,
                     origin=origin, landmarks=lambda: estimator_landmarks(runtime.est))
-        if cfg["outputs.foxglove.enabled"]:
-            viewers.append(FoxgloveOutput(cfg["outputs.foxglove.host"], cfg["outputs.foxglove.port"], **view))
-        if cfg["outputs.mcap.file"]:
+        if foxglove.enabled:
+            viewers.append(FoxgloveOutput(foxglove.host, foxglove.port, **view))
+        if mcap_file:
             from vtolpose.service.outputs.mcap import McapOutput
 
-            viewers.append(McapOutput(cfg["outputs.mcap.file"], **view))
+            viewers.append(McapOutput(mcap_file, **view))
     runtime.outputs += viewers
     runtime.sample_taps += [v.on_sample for v in viewers]
     if viewers and camera_processor is not None and hasattr(camera_processor, "on_frame"):

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, AsyncIterator, Callable
 
+from vtolpose.config.sections import Sections
 from vtolpose.service.runtime.loop import Runtime
 from vtolpose.service.runtime.sources import ThreadedSource
 
@@ -39,16 +40,17 @@ def _open(name: str, driver: Any, notes: list[str]) -> None:
         log.warning(notes[-1])
 
 
-def live_sources(cfg: dict[str, Any], runtime: Runtime, recorder: Any | None = None) -> LiveSources:
-    """Sources for the devices in ``sensors.*``; the runtime's MAVLink output may carry the GPS.
+def live_sources(sections: Sections, runtime: Runtime, recorder: Any | None = None) -> LiveSources:
+    """Sources for the devices in ``sensors``; the runtime's MAVLink output may carry the GPS.
 
     ``recorder`` (a :class:`~vtolpose.service.outputs.recorder.FlightRecorder`) sees every raw reading on the
     device threads, before the estimator: the recording replays to the same trajectory.
     """
     from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, CrossbowImu
 
+    sensors = sections.sensors
     live = LiveSources()
-    imu = CrossbowImu(CrossbowConfig.from_config(cfg))
+    imu = CrossbowImu(CrossbowConfig.from_section(sensors))
     _open("IMU", imu, live.notes)
     imu_tap = None if recorder is None else (lambda r: recorder.record_imu(r.t_ns, r.gyro, r.accel))
     live.sources.append(ThreadedSource("imu", imu, lambda reading: reading.sample, tap=imu_tap))
@@ -59,21 +61,21 @@ def live_sources(cfg: dict[str, Any], runtime: Runtime, recorder: Any | None = N
         return lambda r: recorder.record_gps(r.fix.t_ns, r.lat_deg, r.lon_deg, r.alt_m, r.fix.sigma_h, r.fix.sigma_v,
                                              origin=gps.local.origin)
 
-    gps_type = cfg["sensors.gps.type"]
+    gps_type = sensors.gps.type
     if gps_type == "nmea":
         from vtolpose.drivers.gps.nmea import NmeaConfig, NmeaGps
 
-        gps = NmeaGps(NmeaConfig.from_config(cfg))
+        gps = NmeaGps(NmeaConfig.from_section(sensors))
         _open("GPS", gps, live.notes)
         live.sources.append(ThreadedSource("gps", gps, lambda reading: reading.fix, tap=gps_tap(gps)))
         live.origin = lambda: gps.local.origin
     elif gps_type == "mavlink":
         from vtolpose.drivers.gps.mavlink_gps import MavlinkGps, MavlinkGpsConfig
 
-        gps = MavlinkGps(MavlinkGpsConfig.from_config(cfg))
+        gps = MavlinkGps(MavlinkGpsConfig.from_section(sensors.gps, sections.vehicle.system_id))
         live.origin = lambda: gps.local.origin
         link = next((o for o in runtime.outputs if o.name == "mavlink"), None)
-        if link is not None and link.url == cfg["sensors.gps.mavlink_url"]:
+        if link is not None and link.url == sensors.gps.mavlink_url:
             tap = gps_tap(gps)
 
             def on_gps_raw(msg: Any) -> None:
@@ -88,7 +90,7 @@ def live_sources(cfg: dict[str, Any], runtime: Runtime, recorder: Any | None = N
             _open("GPS (MAVLink)", gps, live.notes)
             live.sources.append(ThreadedSource("gps", gps, lambda reading: reading.fix, tap=gps_tap(gps)))
 
-    if cfg["sensors.camera.type"] != "none":
+    if sensors.camera.type != "none":
         if runtime.camera_processor is None:
             live.notes.append("camera: no feature extractor is wired into the runtime; frames are not read")
             log.warning(live.notes[-1])
@@ -96,14 +98,14 @@ def live_sources(cfg: dict[str, Any], runtime: Runtime, recorder: Any | None = N
             from vtolpose.drivers.camera.common import CameraUnavailable
             from vtolpose.drivers.camera.select import camera_from_config
 
-            camera = camera_from_config(cfg)
+            camera = camera_from_config(sensors.camera)
             try:
                 log.info("camera: %s", camera.open())
                 camera_tap = None if recorder is None else recorder.record_camera
                 live.sources.append(ThreadedSource("camera", camera, lambda frame: frame, read_timeout_s=0.5,
                                                    tap=camera_tap))
             except CameraUnavailable as exc:
-                if cfg["sensors.camera.required"]:
+                if sensors.camera.required:
                     raise
                 live.notes.append(f"camera: {exc}; running without images")
                 log.warning(live.notes[-1])

@@ -20,6 +20,7 @@ from vtolpose.estimator import OutputPose
 from vtolpose.service.replay.faults import FaultInjector, inject
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RunSummary
 from vtolpose.service.runtime.sources import ReplayClock, ReplaySource
+from vtolpose.service.runtime.wiring import config_sections
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +67,9 @@ async def replay_async(
     runtime sees nothing before it (no rest, no stated heading it could know).
     ``prepare``: called with the runtime once it is built, before it runs (e.g. to attach a smoother).
     """
-    sensors = checked_sensors(sensors or cfg["replay.sensors"])
-    speed = cfg["replay.speed"] if speed is None else speed
+    configured = config_sections(cfg).replay
+    sensors = checked_sensors(sensors or configured.sensors)
+    speed = configured.speed if speed is None else speed
     frames, load = None, None
     if "camera" in sensors:
         if camera_processor is None:

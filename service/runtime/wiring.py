@@ -1,20 +1,50 @@
-"""From validated configuration to the estimator's typed options (one place, no guessing)."""
+"""From validated configuration to typed values: the sections drivers and outputs take, and the
+estimator's options (one place, no guessing).
+
+This module and ``config/`` are the only readers of the flat ``{"a.b": value}`` dict; everything
+else takes a section or an option object built here.
+"""
 
 from __future__ import annotations
 
-from typing import Any
-
 import copy
+import dataclasses
+import math
+from typing import Any
 
 import numpy as np
 
 from vtolpose.config import ConfigError, get
+from vtolpose.config.sections import Sections, build_sections
 from vtolpose.estimator import (
     AssociationOptions, Calibration, CameraOptions, FeatureOptions, FilterOptions, FrameQualityOptions,
-    HeadingBankOptions, HealthOptions, ImuNoise, InitOptions, MapOptions, StillnessOptions, VisualInertialOptions,
+    HeadingBankOptions, HealthOptions, ImuNoise, ImuRange, InitOptions, MapOptions, STANDARD_GRAVITY,
+    StillnessOptions, VisualInertialOptions,
 )
 
 NOISE_KEYS = ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", "accel_random_walk")
+
+
+def config_sections(cfg: dict[str, Any]) -> Sections:
+    """The typed sections of the validated ``cfg``, for the drivers, the outputs and the runtime."""
+    return build_sections(cfg)
+
+
+def with_gps_origin(sections: Sections, origin: tuple[float, float, float]) -> Sections:
+    """``sections`` with ``sensors.gps.origin`` set: a live run takes the vehicle calibration's origin as the
+    one local frame when the configuration gives none."""
+    gps = dataclasses.replace(sections.sensors.gps, origin=origin)
+    return dataclasses.replace(sections, sensors=dataclasses.replace(sections.sensors, gps=gps))
+
+
+def estimator_variant(cfg: dict[str, Any]) -> str:
+    """``estimator.variant``: the state model the filter runs (reports name it)."""
+    return cfg["estimator.variant"]
+
+
+def imu_range(cfg: dict[str, Any]) -> ImuRange:
+    """``estimator.imu.gyro_range_dps`` and ``accel_range_g`` in SI (rad/s, m/s^2)."""
+    return ImuRange(math.radians(cfg["estimator.imu.gyro_range_dps"]), cfg["estimator.imu.accel_range_g"] * STANDARD_GRAVITY)
 
 
 def imu_noise_override(cfg: dict[str, Any], fallback: ImuNoise) -> ImuNoise | None:
