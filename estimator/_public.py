@@ -98,6 +98,7 @@ PUBLIC: dict[str, str] = {
     'FixedLagSmoother': 'vtolpose.estimator.smoothing.fixed_lag',
     'SmoothedPose': 'vtolpose.estimator.smoothing.fixed_lag',
     'FullStateRecorder': 'vtolpose.estimator.smoothing.full_state',
+    'FilterRecorder': 'vtolpose.estimator.smoothing.recorder',
     'Recorders': 'vtolpose.estimator.smoothing.recorder',
     'StepRecorder': 'vtolpose.estimator.smoothing.recorder',
     'BackwardPass': 'vtolpose.estimator.smoothing.rts',

@@ -95,7 +95,10 @@ class FilterOptions:
 
 
 class Estimator:
-    def __init__(self, calibration: Calibration, options: FilterOptions | None = None) -> None:
+    def __init__(self, calibration: Calibration, options: FilterOptions | None = None,
+                 recorder: FilterRecorder | None = None) -> None:
+        """``recorder`` (the smoother's) sees every propagation and update from the first: given here, since a
+        recorder that missed the start would smooth a trajectory it never saw begin."""
         opts = options or FilterOptions()
         if calibration.initial_gyro_bias_sigma is not None:  # the vehicle's IMU says how large its turn-on bias is
             opts = dataclasses.replace(opts, init=dataclasses.replace(opts.init, sigma_gyro_bias=calibration.initial_gyro_bias_sigma))
@@ -146,7 +149,7 @@ class Estimator:
         self._starter = StartCoordinator(self.layout, opts.init, calibration.imu.gravity, heading, self._heading_sigma,
                                          opts.gps_sigma_floor_m, self.visual_inertial)
         # Sees every propagation (and, through the state, every update) for the smoother; None: off.
-        self.recorder: FilterRecorder | None = None
+        self.recorder = recorder
 
     @property
     def initialized(self) -> bool:
@@ -918,13 +921,6 @@ class Estimator:
             visual_start_attempts=visual.attempts if visual is not None else 0,
             gps_noise=MappingProxyType(self.gps_noise.report()),
         )
-
-    def record_with(self, recorder: FilterRecorder) -> None:
-        """Let ``recorder`` (the smoother's) see every propagation and update. Only before the first sample: a
-        recorder that missed the start would smooth a trajectory it never saw begin."""
-        if self.state is not None:
-            raise RuntimeError("a recorder must be given before the filter starts")
-        self.recorder = recorder
 
     def finish_recording(self) -> None:
         """The end of the data: the recorder closes its last segment on the final state."""

@@ -140,9 +140,8 @@ def test_error_state_conventions_match_the_filter():
 # ---------------------------------------------------------------------------- simulated flights
 def run_recorded(flight, variant: str, skip_imu_s: tuple[float, float] | None = None):
     """Feed a flight through the estimator with a recorder; filtered poses after each IMU sample."""
-    est = Estimator(flight.calibration, FilterOptions(variant=variant))
     steps: list[Step] = []
-    est.record_with(StepRecorder(steps.append))
+    est = Estimator(flight.calibration, FilterOptions(variant=variant), recorder=StepRecorder(steps.append))
     fixes = [GpsFix(int(t), p, float(h), float(v)) for t, p, h, v in
              zip(flight.gps.t_ns, flight.gps.p_ned, flight.gps.sigma_h, flight.gps.sigma_v)]
     t0 = int(flight.imu.t_ns[0])

@@ -12,6 +12,8 @@ from vtolpose.estimator.filter import Estimator, FilterOptions
 from vtolpose.estimator.modes import FilterMode, HeadingMode
 from vtolpose.estimator.smoothing.recorder import StepRecorder
 from vtolpose.estimator.status import EventKind
+from vtolpose.service.runtime.loop import Runtime
+from vtolpose.service.runtime.step_taps import SmoothingPlan, StepTaps
 
 
 def _feed(est: Estimator, flight, until_s: float) -> None:
@@ -66,12 +68,19 @@ def test_the_snapshot_is_frozen_and_does_not_follow_the_filter(flight):
     assert len(est.status().events) > len(before.events)
 
 
-def test_a_recorder_is_given_before_the_start_only(flight):
-    est = Estimator(flight.calibration)
+def test_the_recorder_is_given_at_construction_and_sees_the_start(flight):
     steps = []
-    est.record_with(StepRecorder(steps.append))
+    est = Estimator(flight.calibration, recorder=StepRecorder(steps.append))
     _feed(est, flight, 6.0)
     est.finish_recording()
-    assert steps and steps[-1].ends_segment
-    with pytest.raises(RuntimeError, match="before the filter starts"):
-        est.record_with(StepRecorder(steps.append))
+    assert steps and steps[0].segment == 0 and steps[-1].ends_segment
+    assert steps[0].t_ns <= est.events[0].t_ns + 10_000_000  # from the filter's first step on
+    assert not hasattr(est, "record_with")  # no way to hand one over later
+
+
+def test_the_runtime_refuses_an_estimator_built_without_its_taps_recorder(flight):
+    taps = StepTaps(SmoothingPlan(lag_s=1.0))
+    with pytest.raises(ValueError, match="built with the step taps' recorder"):
+        Runtime(Estimator(flight.calibration), taps=taps)
+    runtime = Runtime(Estimator(flight.calibration, recorder=taps.recorder), taps=taps)
+    assert runtime.smoother is taps.smoother and runtime.smoother is not None

@@ -27,12 +27,13 @@ from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
-from vtolpose.estimator import evaluate, FullStateRecorder, Recorders, smooth_steps, StepRecorder
+from vtolpose.estimator import evaluate, FullStateRecorder, smooth_steps
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.runtime import latency_run
 from vtolpose.service.replay.report import build_report
 from vtolpose.service.replay.session import replay
 from vtolpose.service.replay.smoothing import replay_smoothed
+from vtolpose.service.runtime.step_taps import SmoothingPlan
 
 SCORE_FROM_S = 15.0
 
@@ -101,16 +102,18 @@ def bench_smoothing_landmarks(duration_s: float = 40.0) -> list[Row]:
         steps: list = []
         held: dict = {}
 
+        full = FullStateRecorder(lambda: held["est"].map_ids())  # the map's ids, from the estimator once it exists
+
         def prepare(runtime) -> None:
-            held["full"] = full = FullStateRecorder(runtime.est.map_ids)
-            runtime.est.record_with(Recorders(StepRecorder(steps.append), full))
+            held["est"] = runtime.est
 
         t0 = time.perf_counter()
-        result = replay(dataset, load_config(), ["imu", "camera", "gps"], prepare=prepare)
+        result = replay(dataset, load_config(), ["imu", "camera", "gps"], prepare=prepare,
+                        smoothing=SmoothingPlan(step_sink=steps.append, beside=full))
         wall = time.perf_counter() - t0
         result.estimator.finish_recording()
     block = smooth_steps(steps)
-    t_full, x_full = held["full"].smooth()
+    t_full, x_full = full.smooth()
     start = int(flight.imu.t_ns[0] + SCORE_FROM_S * 1e9)
     traj = result.trajectory
 

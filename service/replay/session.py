@@ -24,6 +24,7 @@ from vtolpose.estimator import (
 )
 from vtolpose.service.replay.faults import Fault, FaultInjector
 from vtolpose.service.runtime.replay_feed import checked_sensors, run_replay
+from vtolpose.service.runtime.step_taps import SmoothingPlan
 from vtolpose.service.runtime.threads import limit_blas_threads
 from vtolpose.service.runtime.wiring import config_sections, feature_options
 
@@ -162,11 +163,13 @@ def replay(
     on_fused: Callable[[OutputPose], None] | None = None,
     start_at_s: float | None = None,
     prepare: Callable[[Any], None] | None = None,
+    smoothing: SmoothingPlan | None = None,
 ) -> ReplayResult:
     """Run ``dataset`` through the runtime (as fast as possible unless ``speed`` > 0), ``faults`` played on its
     stream; ``start_at_s``: joined that far into the recording, as a service restarted in flight.
 
-    ``prepare(runtime)`` runs once the runtime is built (``replay --smooth`` attaches its recorder there)."""
+    ``prepare(runtime)`` runs once the runtime is built (``replay --smooth`` hooks its fixed-lag poses there);
+    ``smoothing``: who sees the filter's steps (``replay --smooth``'s step files, a benchmark's recorders)."""
     configured = config_sections(cfg).replay
     sensors = checked_sensors(sensors or configured.sensors)
     notes: list[str] = []
@@ -202,7 +205,7 @@ def replay(
     summary, runtime = run_replay(
         dataset, cfg, sensors=sensors, speed=speed, trajectory_path=trajectory_path,
         camera_processor=processor, handle_signals=False, faults=injector, on_progress=progress, start_at_s=start_at_s,
-        prepare=prepare,
+        prepare=prepare, smoothing=smoothing,
         on_fused=recorder.record if on_fused is None else lambda pose: (recorder.record(pose), on_fused(pose)),
     )
     wall = time.perf_counter() - wall0

@@ -28,6 +28,7 @@ from vtolpose.drivers.files.tum import tum_line
 from vtolpose.estimator import BackwardPass, ChunkBuilder, SmoothedChunk, SmoothedPose, Step, StepChunk
 from vtolpose.config.sections import SmoothingSection
 from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory, replay
+from vtolpose.service.runtime.step_taps import SmoothingPlan
 from vtolpose.service.runtime.wiring import config_sections
 
 COV_HEADER = "# t [s], upper triangle of the 6x6 covariance of [dp (m), dtheta (rad, world frame)], row by row\n"
@@ -144,7 +145,7 @@ class SmoothingResult:
 
 
 class ReplaySmoothing:
-    """Attach to a replay's runtime (:meth:`attach`), run the replay, then :meth:`backward`."""
+    """Give a replay its :meth:`plan` and :meth:`attach` to its runtime, run it, then :meth:`backward`."""
 
     def __init__(self, options: SmoothingOptions, cov_period_ns: int) -> None:
         self.options = options
@@ -155,10 +156,13 @@ class ReplaySmoothing:
         self._next_fixed_cov: int | None = None
         self._runtime: Any = None
 
-    def attach(self, runtime: Any) -> None:
-        """Record the runtime's filter steps to disk and keep its fixed-lag poses."""
+    def plan(self) -> SmoothingPlan:
+        """The filter's steps to disk, and the fixed-lag smoother's."""
         o = self.options
-        runtime.enable_smoothing(o.fixed_lag_s, o.steps_per_sample, o.max_window_s, step_sink=self.files.add)
+        return SmoothingPlan(o.fixed_lag_s, o.steps_per_sample, o.max_window_s, step_sink=self.files.add)
+
+    def attach(self, runtime: Any) -> None:
+        """Keep the runtime's fixed-lag poses."""
         runtime.smoothed_hook = self._on_fixed_lag
         self._runtime = runtime
 
@@ -259,7 +263,7 @@ def replay_smoothed(dataset: Dataset, cfg: dict[str, Any], out: str | Path | Non
     sections = config_sections(cfg)
     smoothing = ReplaySmoothing(SmoothingOptions.from_section(sections.smoothing), int(1e9 / sections.replay.nees_rate_hz))
     try:
-        result = replay(dataset, cfg, prepare=smoothing.attach, **replay_args)
+        result = replay(dataset, cfg, prepare=smoothing.attach, smoothing=smoothing.plan(), **replay_args)
         cov = result.covariances
         start = int(cov.t_ns[0]) if len(cov.t_ns) else int(result.trajectory.t_ns[0]) if len(result.trajectory.t_ns) else 0
         result.smoothing = smoothing.backward(start, out, cov_out)

@@ -24,6 +24,7 @@ from vtolpose.estimator import (
 )
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
+from vtolpose.service.runtime.step_taps import SmoothingPlan, StepTaps
 from vtolpose.service.text import describe
 from vtolpose.service.runtime.wiring import calibration_with_overrides, config_sections, filter_options, imu_range
 
@@ -81,8 +82,13 @@ def build_runtime(
     live: bool = False,
     on_fused: Callable[[OutputPose], None] | None = None,
     sensor_now: Callable[[], int | None] | None = None,
+    smoothing: SmoothingPlan | None = None,
 ) -> Runtime:
     """The estimator, fusion core, history and the outputs enabled in ``outputs.*``.
+
+    ``smoothing``: who sees the filter's steps (a replay's backward pass); without it, a Zenoh output keeps its
+    history smoothed after ``smoothing.fixed_lag_s`` (mappers read it). Decided here, before the estimator is
+    built, for the estimator is given its recorder at construction.
 
     ``live``: apply ``run.realtime_priority`` (never to a replay, which would hog a core at it); live sensor
     stamps are on the monotonic clock (ROS 2 stamps and TIMESYNC answers follow from it). ``sensor_now``:
@@ -90,8 +96,12 @@ def build_runtime(
     """
     sections = config_sections(cfg)
     calibration = calibration_with_overrides(cfg, calibration)
-    estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise))
     outputs = sections.outputs
+    if smoothing is None and outputs.zenoh.enabled:
+        s = sections.smoothing
+        smoothing = SmoothingPlan(s.fixed_lag_s, s.steps_per_sample, s.max_window_s)
+    taps = StepTaps(smoothing) if smoothing is not None and smoothing.records else None
+    estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise), recorder=taps.recorder if taps else None)
     options = RuntimeOptions(
         fusion=fusion_options(sections.fusion), history_s=outputs.zenoh.history_s,
         camera_workers=replay_camera_workers(sections.replay) if lockstep else sections.fusion.camera_workers,
@@ -100,7 +110,7 @@ def build_runtime(
     )
     path = trajectory_path or sections.run.trajectory
     runtime = Runtime(estimator, options, camera_processor=camera_processor,
-                      trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused)
+                      trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused, taps=taps)
     runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
     if outputs.mavlink.enabled:
         from vtolpose.service.outputs.mavlink_output import MavlinkOutput, SensorClock
@@ -119,7 +129,7 @@ def build_runtime(
 
 
 def add_zenoh_output(runtime: Runtime, sections: Sections) -> None:
-    """Poses and history queries over Zenoh (``outputs.zenoh``), with the history kept smoothed."""
+    """Poses and history queries over Zenoh (``outputs.zenoh``); :func:`build_runtime` keeps the history smoothed."""
     from vtolpose.service.outputs.zenoh import QueryLimits, ZenohOutput
     from vtolpose.service.outputs.zenoh_session import ZenohSettings
 
@@ -127,9 +137,6 @@ def add_zenoh_output(runtime: Runtime, sections: Sections) -> None:
     prefix = zenoh_prefix(zenoh.prefix, sections.vehicle.name)
     runtime.outputs.append(ZenohOutput(ZenohSettings.from_section(zenoh), prefix, runtime.history, runtime.history_lock,
                                        lambda: runtime.origin(), QueryLimits.from_section(zenoh)))
-    # The history is read by mappers: keep it smoothed after the configured lag.
-    smoothing = sections.smoothing
-    runtime.enable_smoothing(smoothing.fixed_lag_s, smoothing.steps_per_sample, smoothing.max_window_s)
 
 
 def add_interop_outputs(runtime: Runtime, outputs: OutputsSection, camera_processor: CameraProcessor | None,

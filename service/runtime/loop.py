@@ -31,9 +31,10 @@ import numpy as np
 
 from vtolpose.estimator import (
     Apply, CameraFrame, COV, Estimator, FixedLagSmoother, FusionCore, FusionOptions, GpsFix, ImuBatch, ImuRange,
-    ImuSample, OutputPose, P, PoseHistory, Q, ROW, screened, SmoothedPose, Step, StepRecorder, V,
+    ImuSample, OutputPose, P, PoseHistory, Q, ROW, screened, SmoothedPose, V,
 )
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
+from vtolpose.service.runtime.step_taps import StepTaps
 from vtolpose.service.runtime.status import (FailureBook, LatencyProbe, StatusTracker, pose_problem, pose_quality,
                                              stopped_within)
 
@@ -124,7 +125,12 @@ class Runtime:
         camera_processor: CameraProcessor | None = None,
         trajectory: TrajectoryFile | None = None,
         on_fused: Callable[[OutputPose], None] | None = None,
+        taps: StepTaps | None = None,
     ) -> None:
+        """``taps``: who sees the filter's steps (the fixed-lag smoother, a replay's step files); the estimator
+        must have been built with their recorder."""
+        if taps is not None and estimator.recorder is not taps.recorder:
+            raise ValueError("the estimator must be built with the step taps' recorder (Estimator(..., recorder=))")
         self.options = opts = options or RuntimeOptions()
         self.fused_hook = on_fused  # sees every fused pose (a replay's recorder)
         self._close_errors: dict[str, str] = {}  # file outputs whose close failed: name -> why
@@ -154,10 +160,12 @@ class Runtime:
         self.recorder: Any | None = None  # set by `vtolpose run --record`
         self.sample_taps: list[Callable[[Any], None]] = []  # see every raw sample as it arrives (MCAP, Foxglove)
         self.poses_published = 0
-        # Fixed-lag smoothing (enable_smoothing): smoothed poses replace filtered ones in the history.
-        self.smoother: FixedLagSmoother | None = None
+        # Fixed-lag smoothing (the taps' smoother): smoothed poses replace filtered ones in the history.
+        self.smoother: FixedLagSmoother | None = taps.smoother if taps is not None else None
         self.smoothed_hook: Callable[[list[SmoothedPose]], None] | None = None  # sees them too (a replay's report)
-        self._step_recorder: StepRecorder | None = None
+        self._records = taps is not None and taps.recorder is not None
+        if taps is not None:
+            taps.report_failures_to(self.failures.record)
         self._smoothing_finished = False
         self._executor: ThreadPoolExecutor | None = None
         self._camera_jobs: list[tuple[int, asyncio.Future]] = []
@@ -259,34 +267,9 @@ class Runtime:
         self.fusion.add_imu_batch(t_ns, gyro, accel, finite)
 
     # -------------------------------------------------------------------------- smoothing
-    def enable_smoothing(self, lag_s: float, steps_per_sample: int = 4, max_window_s: float = 10.0,
-                         step_sink: Callable[[Step], None] | None = None) -> None:
-        """Record the filter's steps; with ``lag_s`` > 0 keep a fixed-lag smoothed history (``pose/at``
-        and ``trajectory`` then answer with smoothed poses once ``lag_s`` of later data is fused);
-        ``step_sink`` sees every step too (a replay's backward pass). Call before :meth:`run`."""
-        sinks = []
-        if lag_s > 0.0:
-            self.smoother = FixedLagSmoother(lag_s, steps_per_sample, max_window_s)
-            sinks.append(self.smoother.add)
-        if step_sink is not None:
-            sinks.append(step_sink)
-        if not sinks:
-            return
-
-        def fan_out(step: Step) -> None:
-            for sink in list(sinks):
-                try:
-                    sink(step)
-                except Exception as exc:  # a smoother's failure must never cost the filter its step
-                    self.failures.record("smoothing step sink (stopped)", exc)
-                    sinks.remove(sink)
-
-        self._step_recorder = StepRecorder(fan_out)
-        self.est.record_with(self._step_recorder)
-
     def finish_smoothing(self) -> None:
         """End of the data, after the fusion flush: the last segment closes, the rest is smoothed (once)."""
-        if self._smoothing_finished or self._step_recorder is None:
+        if self._smoothing_finished or not self._records:
             return
         self._smoothing_finished = True
         self.est.finish_recording()

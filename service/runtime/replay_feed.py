@@ -20,6 +20,7 @@ from vtolpose.estimator import OutputPose
 from vtolpose.service.replay.faults import FaultInjector, inject
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RunSummary
 from vtolpose.service.runtime.sources import ReplayClock, ReplaySource
+from vtolpose.service.runtime.step_taps import SmoothingPlan
 from vtolpose.service.runtime.wiring import config_sections
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,7 @@ async def replay_async(
     on_progress: Callable[[float], None] | None = None,
     start_at_s: float | None = None,
     prepare: Callable[[Runtime], None] | None = None,
+    smoothing: SmoothingPlan | None = None,
 ) -> tuple[RunSummary, Runtime]:
     """Replay ``dataset`` through a runtime built from ``cfg`` (outputs included); returns its summary.
 
@@ -65,7 +67,8 @@ async def replay_async(
     ``faults``: played on the stream between the dataset and the runtime (``vtolpose.service.replay.faults``).
     ``start_at_s``: join the recording this far in, as a service restarted in flight would: the
     runtime sees nothing before it (no rest, no stated heading it could know).
-    ``prepare``: called with the runtime once it is built, before it runs (e.g. to attach a smoother).
+    ``prepare``: called with the runtime once it is built, before it runs (e.g. to hook the fixed-lag poses).
+    ``smoothing``: who sees the filter's steps (:func:`~vtolpose.service.runtime.daemon.build_runtime`).
     """
     configured = config_sections(cfg).replay
     sensors = checked_sensors(sensors or configured.sensors)
@@ -87,7 +90,7 @@ async def replay_async(
     runtime = build_runtime(
         cfg, calibration, origin=lambda: origin, trajectory_path=trajectory_path,
         camera_processor=camera_processor, lockstep=speed == 0.0, measure_latency=measure_latency, on_fused=on_fused,
-        sensor_now=clock.now_ns,
+        sensor_now=clock.now_ns, smoothing=smoothing,
     )
     if prepare is not None:
         prepare(runtime)
