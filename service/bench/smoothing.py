@@ -111,7 +111,6 @@ def bench_smoothing_landmarks(duration_s: float = 40.0) -> list[Row]:
         result = replay(dataset, load_config(), ["imu", "camera", "gps"], prepare=prepare,
                         smoothing=SmoothingPlan(step_sink=steps.append, beside=full))
         wall = time.perf_counter() - t0
-        result.estimator.finish_recording()
     block = smooth_steps(steps)
     t_full, x_full = full.smooth()
     start = int(flight.imu.t_ns[0] + SCORE_FROM_S * 1e9)
