@@ -34,6 +34,7 @@ from vtolpose.service.bench.euroc_reference import bench_euroc_reference
 from vtolpose.service.bench.memory_paced import bench_memory_paced
 from vtolpose.service.bench.odometry_encoding import bench_odometry_encoding
 from vtolpose.service.bench.pose_encoding import bench_pose_encoding
+from vtolpose.service.bench.results import bench_results
 from vtolpose.service.bench.zenoh_queries import bench_zenoh_queries
 from vtolpose.service.bench.smoothing import (bench_smoothing_hour, bench_smoothing_landmarks, bench_smoothing_latency,
                                               bench_smoothing_sim)
@@ -128,6 +129,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "smoothing-hour": bench_smoothing_hour,
     "smoothing-latency": bench_smoothing_latency,
     "batch": bench_batch,
+    "results": bench_results,
 }
 
 
@@ -135,7 +137,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
 LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "sensor-lies", "euroc", "euroc-reference",
                    "euroc-causes",
                    "zenoh-queries", "memory-paced", "smoothing-sim", "smoothing-landmarks", "smoothing-hour",
-                   "smoothing-latency", "batch")
+                   "smoothing-latency", "batch", "results")
 
 
 # Several of the above together (camera: features, then replay-camera): only when named.
