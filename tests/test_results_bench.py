@@ -109,10 +109,14 @@ def test_what_happens_tells_the_start_the_heading_and_the_resets_from_the_estima
         "started at 3.0 s, moving (GPS); heading placed at 4.5 s; 1 resets (gps_rejected); ends gps")
 
 
-def test_a_visual_inertial_start_is_told_once():
-    events = [EstimatorEvent(2_600_000_000, EventKind.STARTED, "visual-inertial start from 12 frames over 1.5 s, ...", 0),
-              EstimatorEvent(2_600_000_000, EventKind.VISUAL_START, "visual-inertial start from 12 frames over 1.5 s", 0)]
-    assert what_happens(_replayed_with(events, FilterMode.LOCAL)) == "visual-inertial start at 1.6 s; 0 resets; ends local"
+def test_a_wait_for_the_visual_inertial_start_is_told_before_it():
+    events = [EstimatorEvent(1_900_000_000, EventKind.INITIALISING, "started from 240 IMU samples, moving (camera), from the "
+                             "mean specific force; no state until the visual-inertial start; g = 9.8066 m/s^2", 0),
+              EstimatorEvent(2_600_000_000, EventKind.STARTED, "visual-inertial start from 12 frames over 1.5 s, ...", 0)]
+    assert what_happens(_replayed_with(events, FilterMode.LOCAL)) == (
+        "initialising from 0.9 s (moving, camera only: no state); visual-inertial start at 1.6 s; 0 resets; ends local")
+    assert what_happens(_replayed_with(events[:1], FilterMode.INITIALISING)) == (
+        "initialising from 0.9 s (moving, camera only: no state); 0 resets; ends initialising")
 
 
 def test_the_results_bench_is_registered_as_long_and_listed_in_the_help(capsys):

@@ -69,23 +69,25 @@ def rendered_flight(scenario: str, duration_s: float, root: Path, in_flight: boo
 
 
 def what_happens(result: ReplayResult) -> str:
-    """The start-up as the estimator told it: how and when it started, the visual start, the GPS joining, the
-    heading's placement, resets, and the mode it ends in."""
+    """The start-up as the estimator told it: a wait for the visual start, how and when it started, the GPS
+    joining, the heading's placement, resets, and the mode it ends in."""
     status = result.estimator.status()
 
     def at(t_ns: int) -> str:
         return f"{(t_ns - result.data_t0_ns) * 1e-9:.1f} s"
 
     parts: list[str] = []
+    waited = status.first(EventKind.INITIALISING)
+    if waited is not None:
+        parts.append(f"initialising from {at(waited.t_ns)} (moving, camera only: no state)")
     started = status.first(EventKind.STARTED)
     if started is not None:  # "started from N IMU samples, HOW; g = ..." or "visual-inertial start from ..."
         head, _, rest = started.message.partition(" from ")
         how = rest.split("; g = ")[0].partition(", ")[2] if head == "started" else ""
         parts.append(f"{head} at {at(started.t_ns)}" + (f", {how}" if how else ""))
-    for kind, said in ((EventKind.VISUAL_START, "visual-inertial start"), (EventKind.GPS_JOINED, "GPS joined"),
-                       (EventKind.HEADING_PLACED, "heading placed")):
+    for kind, said in ((EventKind.GPS_JOINED, "GPS joined"), (EventKind.HEADING_PLACED, "heading placed")):
         event = status.first(kind)
-        if event is not None and f"{said} at {at(event.t_ns)}" not in parts:
+        if event is not None:
             parts.append(f"{said} at {at(event.t_ns)}")
     resets = [e.reset_kind or "reset" for e in status.events if e.kind is EventKind.RESET]
     parts.append(f"{len(resets)} resets" + (f" ({', '.join(sorted(set(resets)))})" if resets else ""))
