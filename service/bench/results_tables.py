@@ -25,12 +25,12 @@ DOCS_TEST1_CELLS: dict[tuple[str, str], tuple[str, ...]] = {
 
 # The doc's cells per row of "Test 2 ... and Test 3": position RMSE, vs Test 1 or final drift, attitude RMSE, NEES mean.
 DOCS_CAMERA_TESTS_CELLS: dict[tuple[int, str, str], tuple[str, ...]] = {
-    (2, "book", "thesis"): ("0.0606 m", "0.0648 m (0.13 % of 50.4 m)", "0.464°", "8.52"),
-    (2, "book", "biases"): ("0.0050 m", "0.0020 m (0.004 %)", "0.598°", "4.61"),
-    (3, "book", "thesis"): ("0.0036 m", "0.17 ×", "0.433°", "8.21"),
-    (3, "book", "biases"): ("0.0029 m", "0.19 ×", "0.378°", "6.06"),
-    (3, "landfill", "thesis"): ("0.364 m", "0.69 ×", "0.479°", "10.07"),
-    (3, "landfill", "biases"): ("0.267 m", "0.63 ×", "0.435°", "8.19"),
+    (2, "book", "thesis"): ("0.0342 m", "0.0365 m (0.072 % of 50.4 m)", "0.435°", "6.98"),
+    (2, "book", "biases"): ("0.0125 m", "0.0136 m (0.027 %)", "0.229°", "3.24"),
+    (3, "book", "thesis"): ("0.0038 m", "0.19 ×", "0.407°", "7.61"),
+    (3, "book", "biases"): ("0.0035 m", "0.25 ×", "0.347°", "5.97"),
+    (3, "landfill", "thesis"): ("0.324 m", "0.67 ×", "0.454°", "8.28"),
+    (3, "landfill", "biases"): ("0.249 m", "0.64 ×", "0.428°", "7.38"),
 }
 
 # The doc's cells per row of "Starting in the air": position RMSE, attitude RMSE (once placed), NEES mean (in band).
