@@ -38,7 +38,7 @@ from vtolpose.service.bench.zenoh_queries import bench_zenoh_queries
 from vtolpose.service.bench.smoothing import (bench_smoothing_hour, bench_smoothing_landmarks, bench_smoothing_latency,
                                               bench_smoothing_sim)
 from vtolpose.service.replay.session import replay
-from vtolpose.service.runtime.daemon import load_compiled_kernels
+from vtolpose.service.runtime.kernels import load_compiled_kernels
 
 
 

@@ -44,6 +44,9 @@ def machine_line() -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vtolpose.service.runtime.kernels import compile_in_background
+
+    compile_in_background(False)  # the figures are the compiled kernels'; compiling them is before any clock starts
     print(machine_line())
     run_benchmarks(args.only, include_long=args.all)
     return 0
