@@ -22,6 +22,7 @@ from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.estimator import (
     FilterState, GpsFix, GpsUpdater, ImuDelta, ImuNoise, ImuPropagator, quat_from_euler, StateLayout,
 )
+from vtolpose.service.bench.catalog import GROUPS, LONG_BENCHMARKS
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.sensor_lies import bench_sensor_lies
@@ -129,17 +130,6 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "smoothing-latency": bench_smoothing_latency,
     "batch": bench_batch,
 }
-
-
-# Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "sensor-lies", "euroc", "euroc-reference",
-                   "euroc-causes",
-                   "zenoh-queries", "memory-paced", "smoothing-sim", "smoothing-landmarks", "smoothing-hour",
-                   "smoothing-latency", "batch")
-
-
-# Several of the above together (camera: features, then replay-camera): only when named.
-GROUPS = ("camera",)
 
 
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:

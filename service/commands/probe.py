@@ -10,15 +10,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from vtolpose.drivers.camera.common import CameraUnavailable
-from vtolpose.drivers.camera.select import camera_from_config
-from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, CrossbowImu, ImuReading
-from vtolpose.drivers.gps.common import GpsReading
-from vtolpose.drivers.links.serial_link import LINK_ERRORS, DeviceError
 from vtolpose.service.commands.common import add_config_options, config_from
+
+if TYPE_CHECKING:
+    from vtolpose.drivers.gps.common import GpsReading
+    from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, ImuReading
 
 COUNTER_AGREEMENT = 0.1  # implied tick within 10 % of the configured one counts as consistent
 
@@ -65,6 +63,9 @@ def _rate(t_ns: list[int]) -> str:
 
 
 def _probe_imu(args: argparse.Namespace, cfg: dict) -> int:
+    from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, CrossbowImu
+    from vtolpose.drivers.links.serial_link import LINK_ERRORS, DeviceError
+
     conf = CrossbowConfig.from_config(cfg, args.port, args.baud)
     print(f"probe imu: Crossbow IMU400CC on {conf.port} at {conf.baud} baud, {args.seconds:g} s")
     imu = CrossbowImu(conf)
@@ -97,6 +98,8 @@ def _counter_report(readings: list[ImuReading], conf: CrossbowConfig) -> str:
     """Which tick length each count direction implies, against the configured (unconfirmed) one."""
     if len(readings) < 3:
         return "time counter: too few packets to check"
+    import numpy as np
+
     counters = np.array([r.counter for r in readings], dtype=np.int64)
     dt = float(np.median(np.diff([r.t_ns for r in readings]))) * 1e-9
     up = float(np.median(np.diff(counters) % 65536))
@@ -119,6 +122,8 @@ def _counter_report(readings: list[ImuReading], conf: CrossbowConfig) -> str:
 
 
 def _probe_gps(args: argparse.Namespace, cfg: dict) -> int:
+    from vtolpose.drivers.links.serial_link import LINK_ERRORS
+
     kind = args.kind or cfg["sensors.gps.type"]
     if kind == "nmea":
         from vtolpose.drivers.gps.nmea import NmeaConfig, NmeaGps
@@ -160,6 +165,9 @@ def _probe_gps(args: argparse.Namespace, cfg: dict) -> int:
 
 
 def _probe_camera(args: argparse.Namespace, cfg: dict) -> int:
+    from vtolpose.drivers.camera.common import CameraUnavailable
+    from vtolpose.drivers.camera.select import camera_from_config
+
     kind = args.kind or cfg["sensors.camera.type"]
     try:
         if kind == "dc1394":
