@@ -28,13 +28,14 @@ SUMMARIES: dict[str, str] = {
     'smoothing-hour': 'One hour of IMU+GPS (landfill): peak memory of replay and of replay --smooth, each in its own process.',
     'smoothing-latency': 'Pose latency (IMU in → MAVLink and Zenoh out) with the live fixed-lag smoother on, then off.',
     'batch': "`vtolpose batch`: 16 short flights on 1 and 2 workers (speed-up target ≥ 1.8×), the engine's overhead per flight against a plain loop",
+    'cold-start': "First replay with an empty kernel cache against the second (target ≤ 1.5 ×), compile time, daemon's first pose.",
 }
 
 # Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
 LONG_BENCHMARKS = (
     'runtime-hour', 'soak-camera', 'fault-targets', 'fault-table', 'sensor-lies', 'euroc', 'euroc-reference',
     'euroc-causes', 'zenoh-queries', 'memory-paced', 'smoothing-sim', 'smoothing-landmarks', 'smoothing-hour',
-    'smoothing-latency', 'batch',
+    'smoothing-latency', 'batch', 'cold-start',
 )
 
 # Several of the above together (camera: features, then replay-camera): only when named.

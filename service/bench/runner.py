@@ -23,6 +23,7 @@ from vtolpose.estimator import (
     FilterState, GpsFix, GpsUpdater, ImuDelta, ImuNoise, ImuPropagator, quat_from_euler, StateLayout,
 )
 from vtolpose.service.bench.catalog import GROUPS, LONG_BENCHMARKS
+from vtolpose.service.bench.cold_start import bench_cold_start
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.sensor_lies import bench_sensor_lies
@@ -129,6 +130,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "smoothing-hour": bench_smoothing_hour,
     "smoothing-latency": bench_smoothing_latency,
     "batch": bench_batch,
+    "cold-start": bench_cold_start,
 }
 
 

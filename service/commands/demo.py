@@ -133,6 +133,8 @@ def comparison_lines(reports: dict[str, dict]) -> list[str]:
         lo, hi = nees["band_per_sample"]
         inside = ", ".join(f"{n} {'inside' if r['nees']['mean_in_band'] else 'OUTSIDE'}" for n, r in reports.items())
         lines.append(f"  NEES 95% band for {nees['dof']} dof: {lo:.2f}-{hi:.2f} ({inside})")
+    if first.get("kernels"):
+        lines.append(f"  x real time with the {first['kernels']}")
     lines += [
         "thesis: position, velocity, attitude (the thesis' state); biases: the same plus gyro and",
         "accelerometer biases. Position / GPS below 1 means the fusion beats the GPS it was given;",
