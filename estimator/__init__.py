@@ -17,6 +17,9 @@ against truth).
 from importlib import import_module
 
 from vtolpose.estimator._public import PUBLIC
+from vtolpose.estimator.core.kernel_cache import choose_kernel_cache
+
+choose_kernel_cache()  # before any kernel module imports numba, which reads it then
 
 __all__ = sorted(PUBLIC)
 

@@ -21,6 +21,7 @@ PUBLIC: dict[str, str] = {
     'TimeSyncResult': 'vtolpose.estimator.calibration.timesync',
     'correlate': 'vtolpose.estimator.calibration.timesync',
     'frame_rotations': 'vtolpose.estimator.calibration.timesync',
+    'kernel_cache': 'vtolpose.estimator.core',
     'update_kernel': 'vtolpose.estimator.core',
     'Calibration': 'vtolpose.estimator.core.calibration',
     'ImuNoise': 'vtolpose.estimator.core.calibration',

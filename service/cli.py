@@ -32,6 +32,7 @@ COMMANDS = {
     "calibrate": "calibrate IMU, camera, IMU-camera and GPS timing, GPS lever arm",
     "probe": "field check of one sensor: identity, rate, first samples, packet statistics",
     "run": "the onboard daemon: sensors in, ODOMETRY (MAVLink) and poses (Zenoh) out",
+    "warmup": "compile the estimator's kernels once (about half a minute), so no run waits for them",
 }
 
 DESCRIPTION = """\
@@ -89,7 +90,12 @@ def finish_subcommand(parser: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    """The program (``argv`` None: the process's own command line) or a command line run by a caller."""
+    if argv is None:
+        from vtolpose.service.runtime.kernels import compile_in_background
+
+        compile_in_background()  # a user's command does not wait for a cold kernel cache (service/runtime/kernels.py)
+        argv = sys.argv[1:]
     first = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser([first] if first is not None else [])
     args = parser.parse_args(argv)

@@ -55,6 +55,42 @@ def test_top_level_help_imports_no_subcommand_and_nothing_heavy():
     assert out == []
 
 
+HEAVY_MODULES = ("numpy", "cv2", "numba", "zenoh", "pymavlink", "scipy")
+
+
+def test_every_subcommand_help_imports_nothing_heavy():
+    """``vtolpose X --help`` builds X's parser only: the modules its work needs load when it runs."""
+    import subprocess
+    import sys
+
+    probe = ("import sys, contextlib, io\n"
+             "from vtolpose.service.cli import COMMANDS, main\n"
+             f"heavy = {HEAVY_MODULES!r}\n"
+             "for name in COMMANDS:\n"
+             "    with contextlib.redirect_stdout(io.StringIO()):\n"
+             "        try: main([name, '--help'])\n"
+             "        except SystemExit: pass\n"
+             "    print(name, ','.join(sorted(m for m in sys.modules if m.split('.')[0] in heavy)) or '-')\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    loaded = dict(line.split(" ", 1) for line in out.splitlines())
+    assert set(loaded) == set(COMMANDS)
+    assert {name: modules for name, modules in loaded.items() if modules != "-"} == {}
+
+
+def test_the_names_the_light_parsers_keep_are_their_modules_own():
+    from vtolpose.drivers.files.euroc_import import default_mounting_path
+    from vtolpose.drivers.simulator import SCENARIOS
+    from vtolpose.service.bench import catalog, runner
+    from vtolpose.service.commands import importer, map as map_command, simulate
+    from vtolpose.service.mapping.poses import WAIT_KINDS
+
+    assert simulate.SCENARIO_NAMES == tuple(sorted(SCENARIOS))
+    assert importer.MOUNTING_NAME == default_mounting_path().name
+    assert map_command.WAIT_KINDS == WAIT_KINDS
+    assert catalog.SUMMARIES == {name: fn.__doc__.strip().splitlines()[0] for name, fn in runner.BENCHMARKS.items()}
+    assert set(catalog.LONG_BENCHMARKS + catalog.GROUPS) <= set(runner.BENCHMARKS)
+
+
 def test_a_subcommand_line_builds_only_its_own_parser():
     import argparse
 
@@ -218,12 +254,12 @@ def test_missing_inputs_are_named_for_what_they_are(book_dir, tmp_path, capsys):
 
 
 def test_simulate_refuses_an_existing_dataset_before_any_work(book_dir, capsys, monkeypatch):
-    import vtolpose.service.commands.simulate as simulate
+    import vtolpose.drivers.simulator as simulator
 
     def never(*args, **kwargs):
         raise AssertionError("simulated although the folder holds a dataset")
 
-    monkeypatch.setattr(simulate, "simulate_flight", never)
+    monkeypatch.setattr(simulator, "simulate_flight", never)
     assert main(["simulate", "--duration", "5", "--out", str(book_dir)]) == 1
     assert "already holds a dataset" in capsys.readouterr().err
 

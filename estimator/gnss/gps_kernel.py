@@ -7,7 +7,7 @@ operations run in one call, in the same order and on the same formulas as
 :class:`~vtolpose.estimator.gnss.gps_update.GpsModel` and
 :func:`~vtolpose.estimator.core.update_kernel.small_update`, so the filter's numbers do not change (a
 test holds the two paths bit for bit). Cached and loaded as the other kernels are
-(``service.runtime.daemon.load_compiled_kernels``).
+(``service.runtime.kernels.load_compiled_kernels``).
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ Its rotations are ``core.rotation``'s primitives, compiled.
 
 Compiled once per machine and cached next to this file (or where ``NUMBA_CACHE_DIR`` says); a
 process loads the cached code on first use, which the runtime does before its first sample
-(``service.runtime.daemon.load_compiled_kernels``).
+(``service.runtime.kernels.load_compiled_kernels``).
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ from vtolpose.service.replay.report import build_report
 from vtolpose.service.replay.session import replay
 from vtolpose.service.runtime.threads import limit_blas_threads
 from vtolpose.service.bench.rows import Row
-from vtolpose.service.runtime.daemon import load_compiled_kernels
+from vtolpose.service.runtime.kernels import load_compiled_kernels
 
 MAP_SIZES = (10, 30, 60, 100)
 

@@ -47,7 +47,7 @@ from vtolpose.estimator import (
 )
 from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory, replay
 from vtolpose.service.replay.smoothing import replay_smoothed
-from vtolpose.service.runtime.daemon import load_compiled_kernels
+from vtolpose.service.runtime.kernels import load_compiled_kernels
 
 Row = tuple[str, float, str, str] | BenchRow
 DATA_ENV = "VTOLPOSE_EUROC_DATA"

@@ -33,7 +33,7 @@ from vtolpose.estimator import DEFAULT_BAND_HZ, gps_error_rmse, interpolate_pose
 from vtolpose.service.bench.euroc import GPS_RATE_HZ, SCORE_FROM_S, aligned_position_errors, flights_or_skip, imported_flight
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import replay
-from vtolpose.service.runtime.daemon import load_compiled_kernels
+from vtolpose.service.runtime.kernels import load_compiled_kernels
 
 GAP_EDGES_S = (0.02, 0.04, 0.06, 0.08)  # bands of time since the last fix: < 20 ms, 20-40, ..., > 80 ms
 STRETCHES_S = (15.0, 30.0, 60.0, 90.0)  # stretches of the flight from the truth's start: 15-30, 30-60, 60-90, 90-end

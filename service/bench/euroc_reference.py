@@ -26,7 +26,7 @@ from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.service.bench.euroc import VARIANTS, flights_or_skip, imported_flight
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import replay
-from vtolpose.service.runtime.daemon import load_compiled_kernels
+from vtolpose.service.runtime.kernels import load_compiled_kernels
 
 LAG_S = 3.0
 REPLAY_TARGET = ">= 250"  # x real time, IMU+GPS, both variants (an hour of flight in under 15 s)

@@ -28,7 +28,7 @@ from vtolpose.service.bench.results_tables import (
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.report import build_report
 from vtolpose.service.replay.session import ReplayResult, replay
-from vtolpose.service.runtime.daemon import load_compiled_kernels
+from vtolpose.service.runtime.kernels import load_compiled_kernels
 
 Report = dict[str, Any]
 Echo = Callable[[str], None]

@@ -22,6 +22,8 @@ from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.estimator import (
     FilterState, GpsFix, GpsUpdater, ImuDelta, ImuNoise, ImuPropagator, quat_from_euler, StateLayout,
 )
+from vtolpose.service.bench.catalog import GROUPS, LONG_BENCHMARKS
+from vtolpose.service.bench.cold_start import bench_cold_start
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.sensor_lies import bench_sensor_lies
@@ -39,7 +41,7 @@ from vtolpose.service.bench.zenoh_queries import bench_zenoh_queries
 from vtolpose.service.bench.smoothing import (bench_smoothing_hour, bench_smoothing_landmarks, bench_smoothing_latency,
                                               bench_smoothing_sim)
 from vtolpose.service.replay.session import replay
-from vtolpose.service.runtime.daemon import load_compiled_kernels
+from vtolpose.service.runtime.kernels import load_compiled_kernels
 
 
 
@@ -130,18 +132,8 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "smoothing-latency": bench_smoothing_latency,
     "batch": bench_batch,
     "results": bench_results,
+    "cold-start": bench_cold_start,
 }
-
-
-# Long runs (a simulated hour, rendered flights replayed many times): only when named or with --all.
-LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "sensor-lies", "euroc", "euroc-reference",
-                   "euroc-causes",
-                   "zenoh-queries", "memory-paced", "smoothing-sim", "smoothing-landmarks", "smoothing-hour",
-                   "smoothing-latency", "batch", "results")
-
-
-# Several of the above together (camera: features, then replay-camera): only when named.
-GROUPS = ("camera",)
 
 
 def run_benchmarks(names: list[str] | None = None, echo: Callable[[str], None] = print, include_long: bool = False) -> list[Row]:

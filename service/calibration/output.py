@@ -17,6 +17,7 @@ import yaml
 
 from vtolpose.config import validate
 from vtolpose.estimator import ChessboardCalibration, ImuCalibrationResult
+from vtolpose.service.calibration.options import add_output_options  # noqa: F401 - where the jobs found it
 
 
 def _num(x: float) -> float:
@@ -109,15 +110,6 @@ def write_block(path: str | Path, text: str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text, encoding="utf-8", newline="\n")
     return path
-
-
-def add_output_options(p: argparse.ArgumentParser, default_stem: str, figure: bool = True) -> None:
-    """``--out`` (the block) and, for jobs with a figure, ``--plot`` / ``--no-plot``."""
-    p.add_argument("--out", default=f"{default_stem}.yaml", metavar="FILE.yaml",
-                   help=f"configuration block to write (default {default_stem}.yaml)")
-    if figure:
-        p.add_argument("--plot", metavar="FILE.png", help="figure to write (default: --out with .png)")
-        p.add_argument("--no-plot", action="store_true", help="no figure (matplotlib not needed)")
 
 
 def plot_path(args: argparse.Namespace) -> Path | None:

@@ -12,16 +12,15 @@ import argparse
 import math
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator import (
-    calibrate_imu, find_static_stretches, fit_lever_arm, GpsCalibOptions, scan_latency, StaticOptions,
-)
-from vtolpose.service.calibration import output as out
-from vtolpose.service.calibration.output import add_output_options, finish
+from vtolpose.service.calibration.options import add_output_options
 from vtolpose.service.commands import calibrate_camera
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from vtolpose.drivers.files.dataset import Dataset
 
 REST_BIAS_SIGMA = 0.005  # rad/s: how far a gyro bias measured at rest may wander during a flight of minutes
 
@@ -100,6 +99,10 @@ def _positions(dataset: Dataset) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def run_imu(args: argparse.Namespace) -> int:
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.estimator import calibrate_imu, StaticOptions
+    from vtolpose.service.calibration import output as out
+
     dataset = Dataset.open(args.dataset)
     imu = dataset.imu()
     static = StaticOptions(min_duration_s=args.min_static, gravity=dataset.calibration.imu.gravity)
@@ -135,11 +138,13 @@ def run_imu(args: argparse.Namespace) -> int:
 
         plot_allan(path, r)
 
-    return finish(args, text, summary, draw)
+    return out.finish(args, text, summary, draw)
 
 
 def _track(dataset: Dataset, args: argparse.Namespace):
     """Fix times, NED positions, σ (N, 3) and the lever arm of the tracked point."""
+    import numpy as np
+
     if args.source == "gps":
         gps = dataset.gps()
         if gps is None:
@@ -153,6 +158,9 @@ def _track(dataset: Dataset, args: argparse.Namespace):
 
 
 def _gps_setup(args: argparse.Namespace):
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.estimator import find_static_stretches, GpsCalibOptions, StaticOptions
+
     dataset = Dataset.open(args.dataset)
     imu = dataset.imu()
     t, p, sigma, lever = _track(dataset, args)
@@ -167,6 +175,9 @@ def _gps_setup(args: argparse.Namespace):
 
 
 def run_gps_latency(args: argparse.Namespace) -> int:
+    from vtolpose.estimator import scan_latency
+    from vtolpose.service.calibration import output as out
+
     dataset, imu, (t, p, sigma), lever, prior, options = _gps_setup(args)
     options = replace(options, max_offset_s=args.max_offset, centre_s=args.centre, step_s=args.step)
     scan = scan_latency(imu.t_ns, imu.gyro, imu.accel, t, p, sigma, dataset.calibration.imu.gravity, lever, options, prior)
@@ -189,10 +200,13 @@ def run_gps_latency(args: argparse.Namespace) -> int:
 
         plot_latency(path, scan, what)
 
-    return finish(args, text, summary, draw)
+    return out.finish(args, text, summary, draw)
 
 
 def run_lever_arm(args: argparse.Namespace) -> int:
+    from vtolpose.estimator import fit_lever_arm
+    from vtolpose.service.calibration import output as out
+
     dataset, imu, (t, p, sigma), lever, prior, options = _gps_setup(args)
     fit = fit_lever_arm(imu.t_ns, imu.gyro, imu.accel, t, p, sigma, dataset.calibration.imu.gravity, args.offset,
                         None, options, prior)
@@ -206,5 +220,5 @@ def run_lever_arm(args: argparse.Namespace) -> int:
     header = [f"vtolpose calibrate lever-arm {args.dataset} --source {args.source} --offset {args.offset:g}", *summary,
               "In dataset.yaml this is gps: lever_arm_b (or truth: point_b for a truth track)."]
     text = out.config_block(out.gps_tree(lever_arm_b=fit.lever_arm_b), header)
-    return finish(args, text, summary, lambda path: None)  # three numbers: no figure needed
+    return out.finish(args, text, summary, lambda path: None)  # three numbers: no figure needed
 

@@ -5,16 +5,14 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
+from vtolpose.service.calibration.options import add_output_options
 
-from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator import (
-    Board, calibrate_views, ChessboardCalibration, ChessboardError, correlate, find_corners, frame_rotations,
-    TimeSyncOptions,
-)
-from vtolpose.service.calibration import output as out
-from vtolpose.service.calibration.output import add_output_options, finish
+if TYPE_CHECKING:
+    import numpy as np
+
+    from vtolpose.estimator import Board, ChessboardCalibration
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +50,8 @@ def add_parsers(jobs: argparse._SubParsersAction) -> None:
 
 
 def parse_board(text: str, square_m: float) -> Board:
+    from vtolpose.estimator import Board
+
     try:
         cols, rows = (int(x) for x in text.lower().split("x"))
     except ValueError:
@@ -77,6 +77,8 @@ def image_paths(items: list[str]) -> list[Path]:
 def detect(paths: list[Path], board: Board) -> tuple[list[tuple[str, np.ndarray]], list[str], tuple[int, int]]:
     """Corners of every view where the whole board is found; the names where it is not; the image size."""
     import cv2  # on first use: a process that never needs OpenCV never loads it (~16 MB)
+
+    from vtolpose.estimator import find_corners
 
     views, missing, size = [], [], None
     for path in paths:
@@ -115,6 +117,9 @@ def _summary(cal: ChessboardCalibration, missing: list[str]) -> list[str]:
 
 
 def run_camera(args: argparse.Namespace) -> int:
+    from vtolpose.estimator import calibrate_views, ChessboardError
+    from vtolpose.service.calibration import output as out
+
     board = parse_board(args.board, args.square)
     paths = image_paths(args.images)
     views, missing, size = detect(paths, board)
@@ -138,10 +143,16 @@ def run_camera(args: argparse.Namespace) -> int:
 
         plot_reprojection(path, cal)
 
-    return finish(args, text, summary, draw)
+    return out.finish(args, text, summary, draw)
 
 
 def run_timesync(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.estimator import correlate, frame_rotations, TimeSyncOptions
+    from vtolpose.service.calibration import output as out
+
     dataset = Dataset.open(args.dataset)
     camera = dataset.calibration.camera
     if camera is None or not dataset.has_camera:
@@ -169,4 +180,4 @@ def run_timesync(args: argparse.Namespace) -> int:
 
         plot_correlation(path, r)
 
-    return finish(args, text, summary, draw)
+    return out.finish(args, text, summary, draw)

@@ -5,20 +5,14 @@ from __future__ import annotations
 import argparse
 import importlib.util
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from vtolpose.config import load_config
-from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.simulator import simulate_flight
-from vtolpose.drivers.simulator.export import write_flight
-from vtolpose.drivers.files.tum import write_tum
-from vtolpose.drivers.simulator.lidar import simulate_lidar
-from vtolpose.drivers.simulator.render import default_camera
 from vtolpose.service.commands.common import write_json
-from vtolpose.service.mapping.side_by_side import MAP_CELL_M, map_side_by_side, pose_kinds
 from vtolpose.service.replay.progress import Progress
-from vtolpose.service.replay.session import replay
-from vtolpose.service.replay.report import build_report
-from vtolpose.service.replay.smoothing import replay_smoothed
+
+if TYPE_CHECKING:
+    from vtolpose.drivers.files.dataset import Dataset
 
 # The sensor sets the LIDAR map compares (default model, biases), by the label its rows carry.
 MAP_SENSOR_SETS = {"IMU+GPS": ["imu", "gps"], "IMU+camera+GPS": ["imu", "camera", "gps"]}
@@ -45,6 +39,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.drivers.files.tum import write_tum
+    from vtolpose.drivers.simulator import simulate_flight
+    from vtolpose.drivers.simulator.export import write_flight
+    from vtolpose.drivers.simulator.lidar import simulate_lidar
+    from vtolpose.drivers.simulator.render import default_camera
+    from vtolpose.service.mapping.side_by_side import MAP_CELL_M, map_side_by_side
+    from vtolpose.service.replay.report import build_report
+    from vtolpose.service.replay.session import replay
+
     out = Path(args.out)
     data = out / f"{args.scenario}-seed{args.seed}"
     print(f"simulating {args.duration:g} s of the '{args.scenario}' scenario (seed {args.seed}) into {data}")
@@ -82,6 +86,11 @@ def run(args: argparse.Namespace) -> int:
 def smoothed_trajectories(dataset: Dataset, out: Path, duration_s: float) -> dict:
     """Each sensor set's filtered, fixed-lag and smoothed trajectory (``replay --smooth``), by map label;
     the trajectories (TUM) and reports go to ``out`` too."""
+    from vtolpose.drivers.files.tum import write_tum
+    from vtolpose.service.mapping.side_by_side import pose_kinds
+    from vtolpose.service.replay.report import build_report
+    from vtolpose.service.replay.smoothing import replay_smoothed
+
     cfg = load_config(None, {"estimator": {"variant": "biases"}})
     to_map = {}
     for name, sensors in MAP_SENSOR_SETS.items():
@@ -124,6 +133,8 @@ def comparison_lines(reports: dict[str, dict]) -> list[str]:
         lo, hi = nees["band_per_sample"]
         inside = ", ".join(f"{n} {'inside' if r['nees']['mean_in_band'] else 'OUTSIDE'}" for n, r in reports.items())
         lines.append(f"  NEES 95% band for {nees['dof']} dof: {lo:.2f}-{hi:.2f} ({inside})")
+    if first.get("kernels"):
+        lines.append(f"  x real time with the {first['kernels']}")
     lines += [
         "thesis: position, velocity, attitude (the thesis' state); biases: the same plus gyro and",
         "accelerometer biases. Position / GPS below 1 means the fusion beats the GPS it was given;",

@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.files.series import TruthSeries
-from vtolpose.drivers.files.tum import read_tum
-from vtolpose.estimator import evaluate
 from vtolpose.service.commands.common import write_json
 from vtolpose.service.text import number
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from vtolpose.drivers.files.series import TruthSeries
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -33,6 +33,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _truth(path: Path) -> tuple[TruthSeries, np.ndarray]:
+    import numpy as np
+
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.drivers.files.series import TruthSeries
+    from vtolpose.drivers.files.tum import read_tum
+
     if not path.exists():
         raise FileNotFoundError(f"{path}: truth not found (--truth takes a dataset folder or a TUM / EuRoC truth file)")
     if path.is_dir():
@@ -63,6 +69,11 @@ def score_lines(trajectory: str, truth: str, s: dict) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from vtolpose.drivers.files.tum import read_tum
+    from vtolpose.estimator import evaluate
+
     t, p, q = read_tum(args.trajectory)
     truth, point_b = _truth(Path(args.truth))
     if args.point_b:

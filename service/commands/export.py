@@ -17,13 +17,10 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+from typing import TYPE_CHECKING
 
-import numpy as np
-import pymap3d
-
-from vtolpose.drivers.files.csvio import seconds_text
-from vtolpose.drivers.files.survey import SurveyPath, read_recorded_estimates, write_geojson, write_kml
-from vtolpose.drivers.files.tum import read_tum
+if TYPE_CHECKING:
+    import numpy as np
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +73,8 @@ def _origin(args: argparse.Namespace, recorded_origin) -> tuple[tuple[float, flo
 
 def _thinned(t_ns: np.ndarray, step_s: float) -> np.ndarray:
     """Indices keeping one pose per ``step_s`` (the first at or after each step), and always the last."""
+    import numpy as np
+
     if step_s <= 0.0:
         return np.arange(len(t_ns))
     slots = (t_ns - t_ns[0]) // int(step_s * 1e9)
@@ -84,6 +83,13 @@ def _thinned(t_ns: np.ndarray, step_s: float) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+    import pymap3d
+
+    from vtolpose.drivers.files.csvio import seconds_text
+    from vtolpose.drivers.files.survey import SurveyPath, read_recorded_estimates, write_geojson, write_kml
+    from vtolpose.drivers.files.tum import read_tum
+
     if not args.geojson and not args.kml:
         raise ValueError("nothing to write: give --geojson OUT and/or --kml OUT")
     if args.step < 0.0 or not math.isfinite(args.step):

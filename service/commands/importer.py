@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vtolpose.drivers.files.euroc_import import default_mounting_path, import_euroc
 from vtolpose.service.text import field_lines
+
+MOUNTING_NAME = "euroc_vi_sensor.yaml"  # euroc_import's default mounting file, named here so --help loads no importer
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -41,7 +42,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gps-rate", type=float, metavar="HZ", help="make a GPS stream at this rate from the position track")
     p.add_argument("--gps-sigma", type=float, default=0.02, metavar="M", help="horizontal GPS sigma [m] (default 0.02)")
     p.add_argument("--seed", type=int, default=0, help="GPS noise seed (default 0)")
-    p.add_argument("--mounting", metavar="YAML", help=f"IMU mounting and truth frame (default {default_mounting_path().name})")
+    p.add_argument("--mounting", metavar="YAML", help=f"IMU mounting and truth frame (default {MOUNTING_NAME})")
     p.add_argument("--truth", metavar="FILE|TOPIC", help="euroc: truth as a TUM (or EuRoC CSV) file, the IMU's pose on "
                    "the IMU clock; rosbag: a geometry_msgs/PoseStamped or nav_msgs/Odometry topic")
     p.add_argument("--no-camera", action="store_true", help="euroc: leave mav0/cam0 out")
@@ -78,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
         summary = import_rosbag(args.src, args.out, args.imu, args.gps, args.image, args.truth, args.calibration,
                                 _fix_sigma(args.fix_sigma), overwrite=args.force)
     else:
+        from vtolpose.drivers.files.euroc_import import import_euroc
+
         src = Path(args.src)
         if not src.is_dir():
             raise FileNotFoundError(f"{src}: no such folder (expected an ASL/EuRoC folder holding mav0/)")

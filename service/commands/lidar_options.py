@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from vtolpose.drivers.files.lidar import LidarReturns
-from vtolpose.drivers.simulator.flight import SimulatedFlight
-from vtolpose.drivers.simulator.lidar import default_lidar, lidar_with, simulate_lidar
+if TYPE_CHECKING:
+    from vtolpose.drivers.files.lidar import LidarReturns
+    from vtolpose.drivers.simulator.flight import SimulatedFlight
 
 
 def add_lidar_options(p: argparse.ArgumentParser) -> None:
@@ -24,6 +25,8 @@ def lidar_from_args(args: argparse.Namespace, flight: SimulatedFlight) -> LidarR
     """The flight's LIDAR returns when ``--lidar`` was given (figures from the options over the scenario's scanner)."""
     if not args.lidar:
         return None
+    from vtolpose.drivers.simulator.lidar import default_lidar, lidar_with, simulate_lidar
+
     spec = lidar_with(default_lidar(flight.scenario_name), fov_deg=args.lidar_fov, step_deg=args.lidar_step,
                       scan_rate_hz=args.lidar_rate, range_sigma_m=args.lidar_range_sigma,
                       max_range_m=args.lidar_max_range)

@@ -3,18 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
-import numpy as np
-
-from vtolpose.client import PoseClient
-from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.files.lidar import LIDAR_CSV
-from vtolpose.estimator import height_error, score_map
 from vtolpose.service.commands.common import write_json
-from vtolpose.service.mapping.mapper import map_returns, pose_errors, true_ground, with_boresight
-from vtolpose.service.mapping.poses import WAIT_KINDS, ZenohPoses, file_window, truth_window, window_poses
-from vtolpose.service.mapping.report import MappedFlight, attribution_sources, map_and_score, score_lines, table_lines
+
+WAIT_KINDS = ("filtered", "smoothed")  # mapping.poses.WAIT_KINDS, named here so that --help loads no mapper
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -82,15 +76,25 @@ def _angles(text: str) -> tuple[float, float, float]:
         angles = tuple(float(x) for x in text.split(","))
     except ValueError:
         angles = ()
-    if len(angles) != 3 or not all(map(np.isfinite, angles)):
+    if len(angles) != 3 or not all(map(math.isfinite, angles)):
         raise ValueError(f"--boresight {text!r}: expected ROLL,PITCH,YAW in degrees, e.g. 0.5,0,0")
     return angles
 
 
 def run(args: argparse.Namespace) -> int:
+    from vtolpose.client import PoseClient
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.drivers.files.lidar import LIDAR_CSV
+    from vtolpose.estimator import height_error, score_map
+    from vtolpose.service.mapping.mapper import map_returns, pose_errors, true_ground, with_boresight
+    from vtolpose.service.mapping.poses import ZenohPoses, file_window, truth_window, window_poses
+    from vtolpose.service.mapping.report import (
+        MappedFlight, attribution_sources, map_and_score, score_lines, table_lines,
+    )
+
     if not (args.cell > 0.0):
         raise ValueError(f"--cell {args.cell}: must be a positive number of metres")
-    if not np.isfinite(args.time_offset):
+    if not math.isfinite(args.time_offset):
         raise ValueError(f"--time-offset {args.time_offset}: must be a finite number of seconds")
     if args.kind != "filtered" and not args.zenoh:
         raise ValueError("--kind says which live poses to wait for: use it with --zenoh")

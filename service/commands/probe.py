@@ -10,16 +10,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from vtolpose.config.sections import Sections
-from vtolpose.drivers.camera.common import CameraUnavailable
-from vtolpose.drivers.camera.select import camera_from_config
-from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, CrossbowImu, ImuReading
-from vtolpose.drivers.gps.common import GpsReading
-from vtolpose.drivers.links.serial_link import LINK_ERRORS, DeviceError
 from vtolpose.service.commands.common import add_config_options, config_from
+
+if TYPE_CHECKING:
+    from vtolpose.config.sections import Sections
+    from vtolpose.drivers.gps.common import GpsReading
+    from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, ImuReading
 
 COUNTER_AGREEMENT = 0.1  # implied tick within 10 % of the configured one counts as consistent
 
@@ -68,6 +66,9 @@ def _rate(t_ns: list[int]) -> str:
 
 
 def _probe_imu(args: argparse.Namespace, sections: Sections) -> int:
+    from vtolpose.drivers.imu.crossbow_serial import CrossbowConfig, CrossbowImu
+    from vtolpose.drivers.links.serial_link import LINK_ERRORS, DeviceError
+
     conf = CrossbowConfig.from_section(sections.sensors, args.port, args.baud)
     print(f"probe imu: Crossbow IMU400CC on {conf.port} at {conf.baud} baud, {args.seconds:g} s")
     imu = CrossbowImu(conf)
@@ -100,6 +101,8 @@ def _counter_report(readings: list[ImuReading], conf: CrossbowConfig) -> str:
     """Which tick length each count direction implies, against the configured (unconfirmed) one."""
     if len(readings) < 3:
         return "time counter: too few packets to check"
+    import numpy as np
+
     counters = np.array([r.counter for r in readings], dtype=np.int64)
     dt = float(np.median(np.diff([r.t_ns for r in readings]))) * 1e-9
     up = float(np.median(np.diff(counters) % 65536))
@@ -122,6 +125,8 @@ def _counter_report(readings: list[ImuReading], conf: CrossbowConfig) -> str:
 
 
 def _probe_gps(args: argparse.Namespace, sections: Sections) -> int:
+    from vtolpose.drivers.links.serial_link import LINK_ERRORS
+
     kind = args.kind or sections.sensors.gps.type
     if kind == "nmea":
         from vtolpose.drivers.gps.nmea import NmeaConfig, NmeaGps
@@ -163,6 +168,9 @@ def _probe_gps(args: argparse.Namespace, sections: Sections) -> int:
 
 
 def _probe_camera(args: argparse.Namespace, sections: Sections) -> int:
+    from vtolpose.drivers.camera.common import CameraUnavailable
+    from vtolpose.drivers.camera.select import camera_from_config
+
     kind = args.kind or sections.sensors.camera.type
     try:
         if kind == "dc1394":

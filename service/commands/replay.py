@@ -5,16 +5,14 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.drivers.files.tum import write_tum
 from vtolpose.service.commands.common import add_config_options, parse_sensors, write_json
 from vtolpose.service.commands.run import add_runtime_options, add_start_option, config_for
-from vtolpose.service.replay.faults import add_fault_options, parse_faults
-from vtolpose.service.replay.progress import Progress
-from vtolpose.service.replay.session import missing_sensor, replay
-from vtolpose.service.replay.smoothing import replay_smoothed
-from vtolpose.service.replay.report import build_report, event_lines, summary_lines
+from vtolpose.service.replay.fault_specs import add_fault_options, parse_faults
+
+if TYPE_CHECKING:
+    from vtolpose.drivers.files.dataset import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +62,7 @@ def requested_sensors(args: argparse.Namespace, cfg: dict, dataset: Dataset) -> 
     """The sensors to replay: those named with --sensors must all be in the dataset (an error
     says which is missing); --overlay without --sensors adds the camera, since it draws frames."""
     from vtolpose.service.runtime.wiring import config_sections
+    from vtolpose.service.replay.session import missing_sensor
 
     named = parse_sensors(args.sensors)
     if named is None:
@@ -85,6 +84,13 @@ def requested_sensors(args: argparse.Namespace, cfg: dict, dataset: Dataset) -> 
 
 
 def run(args: argparse.Namespace) -> int:
+    from vtolpose.drivers.files.dataset import Dataset
+    from vtolpose.drivers.files.tum import write_tum
+    from vtolpose.service.replay.progress import Progress
+    from vtolpose.service.replay.report import build_report, event_lines, summary_lines
+    from vtolpose.service.replay.session import replay
+    from vtolpose.service.replay.smoothing import replay_smoothed
+
     cfg = config_for(args)
     faults = parse_faults(args.fault)
     progress = Progress(None, f"replay {Path(args.dataset).name}", enabled=False if args.no_progress else None)

@@ -9,7 +9,7 @@ import logging
 
 from vtolpose.config import ConfigError, load_config
 from vtolpose.service.commands.common import add_config_options, overrides_from, parse_sensors
-from vtolpose.service.replay.faults import add_fault_options, injector_from
+from vtolpose.service.replay.fault_specs import add_fault_options
 
 log = logging.getLogger(__name__)
 LIVE_FRAME_REPORTS = 1000  # recent per-frame reports a long run keeps (memory stays flat)
@@ -131,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.replay:
         from vtolpose.drivers.files.dataset import Dataset
+        from vtolpose.service.replay.faults import injector_from
         from vtolpose.service.runtime.replay_feed import replay_async
         from vtolpose.service.runtime.wiring import config_sections
 

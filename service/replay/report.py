@@ -33,6 +33,7 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
         "duration_s": round(result.duration_s, 6),
         "wall_s": round(result.wall_s, 6),
         "realtime_factor": round(result.duration_s / result.wall_s, 2) if result.wall_s > 0 else None,
+        "kernels": result.kernels.describe() if result.kernels is not None else None,
         "estimates": int(len(traj.t_ns)),
         "initialised": status.initialised,
         "heading_aligned": status.heading_aligned,
@@ -388,7 +389,8 @@ def count_lines(report: dict) -> list[str]:
             f"{cam['landmarks_initialised']} initialised; extract {t['extract']['mean']} ms, filter {t['total']['mean']} ms per frame"
         )
     lines += smoothing_lines(report)
-    lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time")
+    lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time"
+                 + (f" ({report['kernels']})" if report.get("kernels") else ""))
     for name, c in report["sensors"].items():
         if not c["received"]:
             continue  # e.g. no levelling updates when the heading was known from the start

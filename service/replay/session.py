@@ -23,6 +23,7 @@ from vtolpose.estimator import (
     CameraFrame, Estimator, extract_features, FeatureOptions, FrameFeatures, FrameReport, OutputPose,
 )
 from vtolpose.service.replay.faults import Fault, FaultInjector
+from vtolpose.service.runtime.kernels import KernelLoad, load_compiled_kernels
 from vtolpose.service.runtime.replay_feed import checked_sensors, run_replay
 from vtolpose.service.runtime.step_taps import SmoothingPlan
 from vtolpose.service.runtime.threads import limit_blas_threads
@@ -115,6 +116,7 @@ class ReplayResult:
     smoothing: Any = None  # replay --smooth: a service.replay.smoothing.SmoothingResult
     extract_cpu_ms: list[float] = field(default_factory=list)  # as extract_ms, CPU time of the extracting thread
     incomplete: list[str] = field(default_factory=list)  # requested file outputs (an MCAP recording) not written in full
+    kernels: KernelLoad | None = None  # how the estimator's kernels were had, before wall_s started
 
 
 class FrameProcessor:
@@ -201,6 +203,7 @@ def replay(
         def progress(done_s: float) -> None:
             on_progress(done_s, span_s)
     injector = FaultInjector(faults, fault_seed) if faults else None
+    kernels = load_compiled_kernels()  # compiled or loaded before the clock starts: never in wall_s
     wall0 = time.perf_counter()
     summary, runtime = run_replay(
         dataset, cfg, sensors=sensors, speed=speed, trajectory_path=trajectory_path,
@@ -221,7 +224,7 @@ def replay(
         processor.options.detector if processor else None, fusion_counts, injector, summary.status.get("health", {}),
         summary.status.get("failures", {}), int(imu_t[0]),
         extract_cpu_ms=list(processor.extract_cpu_ms) if processor else [],
-        incomplete=list(summary.incomplete),
+        incomplete=list(summary.incomplete), kernels=kernels,
     )
 
 

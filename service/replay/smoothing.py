@@ -30,6 +30,7 @@ from vtolpose.config.sections import SmoothingSection
 from vtolpose.service.replay.session import CovarianceSamples, ReplayResult, Trajectory, replay
 from vtolpose.service.runtime.step_taps import SmoothingPlan
 from vtolpose.service.runtime.wiring import config_sections
+from vtolpose.service.runtime.kernels import load_compiled_kernels
 
 COV_HEADER = "# t [s], upper triangle of the 6x6 covariance of [dp (m), dtheta (rad, world frame)], row by row\n"
 _UPPER = np.triu_indices(6)
@@ -260,10 +261,12 @@ def replay_smoothed(dataset: Dataset, cfg: dict[str, Any], out: str | Path | Non
     """:func:`~vtolpose.service.replay.session.replay` with the backward pass after it: the result's
     ``smoothing`` holds the smoothed and fixed-lag trajectories; ``out``/``cov_out`` get the smoothed
     trajectory (TUM) and its covariances."""
+    kernels = load_compiled_kernels(backward_pass=True)  # the backward pass's too: not in its time either
     sections = config_sections(cfg)
     smoothing = ReplaySmoothing(SmoothingOptions.from_section(sections.smoothing), int(1e9 / sections.replay.nees_rate_hz))
     try:
         result = replay(dataset, cfg, prepare=smoothing.attach, smoothing=smoothing.plan(), **replay_args)
+        result.kernels = kernels
         cov = result.covariances
         start = int(cov.t_ns[0]) if len(cov.t_ns) else int(result.trajectory.t_ns[0]) if len(result.trajectory.t_ns) else 0
         result.smoothing = smoothing.backward(start, out, cov_out)

@@ -18,11 +18,9 @@ from vtolpose.config import ConfigError
 from vtolpose.config.outputs import zenoh_prefix
 from vtolpose.config.sections import FusionSection, OutputsSection, ReplaySection, Sections
 from vtolpose.drivers.files.calibration_yaml import CalibrationError, calibration_from_yaml, load_yaml_file
-from vtolpose.estimator import (
-    Calibration, Estimator, FusionOptions, gps_kernel, OutputPose, propagation_kernel, rts_kernel, sample_kernel,
-    update_kernel,
-)
+from vtolpose.estimator import Calibration, Estimator, FusionOptions, OutputPose
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
+from vtolpose.service.runtime.kernels import load_compiled_kernels
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
 from vtolpose.service.runtime.step_taps import SmoothingPlan, StepTaps
 from vtolpose.service.text import describe
@@ -55,19 +53,6 @@ def replay_camera_workers(replay: ReplaySection) -> int:
     book ~5.6 × real time against ~4.9 × with one per core on 2 cores). Lock-step fuses them in time
     order whatever order they finish in, so the result does not change."""
     return replay.camera_workers or max(1, min(2 * (os.cpu_count() or 1), 16))
-
-
-def load_compiled_kernels(backward_pass: bool = False, runs: bool = True) -> None:
-    """The estimator's compiled kernels (numba), compiled or loaded from their caches: ~0.1 s once per
-    process, a few seconds the first time on a machine. Done before the first sample is handled.
-    ``backward_pass``: also the offline smoother's (an image's build compiles every kernel). ``runs``:
-    also those of runs of samples, which a live service, sample by sample, never calls (~5 MB less);
-    any kernel left out here would still load on its first call."""
-    propagation_kernel.warm_up(runs)
-    update_kernel.warm_up()
-    gps_kernel.warm_up()
-    sample_kernel.warm_up(runs)
-    rts_kernel.warm_up(backward_pass)
 
 
 def build_runtime(

@@ -1,0 +1,252 @@
+"""The estimator's compiled kernels (numba) for a command: loaded from the cache, or compiled once.
+
+Compiling them all takes about half a minute on a small computer, once per machine and installed version;
+loading them from the cache a fraction of a second. A benchmark, ``vtolpose warmup`` and library callers wait
+for the compiler and say once that it runs. A command a user waits on (``vtolpose replay``, ``demo``, ``run``:
+the program, see :func:`compile_in_background`) does not: with a cold cache it runs the kernels as plain
+Python, the same operations in the same order and so the same numbers (tests hold the kernels to their
+interpreted runs bit for bit), while a low-priority process fills the cache; a long run switches to the
+compiled kernels as soon as they are there. Callers load the kernels before they start a clock, so no speed
+figure counts compiling or loading them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+log = logging.getLogger(__name__)
+
+COMPILE_COMMAND = (sys.executable, "-m", "vtolpose", "-q", "warmup", "--nice")
+
+
+@dataclass(frozen=True)
+class KernelLoad:
+    """How this process has its kernels: ``compiled`` (``compile_s`` spent compiling them, None when they
+    came from the cache in ``load_s``) or ``interpreted`` while the cache is filled in the background."""
+
+    mode: str
+    load_s: float = 0.0
+    compile_s: float | None = None
+
+    def describe(self) -> str:
+        if self.mode == "interpreted":
+            return "kernels interpreted while they compile in the background (once): the next run is faster"
+        if self.compile_s is not None:
+            return f"kernels compiled in {self.compile_s:.1f} s (once; not in the figures)"
+        return f"kernels loaded from the cache in {self.load_s:.2f} s (not in the figures)"
+
+
+class _Process:
+    """This process's kernel state: whether it may go on interpreted, whether it is, and who watches the
+    background compiler."""
+
+    def __init__(self) -> None:
+        self.background = False
+        self.interpreted = False
+        self.announced = False
+        self.watcher: threading.Thread | None = None
+        self.lock = threading.RLock()
+
+
+_process = _Process()
+
+
+def compile_in_background(enabled: bool = True) -> None:
+    """Let a cold cache be filled in the background while this process runs the kernels interpreted (the
+    ``vtolpose`` program sets it; a library caller, e.g. a test, waits for the compiler instead)."""
+    _process.background = enabled
+
+
+def load_compiled_kernels(backward_pass: bool = False, runs: bool = True, wait: bool | None = None) -> KernelLoad:
+    """The estimator's kernels ready before the first sample is handled: loaded from the cache, else compiled
+    (``wait``, by default unless :func:`compile_in_background`), else interpreted while a background process
+    compiles them. ``backward_pass``: also the offline smoother's. ``runs``: also those of runs of samples,
+    which a live service, sample by sample, never calls (~5 MB less); a kernel left out here still loads on its
+    first call."""
+    wait = not _process.background if wait is None else wait
+    with _process.lock:
+        if _process.interpreted and not wait:
+            return KernelLoad("interpreted")
+    if _process.interpreted:
+        _wait_for_background_compiler()
+    with _process.lock:
+        if not wait:
+            started = time.perf_counter()
+            if _load_from_cache(backward_pass, runs):
+                return KernelLoad("compiled", time.perf_counter() - started)
+            _go_interpreted()
+            return KernelLoad("interpreted")
+        return _load_or_compile(backward_pass, runs)
+
+
+def warm_up(backward_pass: bool = True, runs: bool = True, view: Callable[[Callable], Callable] = lambda f: f) -> None:
+    """Call every kernel on the argument types the estimator passes: each is loaded, or compiled and cached.
+    ``view``: how each module's warm-up sees its kernels (``kernel_swap.compiled_view`` while they are swapped out)."""
+    from vtolpose.estimator import gps_kernel, propagation_kernel, rts_kernel, sample_kernel, update_kernel
+
+    view(propagation_kernel.warm_up)(runs)
+    view(update_kernel.warm_up)()
+    view(gps_kernel.warm_up)()
+    view(sample_kernel.warm_up)(runs)
+    view(rts_kernel.warm_up)(backward_pass)
+
+
+class _ColdCache(Exception):
+    """Raised into numba when it is about to compile: the cache lacks a kernel."""
+
+
+class _CompileWatch:
+    """A numba ``numba:compile`` listener: notes the first compile, says it once, or stops it (``refuse``)."""
+
+    def __init__(self, refuse: bool) -> None:
+        self.refuse = refuse
+        self.first: float | None = None
+
+    def notify(self, event) -> None:
+        if not event.is_start:
+            return
+        if self.refuse:
+            raise _ColdCache
+        if self.first is None:
+            self.first = time.perf_counter()
+            if not _process.announced:
+                _process.announced = True
+                log.info("compiling the estimator's kernels, once (about half a minute), into %s", cache_place())
+
+
+@contextlib.contextmanager
+def _watching(watch: _CompileWatch) -> Iterator[None]:
+    from numba.core import event
+
+    listener = type("Listener", (event.Listener,), {"on_start": lambda self, e: watch.notify(e),
+                                                    "on_end": lambda self, e: None})()
+    with event.install_listener("numba:compile", listener):
+        yield
+
+
+def _load_or_compile(backward_pass: bool, runs: bool) -> KernelLoad:
+    started = time.perf_counter()
+    watch = _CompileWatch(refuse=False)
+    with _watching(watch):
+        warm_up(backward_pass, runs)
+    spent = time.perf_counter() - started
+    if watch.first is None:
+        return KernelLoad("compiled", spent)
+    log.info("compiled the estimator's kernels, once (%.1f s)", spent)
+    return KernelLoad("compiled", spent, spent)
+
+
+def _load_from_cache(backward_pass: bool, runs: bool) -> bool:
+    """Load the kernels from the cache; False, having compiled nothing, when one is not there."""
+    view = (lambda f: f)
+    if _process.interpreted:
+        from vtolpose.service.runtime.kernel_swap import compiled_view as view
+    try:
+        with _watching(_CompileWatch(refuse=True)):
+            warm_up(backward_pass, runs, view)
+    except _ColdCache:
+        return False
+    return True
+
+
+def cache_place() -> str:
+    from vtolpose.estimator import kernel_cache
+
+    return kernel_cache.kernel_cache_place()
+
+
+def compile_lock_path() -> Path:
+    """The file a compiler holds locked while it fills the cache (one compiler at a time)."""
+    from vtolpose.estimator import kernel_cache
+
+    folder = Path(os.environ.get("NUMBA_CACHE_DIR") or kernel_cache.ESTIMATOR_DIR / "__pycache__")
+    return folder / ".vtolpose-compiling.lock"
+
+
+@contextlib.contextmanager
+def compile_lock(block: bool = True) -> Iterator[bool]:
+    """Hold the compiler's lock (waiting for another compiler when ``block``); yields whether it is held."""
+    path = compile_lock_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # no advisory locks here: compilers may overlap, which only costs time
+        yield True
+        return
+    with path.open("a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX if block else fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _go_interpreted() -> None:
+    """Run the kernels interpreted, start the background compiler (unless one runs) and watch for it."""
+    from vtolpose.service.runtime import kernel_swap
+
+    kernel_swap.to_interpreted()
+    _process.interpreted = True
+    with compile_lock(block=False) as free:
+        compiler = _start_compiler() if free else None
+    log.info("compiling the estimator's kernels, once, in the background into %s; until they are ready this "
+             "process runs them interpreted (the same results, slower)", cache_place())
+    _process.announced = True
+    _process.watcher = threading.Thread(target=_switch_when_compiled, args=(compiler,), name="kernel-compiler-watch",
+                                        daemon=True)
+    _process.watcher.start()
+
+
+def _start_compiler() -> subprocess.Popen | None:
+    """``vtolpose warmup --nice`` in its own session: it outlives a short command and fills the cache for the next."""
+    try:
+        return subprocess.Popen(COMPILE_COMMAND, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
+    except OSError as exc:
+        log.warning("could not start the background compiler (%s): the kernels stay interpreted in this run", exc)
+        return None
+
+
+def _switch_when_compiled(compiler: subprocess.Popen | None) -> None:
+    """Wait for the compiler (ours, or another process's lock), then load what it cached and switch to it."""
+    if compiler is not None:
+        compiler.wait()
+    else:
+        with compile_lock(block=True):
+            pass
+    from vtolpose.service.runtime import kernel_swap
+
+    with _process.lock:
+        loaded = _load_from_cache(True, True)
+        if loaded:
+            kernel_swap.to_compiled()
+            _process.interpreted = False
+    if loaded:
+        log.info("the estimator's compiled kernels are ready: switched to them")
+    else:
+        log.warning("the background compiler left the kernel cache incomplete: this run stays interpreted")
+
+
+def _wait_for_background_compiler() -> None:
+    watcher = _process.watcher
+    if watcher is not None:
+        watcher.join()
+    with _process.lock:
+        if _process.interpreted:  # the compiler failed: compile here
+            from vtolpose.service.runtime import kernel_swap
+
+            kernel_swap.to_compiled()
+            _process.interpreted = False
