@@ -27,6 +27,7 @@ from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.sensor_lies import bench_sensor_lies
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.batch import bench_batch
+from vtolpose.service.bench.camera_matrix import bench_camera_matrix
 from vtolpose.service.bench.camera import bench_camera, bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.euroc import bench_euroc
 from vtolpose.service.bench.euroc_causes import bench_euroc_causes
@@ -128,6 +129,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "smoothing-hour": bench_smoothing_hour,
     "smoothing-latency": bench_smoothing_latency,
     "batch": bench_batch,
+    "camera-matrix": bench_camera_matrix,
 }
 
 
@@ -135,7 +137,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
 LONG_BENCHMARKS = ("runtime-hour", "soak-camera", "fault-targets", "fault-table", "sensor-lies", "euroc", "euroc-reference",
                    "euroc-causes",
                    "zenoh-queries", "memory-paced", "smoothing-sim", "smoothing-landmarks", "smoothing-hour",
-                   "smoothing-latency", "batch")
+                   "smoothing-latency", "batch", "camera-matrix")
 
 
 # Several of the above together (camera: features, then replay-camera): only when named.
