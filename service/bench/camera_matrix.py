@@ -99,7 +99,9 @@ class TestScore:
             notes.append(report["no_scores"])
         if "first_scored_s" in report:
             notes.append(f"first scored pose at {report['first_scored_s']:.1f} s")
-        notes += [f"{e['t_s']:.1f} s {e['message']}" for e in report.get("events", []) if "reset" in e["message"].lower()]
+        if report.get("reset_counter"):  # what was counted: resets, and starts that replaced an initialising estimate
+            notes += [f"{e['t_s']:.1f} s {e['message'][:120]}" for e in report.get("events", [])
+                      if any(word in e["message"].lower() for word in ("reset", "start"))]
         return cls(report.get("position_rmse_m"), report.get("attitude_rmse_deg"),
                    None if nees is None else nees["nees_mean"], None if nees is None else nees["fraction_in_band"],
                    bool(nees and nees["mean_in_band"]), int(report.get("reset_counter", 0)), "; ".join(notes))
