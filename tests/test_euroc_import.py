@@ -364,3 +364,20 @@ def test_the_euroc_bench_takes_only_recordings_with_a_truth(tmp_path: Path) -> N
     flights = find_flights([tmp_path / "data"])
     assert [(f.name, f.source) for f in flights] == [("TINY", with_leica), ("V9", with_tum)]
     assert flights[1].truth_file == with_tum / "truth.tum"
+
+
+def test_a_kalibr_equidistant_camera_is_imported_as_a_fisheye(tmp_path: Path) -> None:
+    import cv2
+
+    src = tiny_euroc(tmp_path / "src")
+    cam = src / "mav0/cam0"
+    (cam / "data").mkdir(parents=True)
+    (cam / "sensor.yaml").write_text(CAM_YAML.replace("radial-tangential", "equidistant")
+                                     .replace("[0.0, 0.0, 0.0, 0.0]", "[0.02, -0.01, 0.003, -0.0005]"))
+    t = 1403636579758560000
+    (cam / "data" / f"{t}.png").write_bytes(cv2.imencode(".png", np.zeros((36, 64), np.uint8))[1].tobytes())
+    (cam / "data.csv").write_text(f"#timestamp [ns],filename\n{t},{t}.png\n")
+    import_euroc(src, tmp_path / "out")
+    camera = Dataset.open(tmp_path / "out").calibration.camera
+    assert camera.model == "equidistant"
+    np.testing.assert_allclose(camera.distortion, [0.02, -0.01, 0.003, -0.0005])

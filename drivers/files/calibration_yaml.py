@@ -16,6 +16,7 @@ import yaml
 
 from vtolpose.config.yaml_limits import BoundedLoader, UnsafeYaml, read_bounded
 from vtolpose.estimator.core.calibration import (
+    CAMERA_MODELS,
     STANDARD_GRAVITY,
     Calibration,
     CameraCalibration,
@@ -28,7 +29,7 @@ from vtolpose.estimator.core.rotation import is_proper_rotation
 DATASET_FORMAT = "vtolpose-dataset/1"
 _TOP_KEYS = {"format", "name", "description", "imu", "gps", "truth", "init", "camera"}
 _NOISE_KEYS = ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", "accel_random_walk")
-_CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "distortion", "R_BC", "t_BC", "rate_hz", "time_offset_s"}
+_CAMERA_KEYS = {"width", "height", "fx", "fy", "cx", "cy", "model", "distortion", "R_BC", "t_BC", "rate_hz", "time_offset_s"}
 
 
 def _finite(x: int | float) -> bool:
@@ -187,8 +188,12 @@ def calibration_from_yaml(doc: Any, source: str = "dataset.yaml") -> Calibration
 def _camera_from_yaml(y: YamlReader, value: Any) -> CameraCalibration:
     cam = y.mapping(value, "camera", _CAMERA_KEYS, required=("width", "height", "fx", "fy", "cx", "cy"))
     extra = {}
+    model = cam.get("model", "radtan")
+    if model not in CAMERA_MODELS:
+        raise y.fail("camera.model", f"one of {sorted(CAMERA_MODELS)}", model)
+    extra["model"] = model
     if "distortion" in cam:
-        extra["distortion"] = y.vector(cam["distortion"], "camera.distortion", 5)
+        extra["distortion"] = y.vector(cam["distortion"], "camera.distortion", CAMERA_MODELS[model])
     if "R_BC" in cam:
         extra["R_BC"] = y.rotation(cam["R_BC"], "camera.R_BC")
     if "t_BC" in cam:
@@ -243,6 +248,7 @@ def calibration_to_yaml(cal: Calibration) -> dict:
         "camera": None if camera is None else {
             "width": int(camera.width), "height": int(camera.height),
             "fx": float(camera.fx), "fy": float(camera.fy), "cx": float(camera.cx), "cy": float(camera.cy),
+            **({"model": camera.model} if camera.model != "radtan" else {}),
             "distortion": _floats(camera.distortion), "R_BC": _floats(camera.R_BC), "t_BC": _floats(camera.t_BC),
             "rate_hz": float(camera.rate_hz), "time_offset_s": float(camera.time_offset_s),
         },

@@ -1,7 +1,8 @@
 """EuRoC ``cam0``: the camera's calibration in our frames, and its images into a dataset.
 
 EuRoC's ``sensor.yaml`` gives a pinhole camera (``intrinsics: [fu, fv, cu, cv]``,
-``resolution: [width, height]``), radial-tangential distortion ``[k1, k2, p1, p2]`` and
+``resolution: [width, height]``), radial-tangential distortion ``[k1, k2, p1, p2]`` (or Kalibr's
+``equidistant`` fisheye, ``[k1, k2, k3, k4]``) and
 ``T_BS``, the camera's pose on EuRoC's body B. Our ``R_BC`` maps camera axes (x right, y down,
 z forward: the same convention) into body FRD, and ``t_BC`` is the optical centre in FRD:
 
@@ -28,6 +29,7 @@ from vtolpose.estimator.core.calibration import CameraCalibration
 log = logging.getLogger(__name__)
 
 RADTAN_NAMES = ("radial-tangential", "radtan")
+EQUIDISTANT_NAMES = ("equidistant",)  # Kalibr's name for the Kannala–Brandt fisheye (cv2.fisheye)
 IMPORTED_SUFFIX = {"png": ".png", "jpeg": ".jpg"}  # formats kept as they are, by what their header says
 
 
@@ -44,21 +46,26 @@ def camera_calibration(sensor_yaml: Path, frames: Frames) -> CameraCalibration:
     if model != "pinhole":
         raise y.fail("camera_model", "pinhole", model)
     distortion_model = doc.get("distortion_model", "radial-tangential")
-    if distortion_model not in RADTAN_NAMES:
-        raise y.fail("distortion_model", f"one of {list(RADTAN_NAMES)} (the model OpenCV and this program use)",
+    if distortion_model not in RADTAN_NAMES + EQUIDISTANT_NAMES:
+        raise y.fail("distortion_model", f"one of {list(RADTAN_NAMES + EQUIDISTANT_NAMES)} (the models this program uses)",
                      distortion_model)
+    fisheye = distortion_model in EQUIDISTANT_NAMES
     fu, fv, cu, cv = y.vector(doc["intrinsics"], "intrinsics", 4)
     width, height = (y.integer(v, "resolution") for v in _pair(y, doc["resolution"]))
     coeffs = doc["distortion_coefficients"]
-    n = len(coeffs) if isinstance(coeffs, list) and len(coeffs) in (4, 5) else 4
-    k = np.zeros(5)
-    k[:n] = y.vector(coeffs, "distortion_coefficients", n)
+    if fisheye:
+        k = y.vector(coeffs, "distortion_coefficients", 4)
+    else:
+        n = len(coeffs) if isinstance(coeffs, list) and len(coeffs) in (4, 5) else 4
+        k = np.zeros(5)
+        k[:n] = y.vector(coeffs, "distortion_coefficients", n)
     mount = read_mount(sensor_yaml)
     to_body = frames.R_BI @ frames.imu.R_BS.T
     return CameraCalibration(
         width=width, height=height, fx=fu, fy=fv, cx=cu, cy=cv, distortion=k,
         R_BC=to_body @ mount.R_BS, t_BC=to_body @ (mount.t_BS - frames.imu.t_BS),
         rate_hz=y.number(doc.get("rate_hz", 20.0), "rate_hz", positive=True), time_offset_s=0.0,
+        model="equidistant" if fisheye else "radtan",
     )
 
 

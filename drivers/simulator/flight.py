@@ -110,15 +110,16 @@ def _stated_heading(world: Scenario, trajectory: Trajectory, seed: int) -> float
 
 
 def simulate_flight(
-    scenario: str, duration_s: float, seed: int, options: SimulationOptions | None = None
+    scenario: str | Scenario, duration_s: float, seed: int, options: SimulationOptions | None = None
 ) -> SimulatedFlight:
-    """Fly ``scenario`` for ``duration_s`` seconds; same arguments, identical arrays."""
+    """Fly ``scenario`` (a name, or a scenario built with its own settings) for ``duration_s`` seconds;
+    same arguments, identical arrays."""
     if not (np.isfinite(duration_s) and duration_s > 0.0):
         raise ValueError(f"duration_s must be positive, got {duration_s}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     options = options or SimulationOptions()
-    world = make_scenario(scenario)
+    world = make_scenario(scenario) if isinstance(scenario, str) else scenario
     if options.rest_s is not None:
         world = replace(world, static_s=options.rest_s)
     gps_model = options.gps or world.gps_model()

@@ -10,6 +10,10 @@ Default values are of the class of the thesis' Crossbow IMU400CC, a MEMS unit of
   accelerometer figure is the residual after the pre-flight calibration the thesis does before
   every run (section 5.2: gravity and a multi-position bias calibration); the raw turn-on
   bias of such a unit is several times larger. The gyro bias is measured on the pad.
+- rotor vibration, off by default: a tone at ``vibration_hz`` and its second harmonic on every
+  axis, of the stated RMS. It is motion of micrometres, so the truth leaves it out; the IMU
+  senses it in full (and aliases it, as a real one without an anti-alias filter does), and the
+  noise densities handed to the estimator do not include it, as a bench Allan variance would not.
 Densities follow the Kalibr/EuRoC convention (see ``vtolpose.estimator.core.calibration.ImuNoise``):
 per-sample white std = density·√rate, per-step bias increment std = random_walk·√dt.
 """
@@ -34,6 +38,9 @@ class ImuErrorModel:
     accel_random_walk: float = 3.0e-4
     gyro_turn_on_bias_std: float = float(np.deg2rad(0.2))
     accel_turn_on_bias_std: float = 0.015
+    vibration_hz: float = 0.0  # rotor frequency of the vibration term
+    vibration_accel_rms: float = 0.0  # per axis [m/s²]
+    vibration_gyro_rms: float = 0.0  # per axis [rad/s]
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0.0):
@@ -45,10 +52,15 @@ class ImuErrorModel:
             "accel_random_walk",
             "gyro_turn_on_bias_std",
             "accel_turn_on_bias_std",
+            "vibration_hz",
+            "vibration_accel_rms",
+            "vibration_gyro_rms",
         ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0.0):
                 raise ValueError(f"imu {name} must be finite and non-negative, got {value}")
+        if (self.vibration_accel_rms or self.vibration_gyro_rms) and not self.vibration_hz:
+            raise ValueError("imu vibration needs its rotor frequency vibration_hz")
 
     @classmethod
     def perfect(cls, rate_hz: float = 125.0) -> "ImuErrorModel":
@@ -82,8 +94,9 @@ def corrupt_imu(
 ) -> ImuErrors:
     """Add turn-on bias, bias random walk and white noise to exact readings (N, 3) each.
 
-    Draw order is fixed (turn-on biases, gyro walk, accel walk, gyro noise, accel noise), so a
-    seed always gives the same errors for the same number of samples.
+    Draw order is fixed (turn-on biases, gyro walk, accel walk, gyro noise, accel noise, then the
+    vibration's phases only when it is on), so a seed always gives the same errors for the same
+    number of samples, and a model without vibration the same ones as before it existed.
     """
     n = len(omega_b)
     if n == 0:
@@ -96,7 +109,26 @@ def corrupt_imu(
     b_a = _random_walk(b_a0, model.accel_random_walk * np.sqrt(dt), n, rng)
     white_g = rng.standard_normal((n, 3)) * model.gyro_noise_density * np.sqrt(model.rate_hz)
     white_a = rng.standard_normal((n, 3)) * model.accel_noise_density * np.sqrt(model.rate_hz)
-    return ImuErrors(omega_b + b_g + white_g, specific_force_b + b_a + white_a, b_g, b_a)
+    gyro, accel = omega_b + b_g + white_g, specific_force_b + b_a + white_a
+    if model.vibration_accel_rms or model.vibration_gyro_rms:
+        t = np.arange(n) * dt
+        gyro = gyro + rotor_vibration(t, model.vibration_hz, model.vibration_gyro_rms, rng)
+        accel = accel + rotor_vibration(t, model.vibration_hz, model.vibration_accel_rms, rng)
+    return ImuErrors(gyro, accel, b_g, b_a)
+
+
+VIBRATION_HARMONICS = (1.0, 0.5)  # relative amplitudes of the rotor tone and its second harmonic
+
+
+def rotor_vibration(t_s: np.ndarray, rotor_hz: float, rms: float, rng: np.random.Generator) -> np.ndarray:
+    """(N, 3) vibration of ``rms`` per axis: the rotor tone and its harmonic, random phases per axis."""
+    weights = np.array(VIBRATION_HARMONICS)
+    amplitude = rms * np.sqrt(2.0) / np.linalg.norm(weights)  # a sine of amplitude a has RMS a/√2
+    phases = rng.uniform(0.0, 2.0 * np.pi, (len(weights), 3))
+    out = np.zeros((len(t_s), 3))
+    for h, (w, phase) in enumerate(zip(weights, phases), start=1):
+        out += amplitude * w * np.sin(2.0 * np.pi * h * rotor_hz * t_s[:, None] + phase)
+    return out
 
 
 def bias_at(t_imu_ns: np.ndarray, bias: np.ndarray, t_ns: np.ndarray) -> np.ndarray:

@@ -52,11 +52,12 @@ class TextureLayer:
     offset_px: tuple[float, float] = (0.0, 0.0)
     wrap: bool = True  # tile forever; False: one copy, 0 around it (a single printed page)
     aspect: float = 1.0
+    image: np.ndarray | None = None  # the photograph itself (mean 0, std 1); None: scikit-image's ``name``
 
     def __post_init__(self) -> None:
         import cv2
 
-        levels = [photo(self.name)]
+        levels = [photo(self.name) if self.image is None else np.asarray(self.image, dtype=np.float32)]
         while min(levels[-1].shape) >= 16:
             h, w = levels[-1].shape
             levels.append(cv2.resize(levels[-1], (w // 2, h // 2), interpolation=cv2.INTER_AREA))
@@ -151,7 +152,10 @@ class LandfillAppearance:
 
 
 def appearance_for(scenario: object) -> Appearance:
-    """The look of a scenario's ground, by its name."""
+    """The look of a scenario's ground: its own ``appearance()`` if it has one, else by its name."""
+    own = getattr(scenario, "appearance", None)
+    if callable(own):
+        return own()
     name = getattr(scenario, "name", "")
     if name == "book":
         return BookAppearance(scenario.book_half_size, scenario.book_yaw_rad, scenario.book_thickness)

@@ -108,8 +108,9 @@ def _pair_rotation(p0, p1, camera: CameraCalibration, options: TrackOptions, nor
     import cv2
 
     K, dist = camera.K, camera.distortion
-    x0 = cv2.undistortPoints(p0.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
-    x1 = cv2.undistortPoints(p1.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
+    undistort = cv2.fisheye.undistortPoints if camera.model == "equidistant" else cv2.undistortPoints
+    x0 = undistort(p0.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
+    x1 = undistort(p1.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
     plane = _plane_rotation(x0, x1, camera, options, normal)
     if plane is not None:
         return plane

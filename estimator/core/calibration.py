@@ -67,9 +67,17 @@ class GpsCalibration:
         self.lever_arm_b = np.asarray(self.lever_arm_b, dtype=float).reshape(3)
 
 
+CAMERA_MODELS = {"radtan": 5, "equidistant": 4}  # lens model → number of distortion coefficients
+
+
 @dataclass(slots=True)
 class CameraCalibration:
-    """Pinhole + radial-tangential distortion (OpenCV order k1, k2, p1, p2, k3) and mounting."""
+    """Pinhole intrinsics, a lens model and its distortion, and mounting.
+
+    ``model`` "radtan": radial-tangential, OpenCV order k1, k2, p1, p2, k3 (five numbers);
+    "equidistant": Kannala–Brandt fisheye as ``cv2.fisheye``, k1..k4 (four numbers).
+    ``distortion`` None means no distortion for either.
+    """
 
     width: int
     height: int
@@ -77,14 +85,21 @@ class CameraCalibration:
     fy: float
     cx: float
     cy: float
-    distortion: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    distortion: np.ndarray | None = None
     R_BC: np.ndarray = field(default_factory=lambda: np.eye(3))
     t_BC: np.ndarray = field(default_factory=lambda: np.zeros(3))
     rate_hz: float = 7.5
     time_offset_s: float = 0.0
+    model: str = "radtan"
 
     def __post_init__(self) -> None:
-        self.distortion = np.asarray(self.distortion, dtype=float).reshape(5)
+        if self.model not in CAMERA_MODELS:
+            raise ValueError(f"camera model must be one of {sorted(CAMERA_MODELS)}, got {self.model!r}")
+        count = CAMERA_MODELS[self.model]
+        distortion = np.zeros(count) if self.distortion is None else np.asarray(self.distortion, dtype=float).ravel()
+        if distortion.size != count:
+            raise ValueError(f"a {self.model} camera has {count} distortion coefficients, got {distortion.size}")
+        self.distortion = distortion
         self.R_BC = np.asarray(self.R_BC, dtype=float).reshape(3, 3)
         self.t_BC = np.asarray(self.t_BC, dtype=float).reshape(3)
 

@@ -1,4 +1,5 @@
-"""Pinhole camera with radial-tangential distortion (OpenCV's k1, k2, p1, p2, k3).
+"""Pinhole camera with radial-tangential distortion (OpenCV's k1, k2, p1, p2, k3) or an
+equidistant fisheye lens (``cv2.fisheye``'s k1..k4, :mod:`.equidistant`).
 
 Why our own instead of ``cv2.projectPoints``: the EKF needs the projection *and* its Jacobian
 for a whole batch of landmarks every frame, without OpenCV's Rodrigues/translation arguments
@@ -12,6 +13,8 @@ distorted by::
     y_d = k y + p1 (r² + 2 y²) + 2 p2 x y
     u = fx x_d + cx,  v = fy y_d + cy
 
+(the equidistant lens replaces the first three lines by its own map of ``(x, y)``).
+
 All functions take stacks: points ``(N, 3)``, normalised or pixel coordinates ``(N, 2)``.
 """
 
@@ -20,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from vtolpose.estimator.core.calibration import CameraCalibration
+from vtolpose.estimator.vision import equidistant
 
 MIN_DEPTH = 1e-6  # a point must be this far in front of the camera to be projected
 
@@ -41,11 +45,18 @@ class CameraModel:
         self.width, self.height = int(calibration.width), int(calibration.height)
         self.fx, self.fy = float(calibration.fx), float(calibration.fy)
         self.cx, self.cy = float(calibration.cx), float(calibration.cy)
-        self.k1, self.k2, self.p1, self.p2, self.k3 = (float(c) for c in calibration.distortion)
+        self.fisheye = calibration.model == "equidistant"
+        self.coefficients = np.array(calibration.distortion, dtype=float)
+        if self.fisheye:
+            self.k1 = self.k2 = self.p1 = self.p2 = self.k3 = 0.0
+        else:
+            self.k1, self.k2, self.p1, self.p2, self.k3 = (float(c) for c in calibration.distortion)
 
     # ------------------------------------------------------------------ distortion
     def distort(self, xn: np.ndarray) -> np.ndarray:
         """Distorted normalised coordinates of undistorted ones, ``(N, 2)``."""
+        if self.fisheye:
+            return equidistant.distort(xn, self.coefficients)
         x, y = xn[..., 0], xn[..., 1]
         r2 = x * x + y * y
         k = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
@@ -56,6 +67,8 @@ class CameraModel:
 
     def distort_jacobian(self, xn: np.ndarray) -> np.ndarray:
         """``∂(x_d, y_d) / ∂(x, y)``, shape ``(N, 2, 2)``."""
+        if self.fisheye:
+            return equidistant.jacobian(xn, self.coefficients)
         x, y = xn[..., 0], xn[..., 1]
         r2 = x * x + y * y
         k = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
@@ -115,6 +128,8 @@ class CameraModel:
         """
         uv = np.asarray(uv, dtype=float)
         xd = np.stack([(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy], axis=-1)
+        if self.fisheye:
+            return equidistant.undistort(xd, self.coefficients)
         if self.k1 == self.k2 == self.k3 == self.p1 == self.p2 == 0.0:
             return xd
         x = xd.copy()

@@ -147,6 +147,12 @@ def calibration_with_overrides(cfg: dict[str, Any], calibration: Calibration) ->
         for k in _CAMERA_FIELDS:
             if c[f"camera.{k}"] is not None:
                 setattr(cal.camera, k, type(getattr(cal.camera, k))(c[f"camera.{k}"]))
+        radtan_keys = [k for k in _DISTORTION if c[f"camera.{k}"] is not None]
+        if radtan_keys and cal.camera.model != "radtan":
+            raise ConfigError(
+                f"keys calibration.camera.{', calibration.camera.'.join(radtan_keys)}: radial-tangential coefficients, "
+                f"but the camera in dataset.yaml is {cal.camera.model} (set its distortion there)"
+            )
         for i, k in enumerate(_DISTORTION):
             if c[f"camera.{k}"] is not None:
                 cal.camera.distortion[i] = c[f"camera.{k}"]
