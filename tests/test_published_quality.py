@@ -42,7 +42,7 @@ GPS_STALE_AFTER_S = 1.0  # estimator.health.gps_stale_s
 STALE_CAP = 50  # estimator.health.stale_quality_cap
 RESET_CAP, RESET_HOLD_S = 20, 5.0  # estimator.health.reset_quality_cap, reset_hold_s
 GPS_RESET_AFTER_S = 3.0  # estimator.gps_reset_after_s: every fix rejected this long resets
-UNUSABLE = {"initialising", "no_position", "heading_unaligned"}  # docs/outputs.md: pose statuses that forbid use
+UNUSABLE = {"no_position", "heading_unaligned"}  # docs/outputs.md: pose statuses that forbid use
 
 # The flight: 36 s of landfill, GPS off 5-9 s, GPS 20 m north 12-16 s (times from the first sample).
 FLIGHT_S, GPS_OFF, JUMP = 36.0, (5.0, 4.0), (12.0, 4.0)
