@@ -62,6 +62,7 @@ from vtolpose.estimator.inertial.sample_kernel import level_run, plain_run
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
+TILT_WEAK_SIGMA_RAD = math.radians(1.0)  # a map is started only under a tilt known this well (docs/estimator.md)
 HEADING_WEAK_SIGMA_RAD = math.radians(5.0)  # a placed heading the camera waits for the GPS to narrow below this
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
 
@@ -748,6 +749,8 @@ class Estimator:
             self.visual_inertial.observe(features)  # does the scene move? (a cruise feels still to the IMU)
         if reason is None and self._heading_weak():
             reason = "heading_weak"
+        if reason is None and self.state.n_landmarks == 0 and self._tilt_weak():
+            reason = "tilt_weak"
         if reason is None and self._moving_start and not (self.heading_aligned or self.local_position):
             reason = "heading_unknown"  # the bank places it from the GPS first
         if reason is not None:
@@ -806,6 +809,12 @@ class Estimator:
         horizontal acceleration misplaced by the unknown heading, would refuse the GPS in a cruise."""
         return (self.heading_mode is HeadingMode.PLACED
                 and self.state.cov[YAW, YAW] > HEADING_WEAK_SIGMA_RAD**2)
+
+    def _tilt_weak(self) -> bool:
+        """A map started under a tilt still degrees uncertain is placed wrongly by it, and its first updates
+        then narrow the heading the camera cannot see: the camera waits for gravity to narrow the tilt."""
+        var = covariance.block_variances(self.state.cov, TH)
+        return max(var[0], var[1]) > TILT_WEAK_SIGMA_RAD**2
 
     def _frame_rejection(self, features: FrameFeatures, t_ns: int) -> str | None:
         if self.camera is None:
