@@ -7,6 +7,7 @@ import socket
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 
@@ -44,6 +45,16 @@ def euroc_dev() -> Path:
     if not all((EUROC_DEV / name / "mav0" / "imu0" / "data.csv").is_file() for name in ("MH03", "V101", "V201")):
         pytest.skip(f"needs the shared flight data at {EUROC_DEV} (present in CI, absent in a plain clone)")
     return EUROC_DEV
+
+
+def central_difference(f: Callable[[np.ndarray], np.ndarray], x: np.ndarray, h: float) -> np.ndarray:
+    """The Jacobian of ``f`` at ``x`` by central differences of step ``h`` (a column per component of ``x``)."""
+    cols = []
+    for i in range(x.shape[-1]):
+        d = np.zeros(x.shape[-1])
+        d[i] = h
+        cols.append((f(x + d) - f(x - d)) / (2 * h))
+    return np.stack(cols, axis=-1)
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:

@@ -9,6 +9,8 @@ import pytest
 from vtolpose.estimator.core.calibration import CameraCalibration
 from vtolpose.estimator.vision.camera_model import CameraModel
 
+from conftest import central_difference
+
 DISTORTION = np.array([-0.28, 0.09, 0.0012, -0.0008, -0.01])
 
 
@@ -50,15 +52,6 @@ def test_no_distortion_is_the_plain_pinhole():
     xn = cam.undistort(uv)
     np.testing.assert_allclose(xn[:, 0], (uv[:, 0] - 327.5) / 570.0)
     np.testing.assert_allclose(cam.normalized_to_pixel(xn), uv)
-
-
-def central_difference(f, x: np.ndarray, h: float) -> np.ndarray:
-    cols = []
-    for i in range(x.shape[-1]):
-        d = np.zeros(x.shape[-1])
-        d[i] = h
-        cols.append((f(x + d) - f(x - d)) / (2 * h))
-    return np.stack(cols, axis=-1)
 
 
 def test_projection_jacobian_matches_central_differences():

@@ -10,6 +10,8 @@ from vtolpose.drivers.files.calibration_yaml import CalibrationError, calibratio
 from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, ImuCalibration, ImuNoise
 from vtolpose.estimator.vision.camera_model import CameraModel
 
+from conftest import central_difference
+
 COEFFS = np.array([0.02, -0.01, 0.003, -0.0005])
 
 
@@ -24,15 +26,6 @@ def points(n: int = 200, seed: int = 0, half_angle: float = 1.15) -> np.ndarray:
     phi = rng.uniform(-np.pi, np.pi, n)
     dist = rng.uniform(0.3, 40.0, n)
     return dist[:, None] * np.column_stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
-
-
-def central_difference(f, x: np.ndarray, h: float) -> np.ndarray:
-    cols = []
-    for i in range(x.shape[-1]):
-        d = np.zeros(x.shape[-1])
-        d[i] = h
-        cols.append((f(x + d) - f(x - d)) / (2 * h))
-    return np.stack(cols, axis=-1)
 
 
 def test_projection_matches_cv2_fisheye():

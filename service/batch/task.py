@@ -1,7 +1,7 @@
 """One flight of a batch, start to finish: import, smoothed replay, map, scores, files; the table's row back.
 
 :func:`run_flight` is what a Dask worker runs (or a plain loop, for comparison). It writes into
-``OUT/.NAME.partial-XXXX`` and renames that to ``OUT/NAME`` only when every file is written, so
+``OUT/.NAME.partial-<random suffix>`` and renames that to ``OUT/NAME`` only when every file is written, so
 an output folder that exists is complete; ``batch.json`` in it holds the row and the flight's
 fingerprint (:mod:`~vtolpose.service.batch.settings`), which lets the next batch skip it. Any
 error in the flight becomes a failed row with its message: the batch goes on with the others.

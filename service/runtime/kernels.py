@@ -225,8 +225,8 @@ def _switch_when_compiled(compiler: subprocess.Popen | None) -> None:
     if compiler is not None:
         compiler.wait()
     else:
-        with compile_lock(block=True):
-            pass
+        with compile_lock(block=True) as held:  # taking the lock is the wait: it is free once the other compiler ends
+            log.debug("the other process's compiler has ended (lock %s)", "taken" if held else "not available")
     from vtolpose.service.runtime import kernel_swap
 
     with _process.lock:
