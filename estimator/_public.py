@@ -115,6 +115,7 @@ PUBLIC: dict[str, str] = {
     'FrameReport': 'vtolpose.estimator.vision.camera_pipeline',
     'predict': 'vtolpose.estimator.vision.camera_update',
     'FeatureOptions': 'vtolpose.estimator.vision.features',
+    'FeatureTracker': 'vtolpose.estimator.vision.feature_tracker',
     'FrameFeatures': 'vtolpose.estimator.vision.features',
     'extract_features': 'vtolpose.estimator.vision.features',
     'FrameQualityOptions': 'vtolpose.estimator.vision.frame_quality',

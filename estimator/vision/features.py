@@ -40,6 +40,9 @@ class FeatureOptions:
     sift_contrast_threshold: float = 0.02  # lower than OpenCV's 0.04: aerial texture is soft
     orb_fast_threshold: int = 20
     sift_image_scale: float = 0.5  # SIFT sees the frame resized by this (1.0: the full, doubled pyramid)
+    track_between: int = 0  # frames tracked by optical flow between two detections (0: detect every frame)
+    min_tracked_fraction: float = 0.5  # detect again as soon as fewer of the last detection's points are tracked
+    max_flow_error_px: float = 0.5  # forward–backward distance above which a tracked point is dropped
     quality: FrameQualityOptions = field(default_factory=FrameQualityOptions)
 
     def __post_init__(self) -> None:
@@ -47,6 +50,12 @@ class FeatureOptions:
             raise ValueError(f"unknown feature detector {self.detector!r}; choose one of {', '.join(DETECTORS)}")
         if self.max_features < 1:
             raise ValueError(f"max_features must be at least 1, got {self.max_features}")
+        if self.track_between < 0:
+            raise ValueError(f"track_between must be 0 (detect every frame) or more, got {self.track_between}")
+        if not 0.0 <= self.min_tracked_fraction <= 1.0:
+            raise ValueError(f"min_tracked_fraction must be in [0, 1], got {self.min_tracked_fraction}")
+        if self.max_flow_error_px <= 0.0:
+            raise ValueError(f"max_flow_error_px must be positive, got {self.max_flow_error_px}")
         if not 0.25 <= self.sift_image_scale <= 1.0:
             raise ValueError(f"sift_image_scale must be in [0.25, 1], got {self.sift_image_scale}")
         if self.detector == "akaze":

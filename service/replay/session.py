@@ -10,6 +10,7 @@ at a lower rate, the pose covariance for the consistency (NEES) check.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -20,7 +21,7 @@ import numpy as np
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.lidar import lidar_summary
 from vtolpose.estimator import (
-    CameraFrame, Estimator, extract_features, FeatureOptions, FrameFeatures, FrameReport, OutputPose,
+    CameraFrame, Estimator, extract_features, FeatureOptions, FeatureTracker, FrameFeatures, FrameReport, OutputPose,
 )
 from vtolpose.service.replay.faults import Fault, FaultInjector
 from vtolpose.service.runtime.kernels import KernelLoad, load_compiled_kernels
@@ -125,7 +126,9 @@ class FrameProcessor:
     The returned closure runs in fusion order, at the frame's own time; it keeps the per-frame
     report (and hands image, features and report to ``on_frame``, e.g. the overlay writer).
     ``keep``: how many recent reports to keep (None: all, for a replay's report; a live service
-    flying for hours keeps a bounded window).
+    flying for hours keeps a bounded window). With ``features.track_between`` the features of a
+    frame depend on the frame before (optical flow): calls are then taken one at a time, and the
+    runtime gives such a processor one worker (:attr:`in_order`), so they come in time order.
     """
 
     def __init__(self, options: FeatureOptions, expected_shape: tuple[int, int] | None,
@@ -136,9 +139,20 @@ class FrameProcessor:
         self.reports: deque[FrameReport] = deque(maxlen=keep)
         self.extract_ms: deque[float] = deque(maxlen=keep)
         self.extract_cpu_ms: deque[float] = deque(maxlen=keep)
+        self.tracker = FeatureTracker(options) if options.track_between else None
+        self._tracker_lock = threading.Lock()
+
+    @property
+    def in_order(self) -> bool:
+        """Frames must reach this processor one at a time, in time order (features tracked between detections)."""
+        return self.tracker is not None
 
     def __call__(self, frame: CameraFrame) -> Callable[[Estimator], FrameReport]:
-        features = extract_features(frame.image, frame.t_ns, self.options, self.expected_shape)
+        if self.tracker is None:
+            features = extract_features(frame.image, frame.t_ns, self.options, self.expected_shape)
+        else:
+            with self._tracker_lock:
+                features = self.tracker.features(frame.image, frame.t_ns, self.expected_shape)
 
         def fuse(est: Estimator) -> FrameReport:
             report = est.process_features(features)

@@ -89,7 +89,8 @@ def build_runtime(
     estimator = Estimator(calibration, filter_options(cfg, calibration.imu.noise), recorder=taps.recorder if taps else None)
     options = RuntimeOptions(
         fusion=fusion_options(sections.fusion), history_s=outputs.zenoh.history_s,
-        camera_workers=replay_camera_workers(sections.replay) if lockstep else sections.fusion.camera_workers,
+        camera_workers=1 if getattr(camera_processor, "in_order", False) else (
+            replay_camera_workers(sections.replay) if lockstep else sections.fusion.camera_workers),
         lockstep=lockstep, measure_latency=measure_latency,
         realtime_priority=sections.run.realtime_priority if live else None, imu_range=imu_range(cfg),
     )
