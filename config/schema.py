@@ -106,7 +106,6 @@ SCHEMA: dict[str, Field] = {
     "estimator.visual_inertial.max_tilt_sigma_deg": POS,
     "estimator.visual_inertial.max_scale_sigma_rel": POS,
     "estimator.visual_inertial.max_velocity_sigma": POS,
-    "estimator.visual_inertial.max_velocity_sigma_rel": NONNEG,
     "estimator.visual_inertial.max_depth_sigma_rel": POS,
     "estimator.visual_inertial.min_landmarks": Field("int", minimum=1, maximum=500),
     "estimator.visual_inertial.max_landmarks": Field("int", minimum=1, maximum=500),

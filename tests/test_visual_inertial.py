@@ -17,7 +17,8 @@ from vtolpose.drivers.simulator.render import default_camera
 from vtolpose.estimator.core.rotation import euler_from_quat, quat_to_rot
 from vtolpose.estimator.inertial.imu_delta import ImuDownsampler
 from vtolpose.estimator.init.tracks import FeatureTracker
-from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialOptions
+from vtolpose.estimator.init.visual_inertial import (Gauge, VisualInertialInitializer, VisualInertialOptions,
+                                                      velocity_sigma_limit)
 from vtolpose.estimator.init.window_solver import WindowFailure, acceleration_spread, scale_sigma, solve_window
 from vtolpose.estimator.vision.camera_model import CameraModel
 from vtolpose.estimator.vision.features import FrameFeatures
@@ -159,6 +160,18 @@ def test_the_scale_sigma_comes_from_the_window_and_is_published():
     strict = VisualInertialOptions(max_scale_sigma_rel=0.5 * start.sigma_scale_rel)
     init, start = run_start(flight, strict, seconds=2.5)
     assert start is None and init.progress.check == "scale", init.progress.describe()
+
+
+def test_a_velocity_known_as_well_as_the_scale_passes_the_velocity_test():
+    """The window knows a speed only as well as its scale: wherever the scale test passes (sigma up to
+    max_scale_sigma_rel), a velocity with that relative sigma passes too, at any speed (the landfill's
+    start in the air: 8 m/s, scale known to 8.6 %, velocity to 0.71 m/s)."""
+    options = VisualInertialOptions()
+    for speed in (0.0, 0.5, 2.0, 8.0, 20.0):
+        for scale_sigma_rel in np.linspace(0.0, options.max_scale_sigma_rel, 6):
+            assert scale_sigma_rel * speed <= velocity_sigma_limit(options, speed)
+    assert velocity_sigma_limit(options, 8.0) > 0.707  # the landfill's start
+    assert velocity_sigma_limit(VisualInertialOptions(max_scale_sigma_rel=0.05), 8.0) < 0.707
 
 
 def test_the_solver_refuses_windows_that_do_not_determine_it():

@@ -65,8 +65,7 @@ class VisualInertialOptions:
     max_residual_ratio: float = 2.0  # RMS whitened residual: the model fits the measurements
     max_tilt_sigma_deg: float = 1.5  # gravity's direction, from the window's information
     max_scale_sigma_rel: float = 0.25  # the scale, from the window's information (a steady cruise leaves it wide)
-    max_velocity_sigma: float = 0.1  # m/s, plus max_velocity_sigma_rel of the speed
-    max_velocity_sigma_rel: float = 0.05
+    max_velocity_sigma: float = 0.1  # m/s, plus max_scale_sigma_rel of the speed (a speed is known no better than the scale)
     max_depth_sigma_rel: float = 0.25  # median σ_ρ/ρ of the landmarks handed over (the EKF carries the rest)
     min_landmarks: int = 10
     max_landmarks: int = 30  # handed to the EKF (seen in the last frame, best depth first)
@@ -361,7 +360,7 @@ class VisualInertialInitializer:
         if not (np.all(np.isfinite(start.cov)) and np.all(np.diagonal(start.cov) > 0.0)):
             raise WindowFailure("the start's covariance is not positive", "information")
         measured["depth_sigma_rel"] = start.depth_sigma_rel
-        v_limit = opts.max_velocity_sigma + opts.max_velocity_sigma_rel * float(np.linalg.norm(start.v))
+        v_limit = velocity_sigma_limit(opts, float(np.linalg.norm(start.v)))
         if start.sigma_velocity > v_limit:
             raise WindowFailure(f"velocity sigma {start.sigma_velocity:.3f} m/s", "velocity")
         if len(start.landmarks) < opts.min_landmarks:
@@ -472,6 +471,13 @@ class VisualInertialInitializer:
             sigma_velocity=float(np.sqrt(np.max(covariance.block_variances(cov, V)))),
             depth_sigma_rel=float(np.median(sigma_rho[order] / rho[order])) if len(order) else math.inf,
         )
+
+
+def velocity_sigma_limit(options: VisualInertialOptions, speed: float) -> float:
+    """The velocity sigma a start may have at ``speed``: a floor plus the scale's own limit of the speed. The
+    window finds the velocity only up to the scale, so a tighter relative limit than the scale's would refuse
+    starts the scale test accepts (a cruise at 8 m/s with the scale known to 9 %)."""
+    return options.max_velocity_sigma + options.max_scale_sigma_rel * speed
 
 
 def _levelling(g_dir: np.ndarray) -> np.ndarray:
