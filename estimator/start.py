@@ -155,9 +155,14 @@ class StartCoordinator:
 
     def gauge(self) -> Gauge:
         """What a visual-inertial start cannot observe: where a dropped filter was lost, or the origin and the
-        known heading (zero when unknown)."""
-        p, heading = self._held_gauge or (np.zeros(3), self.initializer.heading_rad)
-        return Gauge(p.copy(), heading, self.heading_sigma if self.heading_known else None)
+        known heading (zero when unknown), carried by the gyro from the first sample to the latest."""
+        if self._held_gauge is not None:
+            p, heading = self._held_gauge
+            return Gauge(p.copy(), heading, self.heading_sigma if self.heading_known else None)
+        if not self.heading_known:
+            return Gauge(np.zeros(3), 0.0, None)
+        heading, drift = self.initializer.stated_heading_now()
+        return Gauge(np.zeros(3), heading, math.hypot(self.heading_sigma, drift))
 
     def from_window(self, start: VisualInertialStart) -> Start:
         """The start a converged visual-inertial window gives, its landmarks included."""

@@ -26,9 +26,11 @@ from vtolpose.estimator.core.calibration import STANDARD_GRAVITY, Calibration, I
 from vtolpose.estimator.core.covariance import TH
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import euler_from_quat, quat_from_euler, quat_to_rot
+from vtolpose.estimator.core.state import StateLayout
 from vtolpose.estimator.filter import Estimator, FilterOptions
 from vtolpose.estimator.inertial.initializer import InitOptions, StaticInitializer
 from vtolpose.estimator.metrics import pose_errors_for_nees
+from vtolpose.estimator.start import StartCoordinator
 from vtolpose.service.replay.report import build_report
 from vtolpose.service.replay.session import replay
 
@@ -59,6 +61,19 @@ def test_a_stated_heading_is_carried_by_the_gyro_to_the_start() -> None:
     assert turned > 0.5
     assert euler_from_quat(init.q)[2] == pytest.approx(0.5 + turned, abs=1e-3)
     assert init.heading_drift_sigma == pytest.approx(0.01 * k / RATE_HZ, rel=0.05)
+
+
+def test_a_visual_start_takes_the_stated_heading_carried_to_its_last_sample() -> None:
+    """The camera's start comes seconds after the first sample too: its gauge is the heading then, and wider."""
+    starter = StartCoordinator(StateLayout("biases"), InitOptions(sigma_gyro_bias=0.01), G, 0.5, 0.035, 0.02, None)
+    t = np.arange(int(2.5 * RATE_HZ)) / RATE_HZ
+    yaw_rate = 0.3 * (1.0 - np.cos(math.pi * t))
+    for k, rate in enumerate(yaw_rate):
+        starter.initializer.keep(1_000_000_000 + round(k * 1e9 / RATE_HZ), np.array([0.0, 0.0, rate]),
+                                 np.array([0.0, 0.0, -G]))
+    gauge = starter.gauge()
+    assert gauge.heading_rad == pytest.approx(0.5 + float(np.sum(yaw_rate[:-1]) / RATE_HZ), abs=1e-3)
+    assert gauge.heading_sigma_rad == pytest.approx(math.hypot(0.035, 0.01 * (len(t) - 1) / RATE_HZ), rel=1e-3)
 
 
 def test_a_moving_start_takes_the_last_samples_tilt_not_the_windows_mean() -> None:

@@ -175,6 +175,16 @@ class StaticInitializer:
         return InitialAttitude(t_ns, q, gyro_bias, gravity, static, sigma_rp, sigma_bg, len(g), span,
                                0.0 if static else turned, drift)
 
+    def stated_heading_now(self) -> tuple[float, float]:
+        """The stated heading carried to the last sample held and the sigma of its drift since the first, as for a
+        moving start (no bias known; the tilt from the plain mean, which moves a heading carried through a turn
+        about down only to second order): the heading a visual start at that sample takes as its gauge."""
+        if not self._accel:
+            return self.heading_rad, 0.0
+        opts = self.options
+        roll, pitch = roll_pitch_from_specific_force(np.mean(np.array(self._accel), axis=0))
+        return self._heading_now(roll, pitch, np.zeros(3), opts.sigma_gyro_bias, math.radians(opts.sigma_attitude_moving_deg))
+
     def _heading_now(self, roll: float, pitch: float, gyro_bias: np.ndarray, sigma_bg: float,
                      sigma_rp: float) -> tuple[float, float]:
         """The stated heading (the first sample's) carried to the last sample by the gyro, and the sigma of what
