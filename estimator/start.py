@@ -131,7 +131,7 @@ class StartCoordinator:
         """A moving start's tilt is the direction of its window's mean specific force, off by the window's mean
         acceleration: where the fixes over the window measure it, that sets the tilt's sigma (the configured
         guess where they cannot)."""
-        t0_ns = init.t_ns - int(round(init.window_s * 1e9))
+        t0_ns = init.t_ns - round(init.window_s * 1e9)
         measured = mean_acceleration_from_fixes(self.fixes, t0_ns, init.t_ns, VELOCITY_FIT_S, self.gps_sigma_floor_m)
         if measured is None:
             return init

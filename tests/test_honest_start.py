@@ -14,18 +14,25 @@ import math
 
 import numpy as np
 import pytest
-
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import SimulationOptions, simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
-from vtolpose.drivers.simulator.imu_model import ImuErrorModel
 from vtolpose.drivers.simulator.floor import FloorScenario, start_options
+from vtolpose.drivers.simulator.imu_model import ImuErrorModel
 from vtolpose.drivers.simulator.motion_profiles import PROFILES
-from vtolpose.estimator.core.calibration import STANDARD_GRAVITY, Calibration, ImuCalibration
+from vtolpose.estimator.core.calibration import (
+    STANDARD_GRAVITY,
+    Calibration,
+    ImuCalibration,
+)
 from vtolpose.estimator.core.covariance import TH
 from vtolpose.estimator.core.measurements import GpsFix
-from vtolpose.estimator.core.rotation import euler_from_quat, quat_from_euler, quat_to_rot
+from vtolpose.estimator.core.rotation import (
+    euler_from_quat,
+    quat_from_euler,
+    quat_to_rot,
+)
 from vtolpose.estimator.core.state import StateLayout
 from vtolpose.estimator.filter import Estimator, FilterOptions
 from vtolpose.estimator.inertial.initializer import InitOptions, StaticInitializer

@@ -62,7 +62,7 @@ class InitialAttitude:
     sigma_tilt_turned: float = 0.0  # rad: the part of the tilt's sigma an unknown gyro bias gives a moving window
     heading_drift_sigma: float = 0.0  # rad: what the gyro may have turned the stated heading by since the first sample
 
-    def with_mean_acceleration(self, sigma_rad: float) -> "InitialAttitude":
+    def with_mean_acceleration(self, sigma_rad: float) -> InitialAttitude:
         """A moving start whose window's mean acceleration was measured: that, not the configured guess, and the
         gyro's part make its tilt sigma."""
         return replace(self, sigma_roll_pitch=math.hypot(sigma_rad, self.sigma_tilt_turned))
