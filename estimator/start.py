@@ -30,7 +30,9 @@ from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import yaw_of
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
-from vtolpose.estimator.inertial.startup import state_from_static, velocity_from_fixes
+from vtolpose.estimator.inertial.startup import (
+    mean_acceleration_from_fixes, state_from_static, tilt_sigma_of_mean_acceleration, velocity_from_fixes,
+)
 from vtolpose.estimator.init.visual_inertial import ROBOT_DIM as VI_ROBOT_DIM
 from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialStart
 from vtolpose.estimator.modes import ModeEvent
@@ -100,14 +102,17 @@ class StartCoordinator:
         the camera saw the scene move, it is no still start."""
         window = [f for f in self.fixes if init.t_ns - f.t_ns < VELOCITY_FIT_S * 1e9]
         spread = self._fixes_moved(init.t_ns)
-        self.fixes.clear()
         velocity = velocity_from_fixes(window, init.t_ns, self.gps_sigma_floor_m)
         moving = spread or (velocity is not None
                             and chi2_gate(3, 0.999) < float(velocity[0] @ np.linalg.solve(velocity[1], velocity[0])))
         seen = self.visual_inertial is not None and self.visual_inertial.image_moving(init.t_ns)
         if init.static and (moving or seen):
             init = self.initializer.as_moving(init)
-        state = state_from_static(self.layout, init, self.init, self.heading_sigma)
+        if not init.static:
+            init = self._tilt_from_measured_acceleration(init)
+        self.fixes.clear()
+        heading_sigma = math.hypot(self.heading_sigma, init.heading_drift_sigma) if self.heading_known else 0.0
+        state = state_from_static(self.layout, init, self.init, heading_sigma)
         if velocity is not None and not init.static:
             state.v = velocity[0]
             covariance.reinitialise(state.cov, V, velocity[1])
@@ -121,6 +126,16 @@ class StartCoordinator:
             event = ModeEvent.START_PLACED if placed else ModeEvent.START_UNREFERENCED
         return Start(state, init.gravity, f"started from {init.n_samples} IMU samples, {how}; g = {init.gravity:.4f} m/s^2",
                      event, not init.static, np.full(3, init.sigma_gyro_bias**2), window[-1] if placed else None)
+
+    def _tilt_from_measured_acceleration(self, init: InitialAttitude) -> InitialAttitude:
+        """A moving start's tilt is the direction of its window's mean specific force, off by the window's mean
+        acceleration: where the fixes over the window measure it, that sets the tilt's sigma (the configured
+        guess where they cannot)."""
+        t0_ns = init.t_ns - round(init.window_s * 1e9)
+        measured = mean_acceleration_from_fixes(self.fixes, t0_ns, init.t_ns, VELOCITY_FIT_S, self.gps_sigma_floor_m)
+        if measured is None:
+            return init
+        return init.with_mean_acceleration(tilt_sigma_of_mean_acceleration(*measured, init.gravity))
 
     def _fixes_moved(self, t_ns: int) -> bool:
         """The fixes over the IMU's window lie further apart than their noise allows (5 σ): a cruise that a
@@ -140,9 +155,14 @@ class StartCoordinator:
 
     def gauge(self) -> Gauge:
         """What a visual-inertial start cannot observe: where a dropped filter was lost, or the origin and the
-        known heading (zero when unknown)."""
-        p, heading = self._held_gauge or (np.zeros(3), self.initializer.heading_rad)
-        return Gauge(p.copy(), heading, self.heading_sigma if self.heading_known else None)
+        known heading (zero when unknown), carried by the gyro from the first sample to the latest."""
+        if self._held_gauge is not None:
+            p, heading = self._held_gauge
+            return Gauge(p.copy(), heading, self.heading_sigma if self.heading_known else None)
+        if not self.heading_known:
+            return Gauge(np.zeros(3), 0.0, None)
+        heading, drift = self.initializer.stated_heading_now()
+        return Gauge(np.zeros(3), heading, math.hypot(self.heading_sigma, drift))
 
     def from_window(self, start: VisualInertialStart) -> Start:
         """The start a converged visual-inertial window gives, its landmarks included."""

@@ -3,7 +3,7 @@ known to 5°) it waits for gravity to narrow the tilt, and the heading it then h
 the filter says, not more.
 
 A gentle hand-held path over a floor of photographs, started in motion with a stated heading 2° uncertain (and
-6.7° wrong on this seed), GPS 2 cm at 10 Hz: the camera matrix's base cell, shortened. Its map started under
+4.5° wrong on this seed), GPS 2 cm at 10 Hz: the camera matrix's base cell, shortened. Its map started under
 the 5° tilt made the camera's updates shrink the heading's sigma to 0.4° within a second while the heading
 stayed 7° off (NEES 196 over the flight).
 """

@@ -3,7 +3,15 @@
 The thesis calibrates before each run from a static stretch (section 5.2). Here the filter
 waits for a window in which the IMU is still; if none comes within ``max_wait_s`` (the vehicle
 is already moving, as at the start of EuRoC MH01) it starts from the mean of the last window
-with wider uncertainties instead of waiting forever.
+with wider uncertainties instead of waiting forever. A moving window's specific forces are
+turned into the frame of its last sample by the gyro before they are averaged (a vehicle that
+rolls by 10° within the window would otherwise be started at its mean attitude, not its last);
+the mean still holds the vehicle's own mean acceleration, which the start's tilt sigma must
+carry (``start.py`` measures it from the GPS).
+
+A stated heading is the vehicle's at the first sample; the start comes up to ``max_wait_s``
+later, so the heading is carried there by the gyro, its sigma grown by what the gyro bias
+may have turned meanwhile.
 
 "Still" means no motion, not no vibration: a helicopter on the pad with its rotor turning
 shakes its IMU by ±0.5 m/s² at tens of hertz while it does not move at all. Stillness is
@@ -15,11 +23,12 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from vtolpose.estimator.core.rotation import quat_from_euler
+from vtolpose.estimator.core.rotation import quat_from_euler, quat_to_rot, so3_exp
+from vtolpose.estimator.inertial.motion_alignment import integrate
 
 
 @dataclass(slots=True)
@@ -49,6 +58,14 @@ class InitialAttitude:
     sigma_roll_pitch: float  # rad
     sigma_gyro_bias: float  # rad/s
     n_samples: int
+    window_s: float = 0.0  # the span of the window the tilt was taken from
+    sigma_tilt_turned: float = 0.0  # rad: the part of the tilt's sigma an unknown gyro bias gives a moving window
+    heading_drift_sigma: float = 0.0  # rad: what the gyro may have turned the stated heading by since the first sample
+
+    def with_mean_acceleration(self, sigma_rad: float) -> InitialAttitude:
+        """A moving start whose window's mean acceleration was measured: that, not the configured guess, and the
+        gyro's part make its tilt sigma."""
+        return replace(self, sigma_roll_pitch=math.hypot(sigma_rad, self.sigma_tilt_turned))
 
 
 def roll_pitch_from_specific_force(f_b: np.ndarray) -> tuple[float, float]:
@@ -80,6 +97,8 @@ class StaticInitializer:
         self._gyro: deque[np.ndarray] = deque()
         self._accel: deque[np.ndarray] = deque()
         self._first_t: int | None = None
+        self._turned = np.eye(3)  # the body's rotation from the first sample to the last, by the raw gyro
+        self._turned_s = 0.0  # over how long
 
     def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> InitialAttitude | None:
         """Returns the initial attitude once a still window exists, or once ``max_wait_s`` has passed
@@ -104,6 +123,10 @@ class StaticInitializer:
     def keep(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
         """Only hold the sample in the window (no judgement): for :meth:`latest` later."""
         window_ns = int(self.options.static_window_s * 1e9)
+        if self._t:
+            dt = (t_ns - self._t[-1]) * 1e-9
+            self._turned = self._turned @ so3_exp(np.asarray(self._gyro[-1], dtype=float) * dt)
+            self._turned_s += dt
         self._t.append(t_ns)
         self._gyro.append(gyro)
         self._accel.append(accel)
@@ -127,10 +150,10 @@ class StaticInitializer:
 
     def _solve(self, t_ns: int, g: np.ndarray, a: np.ndarray, g_means: np.ndarray, static: bool) -> InitialAttitude:
         opts = self.options
-        f_mean = a.mean(axis=0)
-        roll, pitch = roll_pitch_from_specific_force(f_mean)
-        q = quat_from_euler(roll, pitch, self.heading_rad)
+        t = np.array(self._t)
+        span = (t[-1] - t[0]) * 1e-9
         if static:
+            f_mean = a.mean(axis=0)
             gyro_bias = g.mean(axis=0)
             gravity = float(np.linalg.norm(f_mean)) if opts.estimate_gravity else self.nominal_gravity
             sigma_rp = math.radians(opts.sigma_attitude_static_deg)
@@ -140,6 +163,52 @@ class StaticInitializer:
         else:
             gyro_bias = np.zeros(3)
             gravity = self.nominal_gravity
-            sigma_rp = math.radians(opts.sigma_attitude_moving_deg)
             sigma_bg = opts.sigma_gyro_bias
-        return InitialAttitude(t_ns, q, gyro_bias, gravity, static, sigma_rp, sigma_bg, len(g))
+            f_mean = specific_force_in_last_frame(t, g, a)
+            # The mean sample is half a window older than the last: an unknown gyro bias turned it by that much.
+            # The vehicle's own mean acceleration is the caller's to add (the GPS measures it).
+            turned = sigma_bg * 0.5 * span
+            sigma_rp = math.hypot(math.radians(opts.sigma_attitude_moving_deg), turned)
+        roll, pitch = roll_pitch_from_specific_force(f_mean)
+        heading, drift = self._heading_now(roll, pitch, gyro_bias, sigma_bg, sigma_rp)
+        q = quat_from_euler(roll, pitch, heading)
+        return InitialAttitude(t_ns, q, gyro_bias, gravity, static, sigma_rp, sigma_bg, len(g), span,
+                               0.0 if static else turned, drift)
+
+    def stated_heading_now(self) -> tuple[float, float]:
+        """The stated heading carried to the last sample held and the sigma of its drift since the first, as for a
+        moving start (no bias known; the tilt from the plain mean, which moves a heading carried through a turn
+        about down only to second order): the heading a visual start at that sample takes as its gauge."""
+        if not self._accel:
+            return self.heading_rad, 0.0
+        opts = self.options
+        roll, pitch = roll_pitch_from_specific_force(np.mean(np.array(self._accel), axis=0))
+        return self._heading_now(roll, pitch, np.zeros(3), opts.sigma_gyro_bias, math.radians(opts.sigma_attitude_moving_deg))
+
+    def _heading_now(self, roll: float, pitch: float, gyro_bias: np.ndarray, sigma_bg: float,
+                     sigma_rp: float) -> tuple[float, float]:
+        """The stated heading (the first sample's) carried to the last sample by the gyro, and the sigma of what
+        it may have turned by: the bias' uncertainty over the time since, and the tilt's through the turn
+        (nothing for a turn about down, all of it for a roll of 90°)."""
+        elapsed = self._turned_s
+        turned = self._turned @ so3_exp(-gyro_bias * elapsed)  # first order in the bias: enough over seconds
+
+        def carried(roll: float, pitch: float) -> float:
+            first = quat_to_rot(quat_from_euler(roll, pitch, 0.0)) @ turned.T  # the first sample's attitude
+            return self.heading_rad - math.atan2(first[1, 0], first[0, 0])
+
+        heading = carried(roll, pitch)
+        step = 1e-4
+        slopes = [(carried(roll + step * d[0], pitch + step * d[1]) - heading) / step for d in ((1, 0), (0, 1))]
+        drift = math.hypot(sigma_bg * elapsed, sigma_rp * math.hypot(*slopes))
+        return math.atan2(math.sin(heading), math.cos(heading)), drift
+
+
+def specific_force_in_last_frame(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> np.ndarray:
+    """The window's mean specific force in the body frame of its last sample: each sample turned there by the
+    gyro (uncorrected: a moving start knows no bias), so that the attitude found is the last sample's."""
+    t = (t_ns - t_ns[0]) * 1e-9
+    dt = np.diff(t)
+    turned = integrate(t, gyro[:-1] * dt[:, None], accel[:-1] * dt[:, None], np.zeros(3), t)
+    in_first = np.einsum("nij,nj->ni", turned.R, accel)
+    return turned.R[-1].T @ in_first.mean(axis=0)

@@ -79,3 +79,27 @@ def velocity_from_fixes(fixes: Sequence[GpsFix], t_ns: int, sigma_floor_m: float
         v[axis] = x[1]
         var[axis] = normal_inv[1, 1] * max(1.0, reduced_chi2)
     return v, np.diag(var)
+
+
+def mean_acceleration_from_fixes(fixes: Sequence[GpsFix], t0_ns: int, t1_ns: int, fit_s: float,
+                                 sigma_floor_m: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The mean acceleration over ``[t0, t1]`` and its covariance: the change of the velocity the fixes give at
+    either end (each from the fixes of the ``fit_s`` before it), over the time between. None when the fixes
+    cannot give both velocities."""
+    ends = []
+    for t_ns in (t0_ns, t1_ns):
+        near = [f for f in fixes if 0 <= t_ns - f.t_ns < fit_s * 1e9]
+        fitted = velocity_from_fixes(near, t_ns, sigma_floor_m)
+        if fitted is None:
+            return None
+        ends.append(fitted)
+    span = (t1_ns - t0_ns) * 1e-9
+    (v0, c0), (v1, c1) = ends
+    return (v1 - v0) / span, (c0 + c1) / span**2
+
+
+def tilt_sigma_of_mean_acceleration(accel: np.ndarray, cov: np.ndarray, gravity: float) -> float:
+    """The sigma of a tilt taken from a mean specific force whose window held a mean acceleration ``accel``
+    (covariance ``cov``): its horizontal part turns the sensed gravity by ``|a_h| / g``, in a direction the
+    start cannot know without the heading, so each axis gets all of it."""
+    return float(np.sqrt(accel[:2] @ accel[:2] + np.trace(cov[:2, :2]))) / gravity
