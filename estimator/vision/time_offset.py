@@ -62,7 +62,7 @@ class TimeOffsetEstimate:
         """Keep what ``state`` knows of the offset (it may be rebuilt without it)."""
         if state.calib.shape[0]:
             self.value_s = float(state.calib[TIME_OFFSET])
-            self.variance = float(state.cov[state.robot_dim + TIME_OFFSET, state.robot_dim + TIME_OFFSET])
+            self.variance = float(covariance.block_variances(state.cov, state.calib_slice)[TIME_OFFSET])
 
     def reading(self, state: FilterState | None) -> tuple[float, float] | None:
         """The offset's estimate and sigma [s], from ``state`` if it holds it; None if never estimated."""
@@ -70,8 +70,8 @@ class TimeOffsetEstimate:
             return None
         value, variance = self.value_s, self.variance
         if state is not None and state.calib.shape[0]:
-            i = state.robot_dim + TIME_OFFSET
-            value, variance = float(state.calib[TIME_OFFSET]), float(state.cov[i, i])
+            value = float(state.calib[TIME_OFFSET])
+            variance = float(covariance.block_variances(state.cov, state.calib_slice)[TIME_OFFSET])
         return value, float(np.sqrt(max(variance, 0.0)))
 
 
