@@ -104,8 +104,19 @@ def test_a_wrong_configured_offset_is_recovered_on_a_rendered_flight(rendered_bo
     dataset = Dataset.open(rendered_book_dir)
     cfg = load_config(None, {"calibration": {"camera": {"time_offset_s": 0.010}},
                              "estimator": {"camera": {"estimate_time_offset": True, "time_offset_sigma_s": 0.02}}})
-    status = replay(dataset, cfg, ["imu", "camera", "gps"]).estimator.status()
+    held = {}
+    status = replay(dataset, cfg, ["imu", "camera", "gps"], prepare=lambda runtime: held.update(runtime=runtime)).estimator.status()
     estimate, sigma = status.camera_time_offset_s
     assert sigma < 0.001  # learnt: from a 20 ms prior
     assert abs(estimate + 0.010) < 3.0 * sigma, (estimate, sigma)
-    assert status.camera_time_offset_ms() == {"estimate": round(estimate * 1e3, 3), "sigma": round(sigma * 1e3, 3)}
+    runtime = held["runtime"]
+    document = runtime.status.snapshot(runtime.est, runtime.fusion)  # the service's status document
+    assert document["camera_time_offset_ms"] == {"estimate": round(estimate * 1e3, 3), "sigma": round(sigma * 1e3, 3)}
+
+
+def test_without_the_option_nothing_is_estimated_or_reported():
+    off = TimeOffsetEstimate(TimeOffsetOptions(estimate=False))
+    plain = make_state()
+    off.attach(plain)
+    assert plain.calib.shape == (0,) and plain.dim == make_state().dim
+    assert off.reading(plain) is None
