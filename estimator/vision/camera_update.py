@@ -35,8 +35,8 @@ _NO_RATE = np.zeros(3)
 class Predictions:
     """Predicted pixels of every landmark in the state, with Jacobians and innovation covariances.
 
-    ``H_pose (M, 2, 6 + c)`` is w.r.t. the robot's ``[δp, δθ]`` and the c calibration states (:func:`robot_cols`); ``H_landmark (M, 2, 6)`` w.r.t. the
-    landmark's own six states. ``S (M, 2, 2)`` includes the pixel noise. ``in_front`` is False
+    ``H_pose (M, 2, 6 + c)`` is w.r.t. the robot's ``[δp, δθ]`` and the c calibration states (:func:`robot_cols`);
+    ``H_landmark (M, 2, 6)`` w.r.t. the landmark's own six states. ``S (M, 2, 2)`` includes the pixel noise. ``in_front`` is False
     for landmarks behind the camera (their pixels are NaN), ``in_image`` for those that project
     inside the image.
     """
@@ -76,6 +76,7 @@ def predict_h(
 def _predict_h_at(
     state: FilterState, R_BC: np.ndarray, t_BC: np.ndarray, indices: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`predict_h` at the nominal pose of ``state`` as it is, w.r.t. ``[δp, δθ]`` only."""
     R = state.R
     y = state.landmarks if indices is None else state.landmarks[indices]
     A = R_BC.T @ R.T
