@@ -95,6 +95,8 @@ SCHEMA: dict[str, Field] = {
     "estimator.camera.ground_down_m": Field("float", nullable=True),
     "estimator.camera.min_height_m": NONNEG,
     "estimator.camera.min_ray_down": Field("float", positive=True, maximum=1.0),
+    "estimator.camera.estimate_time_offset": Field("bool"),
+    "estimator.camera.time_offset_sigma_s": Field("float", positive=True, maximum=1.0),
     "estimator.visual_inertial.enabled": Field("bool"),
     "estimator.visual_inertial.window_s": POS,
     "estimator.visual_inertial.min_window_s": POS,

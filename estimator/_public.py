@@ -120,4 +120,5 @@ PUBLIC: dict[str, str] = {
     'extract_features': 'vtolpose.estimator.vision.features',
     'FrameQualityOptions': 'vtolpose.estimator.vision.frame_quality',
     'MapOptions': 'vtolpose.estimator.vision.map_manager',
+    'TimeOffsetOptions': 'vtolpose.estimator.vision.time_offset',
 }

@@ -447,11 +447,10 @@ class Estimator:
         nominal = (state.p, state.v, state.q, state.b_g, state.b_a)
         if snap is not None and not all(np.all(np.isfinite(x)) for x in nominal):
             state.p, state.v, state.q, state.b_g, state.b_a = (x.copy() for x in (snap.p, snap.v, snap.q, snap.b_g, snap.b_a))
-        state.landmarks = state.landmarks[:0]  # the covariance is rebuilt for the robot; _reset clears the book
         var_p = covariance.block_variances(state.cov, covariance.P)
         if not (np.all(np.isfinite(var_p)) and np.all(var_p > 0.0)):
             var_p = np.full(3, LOST_POSITION_SIGMA_M**2)
-        state.cov = self._reset_covariance(var_p)
+        state.robot_only(self._reset_covariance(var_p))  # the map goes (_reset clears the book)
         if self.position_initialized and self._last_fix is not None and self.health.fresh("gps", state.t_ns):
             self._init_position(self._last_fix)  # the GPS is alive: position from it
         self._reset(state.t_ns, "state_invalid",
@@ -572,7 +571,7 @@ class Estimator:
             self.camera.clear(self.state)
         state = self.state
         state.p, state.v, state.q, state.b_g, state.b_a = placed.p, placed.v, placed.q, placed.b_g, placed.b_a
-        state.cov = covariance.robot_block(placed.cov, self.layout.robot_dim)
+        state.robot_only(covariance.robot_block(placed.cov, self.layout.robot_dim))
         self._fixed_bias_var = covariance.block_variances(placed.cov, BG)  # the thesis model keeps b_g at this
         self.modes.fire(ModeEvent.HEADING_PLACED)
         self._bank = None
@@ -725,7 +724,7 @@ class Estimator:
             self.state = None
             self.visual_inertial.reset()
             return
-        state.cov = self._reset_covariance(covariance.block_variances(state.cov, covariance.P))
+        state.robot_only(self._reset_covariance(covariance.block_variances(state.cov, covariance.P)))
         if not self.heading_aligned:
             self._forget_heading()
         if self.position_initialized and self._last_fix is not None and self.health.fresh("gps", t_ns):
@@ -758,6 +757,7 @@ class Estimator:
             self.health.measured("camera", t_ns, used=False)  # alive (frames arrive), not usable
             return FrameReport(t_ns, False, reason, n_features=len(features))
         self._propagate_to(t_ns)
+        self.camera.attach_calibration(self.state)  # the time offset's state, if estimated and not there yet
         # Before the heading is known, landmarks live in the frame of arbitrary yaw with the rest of the
         # camera geometry (consistent with itself, so only the heading is held) and go when it is placed:
         # at rest on the pad the camera holds the pose from the first frames.
@@ -765,7 +765,8 @@ class Estimator:
         if not self.heading_aligned:
             held = np.zeros(self.state.dim, dtype=bool)
             held[YAW] = True
-        report = self.camera.process(self.state, features, t_ns, True, self.position_initialized, held)
+        report = self.camera.process(self.state, features, t_ns, True, self.position_initialized, held,
+                                     self._gyro - self.state.b_g)
         if report.accepted:
             counts.used += 1
             if self.mode is FilterMode.UNREFERENCED and not self._gps_seen:
@@ -929,6 +930,7 @@ class Estimator:
             visual_start_history=tuple(visual.history) if visual is not None else (),
             visual_start_attempts=visual.attempts if visual is not None else 0,
             gps_noise=MappingProxyType(self.gps_noise.report()),
+            camera_time_offset_s=camera.time_offset.reading(state) if camera is not None else None,
         )
 
     def finish_recording(self) -> None:

@@ -74,6 +74,9 @@ class EstimatorStatus:
     visual_start_history: tuple[VisualStartProgress, ...] = ()  # each change of the check that held it
     visual_start_attempts: int = 0
     gps_noise: Mapping = field(default_factory=lambda: MappingProxyType({}))  # the GPS noise check's verdict
+    # The camera's residual time offset beyond the configured one, estimated online: (estimate, sigma) in
+    # seconds (a frame stamped t was taken at t + estimate); None unless estimated and the camera used.
+    camera_time_offset_s: tuple[float, float] | None = None
 
     @property
     def initialised(self) -> bool:
@@ -104,6 +107,13 @@ class EstimatorStatus:
         if self.heading_aligned:
             return "known"
         return "own frame (visual-inertial start)" if self.local_position else "unknown"
+
+    def camera_time_offset_ms(self) -> dict[str, float] | None:
+        """The estimated residual camera time offset and its sigma in ms, rounded for documents; None unless estimated."""
+        if self.camera_time_offset_s is None:
+            return None
+        value, sigma = self.camera_time_offset_s
+        return {"estimate": round(value * 1e3, 3), "sigma": round(sigma * 1e3, 3)}
 
     def first(self, kind: EventKind) -> EstimatorEvent | None:
         """The first event of ``kind``, if any."""

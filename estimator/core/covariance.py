@@ -97,3 +97,14 @@ def append_states(cov: np.ndarray, cross: np.ndarray, new_block: np.ndarray) -> 
 def keep_states(cov: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """``cov`` restricted to the states ``keep`` selects (a boolean mask or indices): states removed."""
     return cov[np.ix_(keep, keep)]
+
+
+def insert_states(cov: np.ndarray, at: int, new_block: np.ndarray) -> np.ndarray:
+    """``cov`` with states inserted before index ``at``, uncorrelated with the rest, their own covariance
+    ``new_block`` (k × k): calibration states put between the robot and the map."""
+    n, k = cov.shape[0], new_block.shape[0]
+    old = np.r_[0:at, at + k : n + k]
+    out = np.zeros((n + k, n + k))
+    out[np.ix_(old, old)] = cov
+    out[at : at + k, at : at + k] = new_block
+    return out

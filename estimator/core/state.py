@@ -5,7 +5,9 @@ attitude error is a small rotation in the *world* frame, ``R_true = Exp(δθ) R_
 error is simply ``δθ_D`` and the quaternion stays unit without renormalisation tricks.
 The two robot variants share this code: ``thesis`` (p, v, q; 9 error states) and ``biases``
 (adds gyro and accelerometer biases; 15). Landmarks occupy 6 error states each after the
-robot block (see ``vtolpose.estimator.vision.landmarks``).
+robot block (see ``vtolpose.estimator.vision.landmarks``). A camera whose calibration is estimated online
+puts its calibration states (``calib``: the camera's residual time offset) between the robot and the landmarks:
+like the map, a propagation leaves them alone (identity transition, no process noise).
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ class FilterState:
         self.b_g = np.zeros(3)
         self.b_a = np.zeros(3)
         self.landmarks = np.zeros((0, LANDMARK_DIM))
+        self.calib = np.zeros(0)  # camera calibration states (vision.time_offset), between the robot and the map
         self.cov = np.zeros((layout.robot_dim, layout.robot_dim))
         # Told of every measurement update (``core.kalman.ekf_update``): the smoother's recorder.
         # Copies do not carry it: an update on a scratch copy is no update of the filter.
@@ -73,6 +76,15 @@ class FilterState:
     @property
     def robot_dim(self) -> int:
         return self.layout.robot_dim
+
+    @property
+    def map_start(self) -> int:
+        """The first landmark's first error state: after the robot and the calibration states."""
+        return self.layout.robot_dim + self.calib.shape[0]
+
+    @property
+    def calib_slice(self) -> slice:
+        return slice(self.layout.robot_dim, self.map_start)
 
     @property
     def dim(self) -> int:
@@ -87,7 +99,7 @@ class FilterState:
         return quat_to_rot(self.q)
 
     def landmark_slice(self, index: int) -> slice:
-        start = self.robot_dim + LANDMARK_DIM * index
+        start = self.map_start + LANDMARK_DIM * index
         return slice(start, start + LANDMARK_DIM)
 
     def inject(self, dx: np.ndarray) -> None:
@@ -104,8 +116,10 @@ class FilterState:
         if lay.estimates_biases:
             self.b_g = self.b_g + dx[lay.BG]
             self.b_a = self.b_a + dx[lay.BA]
+        if self.calib.shape[0]:
+            self.calib = self.calib + dx[self.calib_slice]
         if self.n_landmarks:
-            self.landmarks = self.landmarks + dx[self.robot_dim :].reshape(-1, LANDMARK_DIM)
+            self.landmarks = self.landmarks + dx[self.map_start :].reshape(-1, LANDMARK_DIM)
 
     def pose_covariance(self) -> np.ndarray:
         """6 × 6 covariance of [δp, δθ] (position, then world-frame attitude error)."""
@@ -117,13 +131,20 @@ class FilterState:
         other.t_ns = self.t_ns
         other.p, other.v, other.q = self.p.copy(), self.v.copy(), self.q.copy()
         other.b_g, other.b_a = self.b_g.copy(), self.b_a.copy()
-        other.landmarks = self.landmarks.copy()
+        other.landmarks, other.calib = self.landmarks.copy(), self.calib.copy()
         other.cov = self.cov.copy()
         return other
 
+    def robot_only(self, cov: np.ndarray) -> None:
+        """The covariance rebuilt for the robot alone (``cov``, robot_dim square): the map and the calibration
+        states go with the old one (the camera pipeline keeps the calibration's estimate to put back)."""
+        self.landmarks = self.landmarks[:0]
+        self.calib = self.calib[:0]
+        self.cov = cov
+
     def is_finite(self) -> bool:
-        """Every nominal part (biases and landmarks included) and the covariance are finite."""
-        parts = (self.p, self.v, self.q, self.b_g, self.b_a, self.landmarks.ravel(), self.cov.ravel())
+        """Every nominal part (biases, calibration and landmarks included) and the covariance are finite."""
+        parts = (self.p, self.v, self.q, self.b_g, self.b_a, self.calib, self.landmarks.ravel(), self.cov.ravel())
         return bool(np.isfinite(np.concatenate(parts)).all())  # one pass: a check per part costs 5 × more
 
 

@@ -41,6 +41,7 @@ from vtolpose.estimator.vision.map_manager import (
     select_new_features,
 )
 from vtolpose.estimator.core.state import FilterState
+from vtolpose.estimator.vision.time_offset import TimeOffsetEstimate, TimeOffsetOptions, at_frame_time, offset_column
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,6 +49,7 @@ class CameraOptions:
     pixel_sigma: float = 1.0  # px, feature position noise (thesis: R_c)
     association: AssociationOptions = field(default_factory=AssociationOptions)
     map: MapOptions = field(default_factory=MapOptions)
+    time_offset: TimeOffsetOptions = field(default_factory=TimeOffsetOptions)
 
 
 @dataclass(slots=True)
@@ -89,8 +91,14 @@ class CameraPipeline:
         self.R_BC = np.asarray(calibration.R_BC, dtype=float)
         self.t_BC = np.asarray(calibration.t_BC, dtype=float)
         self.book = LandmarkBook()
+        self.time_offset = TimeOffsetEstimate(self.options.time_offset)  # what it is while no state holds it
+        self._rate_b = np.zeros(3)  # the frame's bias-corrected gyro
         self.initialized_total = 0
         self.deleted_total: dict[str, int] = {}
+
+    def attach_calibration(self, state: FilterState) -> None:
+        """Give ``state`` the calibration states the options ask for, if it has none (a new or rebuilt state)."""
+        self.time_offset.attach(state)
 
     def clear(self, state: FilterState) -> int:
         """Forget every landmark (after a filter reset: they belong to the old frame)."""
@@ -114,16 +122,20 @@ class CameraPipeline:
         add_allowed: bool,
         absolute_position: bool,
         held: np.ndarray | None = None,
+        rate_b: np.ndarray | None = None,
     ) -> FrameReport:
-        """Update ``state`` with one frame's features (already at the frame's time)."""
+        """Update ``state`` with one frame's features (already at the frame's stamp). ``rate_b``: the latest
+        bias-corrected gyro (the pose's turn over an estimated time offset); ``held`` covers the state as it
+        is given, so its calibration states are attached (:meth:`attach_calibration`) before."""
         opts = self.options
         clock = time.perf_counter
         t0, cpu0 = clock(), time.thread_time()
         report = FrameReport(t_ns, True, n_features=len(features), gate_px=opts.association.gate_px)
         if len(self.book) != state.n_landmarks:  # the filter was rebuilt under us: start over
             self.clear(state)
+        self._rate_b = np.zeros(3) if rate_b is None else np.asarray(rate_b, dtype=float)
         m = state.n_landmarks
-        pred = predict(state, self.camera, self.R_BC, self.t_BC, opts.pixel_sigma) if m else None
+        pred = predict(state, self.camera, self.R_BC, self.t_BC, opts.pixel_sigma, self._rate_b) if m else None
         t1 = clock()
         matched = np.zeros(m, dtype=bool)
         in_view = np.zeros(m, dtype=bool)
@@ -169,6 +181,7 @@ class CameraPipeline:
                 occupied = np.vstack([occupied, features.keypoints[report.matched_features]])
             self._add(state, features, in_view, occupied, absolute_position, report)
         report.n_landmarks = state.n_landmarks
+        self.time_offset.remember(state)
         t4 = clock()
         report.timing_ms = {
             "predict": (t1 - t0) * 1e3, "associate": (t2 - t1) * 1e3, "update": (t3 - t2) * 1e3,
@@ -210,7 +223,7 @@ class CameraPipeline:
                 continue
             hold = held if extra_held is None else extra_held if held is None else held | extra_held
             step = iterated_update(state, self.camera, self.R_BC, self.t_BC, landmarks[members], uv[members],
-                                   opts.pixel_sigma, hold, iterations)
+                                   opts.pixel_sigma, hold, iterations, self._rate_b)
             if not step.accepted:
                 return step
             outcome = step if outcome is None else UpdateOutcome(True, outcome.nis + step.nis, outcome.dof + step.dof)
@@ -218,10 +231,10 @@ class CameraPipeline:
 
     @staticmethod
     def _no_baseline_held(state: FilterState, landmarks: np.ndarray) -> np.ndarray:
-        """Everything but position, velocity and the landmarks' bearings and anchors."""
+        """Everything but position, velocity and the landmarks' bearings and anchors (calibration held too)."""
         hold = np.zeros(state.dim, dtype=bool)
-        hold[6 : state.robot_dim] = True
-        hold[state.robot_dim + 6 * landmarks + 5] = True
+        hold[6 : state.map_start] = True
+        hold[state.map_start + 6 * landmarks + 5] = True
         return hold
 
     def _add(self, state: FilterState, features: FrameFeatures, in_view: np.ndarray, occupied: np.ndarray,
@@ -231,22 +244,28 @@ class CameraPipeline:
         chosen = select_new_features(features, occupied, report.matched_features, n_new, mo.min_feature_distance_px, mo.border_px)
         if len(chosen) == 0:
             return
-        R_WB = state.R
+        at = at_frame_time(state, self._rate_b)  # the pose the frame saw: the state's own without a time offset
+        R_WB = at.R
         R_WC = R_WB @ self.R_BC
-        c_w = state.p + R_WB @ self.t_BC
+        c_w = at.p + R_WB @ self.t_BC
         uv = features.keypoints[chosen]
         rays_w, xn = world_rays(R_WB, self.R_BC, self.camera, uv)
         rays_w /= np.linalg.norm(rays_w, axis=1, keepdims=True)
         rays_c = np.column_stack([xn, np.ones(len(xn))])
-        reference = scene_depth(self.book, state, R_WC, c_w, in_view, mo)
+        reference = scene_depth(self.book, at, R_WC, c_w, in_view, mo)
         rho0, sigma_rho, source = depth_priors(rays_w, rays_c, c_w, absolute_position,
                                                None if reference is None else reference[0], mo)
-        y, J_x, J_z = initial_landmarks(state.p, R_WB, self.camera, self.R_BC, self.t_BC, uv, rho0)
+        y, J_x, J_z = initial_landmarks(at.p, R_WB, self.camera, self.R_BC, self.t_BC, uv, rho0)
         extra_cols = J_extra = None
         if source == "map":
             # The prior is the reference landmark's depth, a function of the state: its error is
             # shared, not new (only the scene's spread, depth_sigma_rel, is independent).
-            extra_cols, J_extra = map_prior_jacobians(state, R_WC, c_w, reference[1], rho0, J_x)
+            extra_cols, J_extra = map_prior_jacobians(at, R_WC, c_w, reference[1], rho0, J_x)
+        if at is not state:  # placed from the pose at t + t_d: the new landmarks share the offset's error
+            calib_cols = np.arange(state.robot_dim, state.map_start)
+            J_calib = offset_column(J_x, state, self._rate_b)
+            extra_cols = calib_cols if extra_cols is None else np.concatenate([extra_cols, calib_cols])
+            J_extra = J_calib if J_extra is None else np.concatenate([J_extra, J_calib], axis=2)
         px2 = self.options.pixel_sigma**2
         R_z = np.zeros((len(chosen), 3, 3))
         R_z[:, 0, 0] = R_z[:, 1, 1] = px2

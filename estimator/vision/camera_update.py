@@ -9,6 +9,8 @@ For landmark ``y = [a, θ, φ, ρ]`` and robot pose (p, R)::
 Jacobians are analytic, with the global attitude error ``R_true = Exp(δθ) R``:
 ``∂h_C/∂δp = −ρ A``, ``∂h_C/∂δθ = A ([h_W]× + ρ [R t_BC]×)`` with ``A = R_BCᵀ Rᵀ``, and
 ``∂h_C/∂(a, θ, φ, ρ) = A [ρ I, ∂m/∂θ, ∂m/∂φ, a − c_W]``. Everything is batched over landmarks.
+With the camera's time offset estimated (``vision.time_offset``) the pose is the one at the frame's
+instant and the robot's columns are ``[δp, δθ, δt_d]`` (:func:`robot_cols`).
 The update is the shared :func:`vtolpose.estimator.core.kalman.ekf_update` over the sparse column set of a
 frame's matches, once (:func:`stacked_update`) or relinearised (:func:`iterated_update`).
 """
@@ -24,14 +26,17 @@ from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update
 from vtolpose.estimator.vision.landmarks import ROBOT_POSE_COLS, angles_jacobian, direction, direction_derivatives
 from vtolpose.estimator.core.rotation import quat_conj, quat_log, quat_mul, skew
 from vtolpose.estimator.core.state import LANDMARK_DIM, FilterState
+from vtolpose.estimator.vision.time_offset import at_frame_time, offset_column
+
+_NO_RATE = np.zeros(3)
 
 
 @dataclass(frozen=True, slots=True)
 class Predictions:
     """Predicted pixels of every landmark in the state, with Jacobians and innovation covariances.
 
-    ``H_pose (M, 2, 6)`` is w.r.t. the robot's ``[δp, δθ]``; ``H_landmark (M, 2, 6)`` w.r.t. the
-    landmark's own six states. ``S (M, 2, 2)`` includes the pixel noise. ``in_front`` is False
+    ``H_pose (M, 2, 6 + c)`` is w.r.t. the robot's ``[δp, δθ]`` and the c calibration states (:func:`robot_cols`);
+    ``H_landmark (M, 2, 6)`` w.r.t. the landmark's own six states. ``S (M, 2, 2)`` includes the pixel noise. ``in_front`` is False
     for landmarks behind the camera (their pixels are NaN), ``in_image`` for those that project
     inside the image.
     """
@@ -48,10 +53,30 @@ class Predictions:
         return len(self.uv)
 
 
+def robot_cols(state: FilterState) -> np.ndarray:
+    """The state columns a camera measurement sees besides its landmarks: ``[δp, δθ]``, then the calibration states."""
+    if not state.calib.shape[0]:
+        return ROBOT_POSE_COLS
+    return np.concatenate([ROBOT_POSE_COLS, np.arange(state.robot_dim, state.map_start)])
+
+
 def predict_h(
-    state: FilterState, R_BC: np.ndarray, t_BC: np.ndarray, indices: np.ndarray | None = None
+    state: FilterState, R_BC: np.ndarray, t_BC: np.ndarray, indices: np.ndarray | None = None, rate_b: np.ndarray = _NO_RATE,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``h_C (M, 3)``, ``h_W``, ``∂h_C/∂[δp, δθ] (M, 3, 6)`` and ``∂h_C/∂y (M, 3, 6)`` (of landmarks ``indices`` only, if given)."""
+    """``h_C (M, 3)``, ``h_W``, ``∂h_C/∂[δp, δθ, calibration] (M, 3, 6 + c)`` and ``∂h_C/∂y (M, 3, 6)`` (of
+    landmarks ``indices`` only, if given). ``rate_b``: the bias-corrected gyro, which turns the pose over a
+    time offset (used only when the state estimates one)."""
+    at = at_frame_time(state, rate_b)
+    h_c, h_w, dh_pose, dh_y = _predict_h_at(at, R_BC, t_BC, indices)
+    if at is not state:
+        dh_pose = np.concatenate([dh_pose, offset_column(dh_pose, state, rate_b)], axis=2)
+    return h_c, h_w, dh_pose, dh_y
+
+
+def _predict_h_at(
+    state: FilterState, R_BC: np.ndarray, t_BC: np.ndarray, indices: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`predict_h` at the nominal pose of ``state`` as it is, w.r.t. ``[δp, δθ]`` only."""
     R = state.R
     y = state.landmarks if indices is None else state.landmarks[indices]
     A = R_BC.T @ R.T
@@ -75,9 +100,10 @@ def predict_h(
     return h_c, h_w, A @ dh_w_pose, A @ dh_w_y
 
 
-def predict(state: FilterState, camera: CameraModel, R_BC: np.ndarray, t_BC: np.ndarray, pixel_sigma: float) -> Predictions:
+def predict(state: FilterState, camera: CameraModel, R_BC: np.ndarray, t_BC: np.ndarray, pixel_sigma: float,
+            rate_b: np.ndarray = _NO_RATE) -> Predictions:
     """Predicted pixels, Jacobians and innovation covariances of all landmarks."""
-    h_c, _, dh_pose, dh_y = predict_h(state, R_BC, t_BC)
+    h_c, _, dh_pose, dh_y = predict_h(state, R_BC, t_BC, None, rate_b)
     uv, front, J_pi = camera.project_jacobian(h_c)
     H_pose = J_pi @ dh_pose
     H_y = J_pi @ dh_y
@@ -86,11 +112,12 @@ def predict(state: FilterState, camera: CameraModel, R_BC: np.ndarray, t_BC: np.
 
 
 def _landmark_blocks(state: FilterState) -> tuple[np.ndarray, np.ndarray]:
-    """Pose–landmark ``(M, 6, 6)`` and landmark–landmark diagonal ``(M, 6, 6)`` covariance blocks."""
-    r = state.robot_dim
+    """Robot–landmark ``(M, 6 + c, 6)`` and landmark–landmark diagonal ``(M, 6, 6)`` covariance blocks."""
+    r = state.map_start
     m = state.n_landmarks
     cov = state.cov
-    pose_rows = cov[ROBOT_POSE_COLS, r:].reshape(6, m, LANDMARK_DIM).transpose(1, 0, 2)
+    rows = robot_cols(state)
+    pose_rows = cov[rows, r:].reshape(len(rows), m, LANDMARK_DIM).transpose(1, 0, 2)
     lm = cov[r:, r:].reshape(m, LANDMARK_DIM, m, LANDMARK_DIM)
     diag = lm[np.arange(m), :, np.arange(m), :]
     return pose_rows, diag
@@ -100,7 +127,8 @@ def innovation_covariances(state: FilterState, H_pose: np.ndarray, H_y: np.ndarr
     """``S_i = H_i P H_iᵀ + σ² I`` for each landmark alone (the individual-compatibility test)."""
     if state.n_landmarks == 0:
         return np.zeros((0, 2, 2))
-    P_pose = state.cov[np.ix_(ROBOT_POSE_COLS, ROBOT_POSE_COLS)]
+    rows = robot_cols(state)
+    P_pose = state.cov[np.ix_(rows, rows)]
     P_pose_y, P_yy = _landmark_blocks(state)
     cross = H_pose @ P_pose_y @ np.swapaxes(H_y, 1, 2)
     S = H_pose @ P_pose @ np.swapaxes(H_pose, 1, 2) + cross + np.swapaxes(cross, 1, 2)
@@ -132,11 +160,12 @@ def _stacked_jacobian(
     """Columns touched by the matches of ``indices`` and the stacked Jacobian over them, from their
     ``(k, 2, 6)`` pose and landmark Jacobians (each landmark's block on the diagonal)."""
     k = len(indices)
-    lm_cols = (state.robot_dim + LANDMARK_DIM * indices[:, None] + np.arange(LANDMARK_DIM)).reshape(-1)
-    cols = np.concatenate([ROBOT_POSE_COLS, lm_cols])
-    H = np.zeros((2 * k, 6 + LANDMARK_DIM * k))
-    H[:, 0:6] = H_pose.reshape(2 * k, 6)
-    blocks = H[:, 6:].reshape(k, 2, k, LANDMARK_DIM)  # a view: row pair j, landmark j
+    lm_cols = (state.map_start + LANDMARK_DIM * indices[:, None] + np.arange(LANDMARK_DIM)).reshape(-1)
+    cols = np.concatenate([robot_cols(state), lm_cols])
+    r = H_pose.shape[2]
+    H = np.zeros((2 * k, r + LANDMARK_DIM * k))
+    H[:, 0:r] = H_pose.reshape(2 * k, r)
+    blocks = H[:, r:].reshape(k, 2, k, LANDMARK_DIM)  # a view: row pair j, landmark j
     blocks[np.arange(k), :, np.arange(k), :] = H_landmark
     return cols, H
 
@@ -144,6 +173,7 @@ def _stacked_jacobian(
 def iterated_update(
     state: FilterState, camera: CameraModel, R_BC: np.ndarray, t_BC: np.ndarray, indices: np.ndarray,
     measured_uv: np.ndarray, pixel_sigma: float, held: np.ndarray | None = None, iterations: int = 4,
+    rate_b: np.ndarray = _NO_RATE,
 ) -> UpdateOutcome:
     """Iterated EKF (Gauss–Newton) update with the matches of landmarks ``indices``.
 
@@ -162,13 +192,14 @@ def iterated_update(
 
     def linearise(at: FilterState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # Only the matched landmarks, and no innovation covariances: the gain is formed from the stack.
-        h_c, _, dh_pose, dh_y = predict_h(at, R_BC, t_BC, indices)
+        h_c, _, dh_pose, dh_y = predict_h(at, R_BC, t_BC, indices, rate_b)
         uv, _, J_pi = camera.project_jacobian(h_c)
         cols, H = _stacked_jacobian(at, indices, J_pi @ dh_pose, J_pi @ dh_y)
         H = observability_constrained(H, gauge)
         moved = np.concatenate([
             state.p - at.p,
             quat_log(quat_mul(state.q, quat_conj(at.q))),
+            state.calib - at.calib,
             (state.landmarks[indices] - at.landmarks[indices]).reshape(-1),
         ])
         return cols, H, measured - uv.reshape(-1) - H @ moved
@@ -193,18 +224,20 @@ _DOWN = np.array([0.0, 0.0, 1.0])
 
 
 def unobservable_directions(state: FilterState, indices: np.ndarray) -> np.ndarray:
-    """The four directions of ``[δp, δθ, landmarks indices]`` (the columns of :func:`_stacked_jacobian`) that no
-    camera measurement can see, at the prior estimate: the whole scene and vehicle shifted (3), or turned
-    about world down through the origin (1) — a heading the camera is blind to."""
+    """The four directions of ``[δp, δθ, calibration, landmarks indices]`` (the columns of :func:`_stacked_jacobian`)
+    that no camera measurement can see, at the prior estimate: the whole scene and vehicle shifted (3), or
+    turned about world down through the origin (1) — a heading the camera is blind to. The calibration
+    states take no part in either."""
     indices = np.asarray(indices, dtype=int)
     y = state.landmarks[indices]
     k = len(indices)
-    N = np.zeros((6 + LANDMARK_DIM * k, 4))
+    r = 6 + state.calib.shape[0]
+    N = np.zeros((r + LANDMARK_DIM * k, 4))
     N[0:3, 0:3] = np.eye(3)
     N[0:3, 3] = np.cross(_DOWN, state.p)
     N[3:6, 3] = _DOWN
     turned_rays = np.einsum("kij,kj->ki", angles_jacobian(direction(y[:, 3], y[:, 4])), np.cross(_DOWN, direction(y[:, 3], y[:, 4])))
-    rows = 6 + LANDMARK_DIM * np.arange(k)
+    rows = r + LANDMARK_DIM * np.arange(k)
     for axis in range(3):
         N[rows + axis, axis] = 1.0
     N[rows[:, None] + np.arange(3), 3] = np.cross(_DOWN, y[:, 0:3])
@@ -226,6 +259,7 @@ def _nominal_copy(state: FilterState) -> FilterState:
     other = FilterState(state.layout)
     other.t_ns, other.p, other.v, other.q = state.t_ns, state.p.copy(), state.v.copy(), state.q.copy()
     other.b_g, other.b_a, other.landmarks = state.b_g.copy(), state.b_a.copy(), state.landmarks.copy()
+    other.calib = state.calib.copy()
     other.cov = state.cov
     return other
 
@@ -248,4 +282,4 @@ def _correction(cov: np.ndarray, cols: np.ndarray, H: np.ndarray, residual: np.n
 def assign_state(state: FilterState, other: FilterState) -> None:
     """Make ``state`` hold ``other``'s values, in place (the estimator holds this very object)."""
     state.p, state.v, state.q, state.b_g, state.b_a = other.p, other.v, other.q, other.b_g, other.b_a
-    state.landmarks, state.cov = other.landmarks, other.cov
+    state.landmarks, state.calib, state.cov = other.landmarks, other.calib, other.cov

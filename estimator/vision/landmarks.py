@@ -167,7 +167,7 @@ def map_prior_jacobians(state: FilterState, R_WC: np.ndarray, c_w: np.ndarray, r
     J_x[:, 5, 3:6] = scale * np.cross(z, point - state.p)
     J_extra = np.zeros((len(rho), LANDMARK_DIM, LANDMARK_DIM))
     J_extra[:, 5, :] = scale * (z @ point_jacobian(y_ref[None, :])[0])
-    return state.robot_dim + LANDMARK_DIM * reference + np.arange(LANDMARK_DIM), J_extra
+    return state.map_start + LANDMARK_DIM * reference + np.arange(LANDMARK_DIM), J_extra
 
 
 def baseline_significance(state: FilterState, rows: np.ndarray, t_BC: np.ndarray) -> np.ndarray:
@@ -185,7 +185,7 @@ def baseline_significance(state: FilterState, rows: np.ndarray, t_BC: np.ndarray
     R = state.R
     d = state.p + R @ t_BC - state.landmarks[rows, 0:3]
     J = np.hstack([np.eye(3), -skew(R @ t_BC), -np.eye(3)])  # over [δp, δθ, δa]
-    anchor = state.robot_dim + LANDMARK_DIM * rows[:, None] + np.arange(3)
+    anchor = state.map_start + LANDMARK_DIM * rows[:, None] + np.arange(3)
     cols = np.concatenate([np.broadcast_to(ROBOT_POSE_COLS, (len(rows), 6)), anchor], axis=1)  # (K, 9)
     P = state.cov[cols[:, :, None], cols[:, None, :]]  # (K, 9, 9)
     sigma = J @ P @ J.T + np.eye(3) * 1e-12
@@ -198,6 +198,6 @@ def remove_landmarks(state: FilterState, remove: np.ndarray) -> None:
     if not np.any(remove):
         return
     keep_state = np.ones(state.dim, dtype=bool)
-    keep_state[state.robot_dim :] = ~np.repeat(remove, LANDMARK_DIM)
+    keep_state[state.map_start :] = ~np.repeat(remove, LANDMARK_DIM)
     state.cov = covariance.keep_states(state.cov, keep_state)
     state.landmarks = state.landmarks[~remove]

@@ -131,7 +131,7 @@ def deletions(book: LandmarkBook, state: FilterState, in_front: np.ndarray, opti
 def depth_small(book: LandmarkBook, state: FilterState, rows: np.ndarray, sigma_rel: float, shrink: float) -> np.ndarray:
     """Landmarks (by row) whose inverse-depth σ is small relative to ρ and to its σ at birth."""
     rows = np.asarray(rows, dtype=int)
-    index = state.robot_dim + 6 * rows + 5
+    index = state.map_start + 6 * rows + 5
     rho = state.landmarks[rows, 5]
     sigma = np.sqrt(np.maximum(state.cov[index, index], 0.0))
     return (rho > 0.0) & (sigma < sigma_rel * rho) & (sigma < shrink * book.sigma_rho0[rows])

@@ -30,6 +30,7 @@ SUMMARIES: dict[str, str] = {
     'batch': "`vtolpose batch`: 16 short flights on 1 and 2 workers (speed-up target ≥ 1.8×), the engine's overhead per flight against a plain loop",
     'results': "The tables of docs/results.md again: Tests 1-3 and the starts in the air (the doc's figures beside).",
     'camera-matrix': 'Tests 1–3 per cell of :data:`CELLS`; prints progress per cell, then the table (long: rendered flights).',
+    'camera-clock': 'Base and aggressive cells, Tests 2 and 3: the camera time offset right and 10 ms wrong, its estimation off and on.',
     'cold-start': "First replay with an empty kernel cache against the second (target ≤ 1.5 ×), compile time, daemon's first pose.",
 }
 
@@ -37,7 +38,7 @@ SUMMARIES: dict[str, str] = {
 LONG_BENCHMARKS = (
     'runtime-hour', 'soak-camera', 'fault-targets', 'fault-table', 'sensor-lies', 'euroc', 'euroc-reference',
     'euroc-causes', 'zenoh-queries', 'memory-paced', 'smoothing-sim', 'smoothing-landmarks', 'smoothing-hour',
-    'smoothing-latency', 'batch', 'results', 'camera-matrix', 'cold-start',
+    'smoothing-latency', 'batch', 'results', 'camera-matrix', 'cold-start', 'camera-clock',
 )
 
 # Several of the above together (camera: features, then replay-camera): only when named.

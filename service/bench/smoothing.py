@@ -108,7 +108,8 @@ def bench_smoothing_landmarks(duration_s: float = 40.0) -> list[Row]:
             held["est"] = runtime.est
 
         t0 = time.perf_counter()
-        result = replay(dataset, load_config(), ["imu", "camera", "gps"], prepare=prepare,
+        cfg = load_config(None, {"estimator": {"camera": {"estimate_time_offset": False}}})  # the pass has no such state
+        result = replay(dataset, cfg, ["imu", "camera", "gps"], prepare=prepare,
                         smoothing=SmoothingPlan(step_sink=steps.append, beside=full))
         wall = time.perf_counter() - t0
     block = smooth_steps(steps)

@@ -282,6 +282,7 @@ def camera_summary(result: ReplayResult) -> dict | None:
         "depth_prior_sources": sources,
         "rejected_matches": dict(sorted(matches["rejected"].items())) if matches is not None else {},
         "timing_ms": timing,
+        "time_offset_ms": status.camera_time_offset_ms(),
     }
 
 
@@ -388,6 +389,10 @@ def count_lines(report: dict) -> list[str]:
             f"per frame, map {cam['landmarks_in_map']['mean']} landmarks (max {cam['landmarks_in_map']['max']}), "
             f"{cam['landmarks_initialised']} initialised; extract {t['extract']['mean']} ms, filter {t['total']['mean']} ms per frame"
         )
+        offset = cam.get("time_offset_ms")
+        if offset is not None:
+            lines.append(f"  camera time offset beyond the configured one: {offset['estimate']:+.2f} ± {offset['sigma']:.2f} ms "
+                         "(a frame was taken this much after its stamp)")
     lines += smoothing_lines(report)
     lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time"
                  + (f" ({report['kernels']})" if report.get("kernels") else ""))

@@ -229,6 +229,9 @@ class StatusTracker:
         waiting = status.visual_start_waiting.as_dict() if status.visual_start_waiting is not None else None
         if waiting is not None:
             doc["visual_start"] = waiting
+        offset = status.camera_time_offset_ms()
+        if offset is not None:
+            doc["camera_time_offset_ms"] = offset  # estimated beyond calibration.camera.time_offset_s
         if (waiting and waiting["check"]) != self._logged_wait:
             if waiting is not None:
                 log.info("visual-inertial start waiting: %s", waiting["text"])
