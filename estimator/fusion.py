@@ -531,10 +531,9 @@ class FusionCore:
         cov9 = est.published_cov9_of(covs)
         white = self._white_rate()
         omega_var = white + covs.diagonal(axis1=1, axis2=2)[:, BG] if s.layout.estimates_biases else np.tile(white, (m, 1))
-        cap = est.health.quality_cap
         return FusedRun(t_ns, states[:, 0:3], states[:, 3:6], states[:, 6:10], gyro - s.b_g, cov9,
                         cov9.reshape(m, 81)[:, _POSE_FLAT].reshape(m, 6, 6), omega_var, est.heading_aligned,
-                        est.position_initialized, est.reset_counter, [cap(t) for t in t_ns.tolist()],
+                        est.position_initialized, est.reset_counter, est.health.quality_caps(t_ns.tolist()),
                         est.local_position)
 
     def _noise(self, q: np.ndarray, dt: float) -> np.ndarray:
