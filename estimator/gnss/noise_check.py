@@ -43,11 +43,18 @@ MAD_TO_SIGMA = 1.4826  # a normal variable's sigma from its median absolute devi
 LOWER_DECILE_ABS = 0.1257  # the 10th percentile of |x| for a standard normal x
 
 
+def _has_nan(values: list[float]) -> bool:
+    """Whether any of ``values`` (none negative: sizes, NIS) is NaN: their sum is, then only."""
+    total = sum(values)
+    return total != total
+
+
 def median_of_sorted(values: list[float]) -> float:
-    """``np.median`` of ``values`` given sorted, with its arithmetic (the middle two summed, then halved; NaN if
-    any is): on a window of a hundred floats, every fix, numpy's call costs ten times the sort."""
+    """``np.median`` of ``values`` (none negative) given sorted, with its arithmetic (the middle two summed,
+    then halved; NaN if any is): on a window of a hundred floats, every fix, numpy's call costs ten times the
+    sort."""
     n = len(values)
-    if any(x != x for x in values):
+    if _has_nan(values):
         return math.nan
     if n % 2:
         return values[n // 2]
@@ -56,9 +63,9 @@ def median_of_sorted(values: list[float]) -> float:
 
 def percentile_of_sorted(values: list[float], q: float) -> float:
     """``np.percentile(values, 100 q)`` (its default, linear interpolation between the order statistics around
-    ``(n − 1) q``, with its arithmetic) of ``values`` given sorted."""
+    ``(n − 1) q``, with its arithmetic) of ``values`` (none negative) given sorted."""
     n = len(values)
-    if any(x != x for x in values):
+    if _has_nan(values):
         return math.nan
     virtual = (n - 1) * q
     below = n - 1 if virtual >= n - 1 else math.floor(virtual)
