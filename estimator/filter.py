@@ -98,6 +98,20 @@ class FilterOptions:
             raise ValueError(f"heading_source must be one of {', '.join(HEADING_SOURCES)}, got {self.heading_source!r}")
 
 
+def published_cov9(cov: np.ndarray, heading_aligned: bool, local_heading_floor: float | None) -> np.ndarray:
+    """:meth:`Estimator.published_cov9` of ``cov``, or of each of a stack of them (the last two axes: the steps
+    of a run), under the modes given (``local_heading_floor``: :meth:`Estimator.local_heading_floor`)."""
+    cov9 = covariance.nav_block(cov)
+    if heading_aligned:
+        return cov9
+    if local_heading_floor is not None:
+        cov9[..., YAW, YAW] = np.maximum(cov9[..., YAW, YAW], local_heading_floor)
+        return cov9
+    covariance.forget_yaw(cov9)
+    cov9[..., YAW, YAW] = UNKNOWN_HEADING_VAR
+    return cov9
+
+
 class Estimator:
     def __init__(self, calibration: Calibration, options: FilterOptions | None = None,
                  recorder: FilterRecorder | None = None) -> None:
@@ -352,7 +366,8 @@ class Estimator:
             # The state as the stretch's steps leave it, then their poses at once: all but a last step with measures.
             k, row = order[end - 1], states[m - 1]
             self._last_imu_t, self._gyro, self._horizontal_accel = t_ns[k], gyro[k], means[m - 1]
-            state.p, state.v, state.q, state.cov, state.t_ns = row[0:3], row[3:6], row[6:10], covs[m - 1], int(ends[m - 1])
+            # A copy: the state's covariance is changed in place by the next update, the steps' are kept as they are.
+            state.p, state.v, state.q, state.cov, state.t_ns = row[0:3], row[3:6], row[6:10], covs[m - 1].copy(), int(ends[m - 1])
             clean = m - 1 if measured else m
             if clean:
                 after_steps(order[i:i + clean], ends[:clean], states[:clean], covs[:clean])
@@ -411,20 +426,12 @@ class Estimator:
         heading has the variance of a heading uniform on the circle, uncorrelated with the rest. In a
         frame of its own (``local_position``) the heading is the frame's: its variance is the filter's,
         what the heading may have drifted since the start (never below the start's own gauge sigma)."""
-        return self.published_cov9_of(self.state.cov)
+        return published_cov9(self.state.cov, self.heading_aligned, self.local_heading_floor())
 
-    def published_cov9_of(self, cov: np.ndarray) -> np.ndarray:
-        """:meth:`published_cov9` of ``cov``, or of each of a stack of them (the last two axes: the steps of a
-        run), under the filter's modes as they are now."""
-        cov9 = covariance.nav_block(cov)
-        if self.heading_aligned:
-            return cov9
-        if self.local_position:
-            cov9[..., YAW, YAW] = np.maximum(cov9[..., YAW, YAW], math.radians(self.options.visual_inertial.heading_sigma_deg) ** 2)
-            return cov9
-        covariance.forget_yaw(cov9)
-        cov9[..., YAW, YAW] = UNKNOWN_HEADING_VAR
-        return cov9
+    def local_heading_floor(self) -> float | None:
+        """In a frame of its own, the variance below which its published heading's never is (the start's gauge
+        sigma); None in the world's frame."""
+        return math.radians(self.options.visual_inertial.heading_sigma_deg) ** 2 if self.local_position else None
 
     def imu_discontinuity(self, lost_s: float) -> None:
         """``lost_s`` of IMU data before the next sample were refused (stamped in the past: a backward

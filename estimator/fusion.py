@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.filter import Estimator, published_cov9
 from vtolpose.estimator.core.measurements import ImuSample, RejectionCounts, readings_finite, rows_finite
 from vtolpose.estimator.inertial.propagator import is_isotropic, noise_dt_polynomial, process_noise
 from vtolpose.estimator.core.rotation import quat_product, rot_of, rotate, rotvec_quat, skew
@@ -105,31 +105,42 @@ class OutputPose:
 @dataclass(slots=True)
 class FusedRun:
     """The fused poses of consecutive filter steps that only propagated, as arrays (a row per step): what an
-    offline replay records without making an :class:`OutputPose` per step. :meth:`poses` makes those, equal
-    to the ones the steps one by one would have made."""
+    offline replay records without making an :class:`OutputPose` per step. The published covariances are
+    worked out when asked for (:meth:`cov9`, :meth:`pose_cov`: a recorder wants one now and then);
+    :meth:`poses` makes the poses, equal to the ones the steps one by one would have made."""
 
     t_ns: np.ndarray
     p: np.ndarray
     v: np.ndarray
     q: np.ndarray
     omega_b: np.ndarray
-    cov9: np.ndarray
-    pose_cov: np.ndarray
+    robot_cov: np.ndarray  # the filter's robot covariance after each step (never changed)
     omega_var: np.ndarray
     heading_aligned: bool
     position_initialized: bool
     reset_counter: int
     quality_cap: list[int]
     local_position: bool
+    local_heading_floor: float | None  # Estimator.local_heading_floor
 
     def __len__(self) -> int:
         return len(self.t_ns)
 
+    def cov9(self) -> np.ndarray:
+        """Each step's published ``[δp, δv, δθ]`` covariance (``OutputPose.cov9``), stacked."""
+        return published_cov9(self.robot_cov, self.heading_aligned, self.local_heading_floor)
+
+    def pose_cov(self, x: int) -> np.ndarray:
+        """Step ``x``'s ``OutputPose.pose_cov``."""
+        return _pose_cov(published_cov9(self.robot_cov[x], self.heading_aligned, self.local_heading_floor))
+
     def poses(self) -> list[OutputPose]:
+        cov9 = self.cov9()
+        pose_cov = cov9.reshape(len(cov9), 81)[:, _POSE_FLAT].reshape(len(cov9), 6, 6)
         flags = (self.heading_aligned, self.position_initialized, self.reset_counter)
         return [OutputPose(t, p, v, q, w, c9, pc, ov, *flags, t, cap, self.local_position)
                 for t, p, v, q, w, c9, pc, ov, cap in zip(self.t_ns.tolist(), self.p, self.v, self.q, self.omega_b,
-                                                          self.cov9, self.pose_cov, self.omega_var, self.quality_cap)]
+                                                          cov9, pose_cov, self.omega_var, self.quality_cap)]
 
 
 def nominal_step(
@@ -527,14 +538,11 @@ class FusionCore:
         state since the first of them."""
         est = self.est
         s = est.state
-        m = len(t_ns)
-        cov9 = est.published_cov9_of(covs)
         white = self._white_rate()
-        omega_var = white + covs.diagonal(axis1=1, axis2=2)[:, BG] if s.layout.estimates_biases else np.tile(white, (m, 1))
-        return FusedRun(t_ns, states[:, 0:3], states[:, 3:6], states[:, 6:10], gyro - s.b_g, cov9,
-                        cov9.reshape(m, 81)[:, _POSE_FLAT].reshape(m, 6, 6), omega_var, est.heading_aligned,
-                        est.position_initialized, est.reset_counter, est.health.quality_caps(t_ns.tolist()),
-                        est.local_position)
+        omega_var = white + covs.diagonal(axis1=1, axis2=2)[:, BG] if s.layout.estimates_biases else np.tile(white, (len(t_ns), 1))
+        return FusedRun(t_ns, states[:, 0:3], states[:, 3:6], states[:, 6:10], gyro - s.b_g, covs, omega_var,
+                        est.heading_aligned, est.position_initialized, est.reset_counter,
+                        est.health.quality_caps(t_ns.tolist()), est.local_position, est.local_heading_floor())
 
     def _noise(self, q: np.ndarray, dt: float) -> np.ndarray:
         """IMU white noise over ``dt`` on [p, v, θ]; for isotropic noise, cached polynomials in dt."""

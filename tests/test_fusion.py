@@ -170,6 +170,28 @@ def test_the_poses_of_a_fused_run_are_those_made_step_by_step(flight, variant, h
             assert type(a) is type(b) and np.array_equal(a, b), now[0]
 
 
+def test_a_fused_run_never_changes_after_it_was_made(flight):
+    """A FusedRun works out its published covariances when asked: asked at the end of the flight, after the
+    updates that followed it changed the filter's covariance in place, it says what it said when it was made."""
+    made = []
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY, predict=False),
+                      on_fused_run=lambda run: made.append((run, [pose_fields(pose) for pose in run.poses()])))
+    fixes, k = gps_fixes(flight), 0
+    for s in imu_samples(flight):
+        while k < len(fixes) and fixes[k].t_ns <= s.t_ns:
+            core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
+            k += 1
+        core.add_imu(s, fuse=False)
+        if s.t_ns % 40_000_000 < 8_000_000:
+            core.advance()
+    core.flush()
+    assert sum(len(run) for run, _ in made) > 1000 and core.est.counts["gps"].used > 100
+    for run, then in made:
+        for now, was in zip(run.poses(), then):
+            for a, b in zip(pose_fields(now), was):
+                assert np.array_equal(a, b), now.t_ns
+
+
 @pytest.mark.parametrize("predict, heading", [(True, "gps"), (False, "gps"), (False, "dataset")])
 def test_a_fused_pose_never_changes_after_it_was_made(flight, predict, heading):
     """A fused pose holds the state's own nominal arrays (no copies: the filter replaces them, never changes

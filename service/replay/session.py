@@ -96,7 +96,7 @@ class Recorder:
             return
         for x, t in enumerate(times):
             if t >= self._next_cov_t:
-                self._cov.append((t, run.p[x], run.q[x], run.pose_cov[x]))
+                self._cov.append((t, run.p[x], run.q[x], run.pose_cov(x)))
                 self._next_cov_t = t + self.cov_period_ns
 
     def trajectory(self) -> Trajectory:
