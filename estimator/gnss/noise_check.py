@@ -28,6 +28,7 @@ claim would only repeat. Pure computation: no I/O, no clocks.
 from __future__ import annotations
 
 import math
+from bisect import bisect_left, insort
 from collections import deque
 from typing import Callable
 from dataclasses import dataclass
@@ -73,6 +74,31 @@ def percentile_of_sorted(values: list[float], q: float) -> float:
     gamma = virtual - below
     a, b = values[below], values[above]
     return b - (b - a) * (1 - gamma) if gamma >= 0.5 else a + (b - a) * gamma
+
+
+class SortedSizes:
+    """Sizes (never negative) kept in order as they come and go: a window's median and percentiles without a
+    sort per fix. NaN is counted apart (it has no place in the order; any makes every statistic NaN)."""
+
+    def __init__(self) -> None:
+        self._values: list[float] = []
+        self._nans = 0
+
+    def add(self, size: float) -> None:
+        if size != size:
+            self._nans += 1
+        else:
+            insort(self._values, size)
+
+    def remove(self, size: float) -> None:
+        if size != size:
+            self._nans -= 1
+        else:
+            del self._values[bisect_left(self._values, size)]
+
+    def in_order(self) -> list[float]:
+        """The sizes sorted (for :func:`median_of_sorted`, :func:`percentile_of_sorted`), or [NaN] if any is."""
+        return [math.nan] if self._nans else self._values
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,8 +152,8 @@ class GpsNoiseCheck:
         self.on_change = on_change  # told (t_ns, text) of each change of belief: the filter makes it an event
         n = self.options.window
         self._diffs: deque[tuple[float, float, float]] = deque(maxlen=n)  # d_k, NED
-        self._pairs = 0  # differences ever taken: the key of _sizes
-        self._sizes: tuple[int, list[float], list[float]] | None = None  # the latest sorted sizes (_sorted_sizes)
+        # Their components' sizes, in order: horizontal (north and east alike) and vertical.
+        self._horizontal, self._vertical = SortedSizes(), SortedSizes()
         m = self.options.nis_window
         self._before_start: deque[GpsFix] = deque(maxlen=max(self.options.min_pairs, m))  # heard before the start
         self._nis: deque[float] = deque(maxlen=m)  # under the claimed noise
@@ -177,8 +203,7 @@ class GpsNoiseCheck:
         self._said_h = float(fix.sigma_h)  # the claim as the receiver made it, for the operator
         last = self._last_posterior
         if last is not None and 0 < fix.t_ns - last[0] <= self.options.max_pair_gap_s * 1e9 and np.all(np.isfinite(nu)):
-            self._diffs.append(tuple((nu - last[1]).tolist()))
-            self._pairs += 1
+            self._take_diff(tuple((nu - last[1]).tolist()))
             self._nis.append(nis if math.isfinite(nis) else 1e300)
             self._claimed_h.append(claimed_h)
             self._claimed_v.append(claimed_v)
@@ -237,7 +262,7 @@ class GpsNoiseCheck:
         """The fixes' own noise (horizontal, vertical) from the window's differences, bounded; None: too few."""
         if len(self._diffs) < self.options.min_pairs_after_resets:
             return None
-        horizontal, vertical = self._sorted_sizes()
+        horizontal, vertical = self._horizontal.in_order(), self._vertical.in_order()
         # Each difference carries two fixes' errors: per axis variance 2σ². (The innovations' own size is no
         # measure of it: a jump of 20 m held for seconds would pass for noise and be followed.) Errors that are
         # correlated from fix to fix cancel in part: for them this is a lower bound.
@@ -250,17 +275,21 @@ class GpsNoiseCheck:
         """The horizontal scatter from the lowest tenth of the differences' sizes: what decides whether a claim
         is believed. Multipath on a third of the fixes spoils half the differences and lifts their median (the
         weight's measure) above three claimed sigmas; those fixes are the gate's to refuse, not a lie."""
-        return percentile_of_sorted(self._sorted_sizes()[0], 10 / 100) / (LOWER_DECILE_ABS * math.sqrt(2.0))
+        return percentile_of_sorted(self._horizontal.in_order(), 10 / 100) / (LOWER_DECILE_ABS * math.sqrt(2.0))
 
-    def _sorted_sizes(self) -> tuple[list[float], list[float]]:
-        """The window's differences' horizontal components' sizes (north and east alike) and vertical ones', each
-        sorted; kept until the next difference (a fix's judgement asks twice)."""
-        sizes = self._sizes
-        if sizes is None or sizes[0] != self._pairs:
-            diffs = self._diffs
-            sizes = self._sizes = (self._pairs, sorted([abs(c) for n, e, _ in diffs for c in (n, e)]),
-                                   sorted([abs(d) for _, _, d in diffs]))
-        return sizes[1], sizes[2]
+    def _take_diff(self, diff: tuple[float, float, float]) -> None:
+        """A new difference into the window (the oldest leaves it once it is full), its sizes into their orders."""
+        diffs = self._diffs
+        if len(diffs) == diffs.maxlen:
+            north, east, down = diffs[0]
+            self._horizontal.remove(abs(north))
+            self._horizontal.remove(abs(east))
+            self._vertical.remove(abs(down))
+        diffs.append(diff)
+        north, east, down = diff
+        self._horizontal.add(abs(north))
+        self._horizontal.add(abs(east))
+        self._vertical.add(abs(down))
 
     def _judge(self, t_ns: int) -> None:
         opts = self.options
