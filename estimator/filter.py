@@ -429,8 +429,8 @@ class Estimator:
         return published_cov9(self.state.cov, self.heading_aligned, self.local_heading_floor())
 
     def local_heading_floor(self) -> float | None:
-        """In a frame of its own, the variance below which its published heading's never is (the start's gauge
-        sigma); None in the world's frame."""
+        """In a frame of its own, the variance its published heading never falls below (the start's gauge sigma,
+        squared); None in the world's frame."""
         return math.radians(self.options.visual_inertial.heading_sigma_deg) ** 2 if self.local_position else None
 
     def imu_discontinuity(self, lost_s: float) -> None:
