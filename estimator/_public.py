@@ -53,6 +53,7 @@ PUBLIC: dict[str, str] = {
     'FilterOptions': 'vtolpose.estimator.filter',
     'Apply': 'vtolpose.estimator.fusion',
     'FusionCore': 'vtolpose.estimator.fusion',
+    'FusedRun': 'vtolpose.estimator.fusion',
     'FusionOptions': 'vtolpose.estimator.fusion',
     'OutputPose': 'vtolpose.estimator.fusion',
     'gps_kernel': 'vtolpose.estimator.gnss',

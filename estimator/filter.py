@@ -62,6 +62,9 @@ from vtolpose.estimator.inertial.sample_kernel import level_run, plain_run
 from vtolpose.estimator.inertial.stillness import StillChunk, StillnessDetector, StillnessOptions
 
 HEADING_SOURCES = ("auto", "dataset", "gps")
+# The steps of a compiled stretch that only propagated: their samples (indices into the run), end times, p, v, q
+# (rows of 10) and robot covariances.
+AfterSteps = Callable[[list[int], np.ndarray, np.ndarray, np.ndarray], None]
 TILT_WEAK_SIGMA_RAD = math.radians(1.0)  # a map is started only under a tilt known this well (docs/estimator.md)
 HEADING_WEAK_SIGMA_RAD = math.radians(5.0)  # a placed heading the camera waits for the GPS to narrow below this
 LOST_POSITION_SIGMA_M = 100.0  # a rebuilt covariance without a usable position variance or a live GPS
@@ -93,6 +96,20 @@ class FilterOptions:
         StateLayout(self.variant)  # validates the variant name
         if self.heading_source not in HEADING_SOURCES:
             raise ValueError(f"heading_source must be one of {', '.join(HEADING_SOURCES)}, got {self.heading_source!r}")
+
+
+def published_cov9(cov: np.ndarray, heading_aligned: bool, local_heading_floor: float | None) -> np.ndarray:
+    """:meth:`Estimator.published_cov9` of ``cov``, or of each of a stack of them (the last two axes: the steps
+    of a run), under the modes given (``local_heading_floor``: :meth:`Estimator.local_heading_floor`)."""
+    cov9 = covariance.nav_block(cov)
+    if heading_aligned:
+        return cov9
+    if local_heading_floor is not None:
+        cov9[..., YAW, YAW] = np.maximum(cov9[..., YAW, YAW], local_heading_floor)
+        return cov9
+    covariance.forget_yaw(cov9)
+    cov9[..., YAW, YAW] = UNKNOWN_HEADING_VAR
+    return cov9
 
 
 class Estimator:
@@ -244,10 +261,12 @@ class Estimator:
         return self.state is not None and not self._lost_before_next_s and self._last_imu_t is not None
 
     def process_imu_run(self, t_arr: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
-                        after_step: Callable[[int], None]) -> bool:
+                        after_step: Callable[[int], None], after_steps: AfterSteps | None = None) -> bool:
         """:meth:`process_imu` for each row of a run of samples, ``after_step(k)`` after each sample ``k`` that
         ended a filter step, and after the first. What does not depend on the state (the steps' deltas, the rest detector's sums)
         is worked out for the whole run at once; the state sees the same operations in the same order.
+        ``after_steps``: takes, in one call, the steps of a compiled stretch that only propagated, in place of
+        their ``after_step`` calls (see :meth:`_compiled_steps`).
 
         Only for a running filter (:attr:`takes_runs`) and a plain run (every sample finite, later than
         the one before, no gap to widen for): False, with nothing done, otherwise (the caller then goes
@@ -275,7 +294,7 @@ class Estimator:
             k = order[i]
             j = step_at.get(k)
             if j is not None:
-                taken = self._compiled_steps(order, i, step_at, chunks, levels, steps, t_ns, gyro, after_step)
+                taken = self._compiled_steps(order, i, step_at, chunks, levels, steps, t_ns, gyro, after_step, after_steps)
                 if taken:
                     i += taken
                     continue
@@ -303,11 +322,15 @@ class Estimator:
                 self._apply_still(still)
 
     def _compiled_steps(self, order: list[int], i: int, step_at: dict[int, int], chunks: dict, levels: dict,
-                        steps: DeltaRun, t_ns: list[int], gyro: np.ndarray, after_step: Callable[[int], None]) -> int:
+                        steps: DeltaRun, t_ns: list[int], gyro: np.ndarray, after_step: Callable[[int], None],
+                        after_steps: AfterSteps | None = None) -> int:
         """The steps from ``order[i]`` on that need nothing but propagation (no rest chunk, levelling or periodic
         check before the last), in one compiled call (``propagator.propagate_steps``), then each step's
         bookkeeping, the last sample's levelling or rest chunk if it has one, and ``after_step`` in turn,
-        the state as :meth:`_propagate` leaves it.
+        the state as :meth:`_propagate` leaves it. With ``after_steps``, the state takes the last step's p, v, q
+        and covariance at once, and the steps that only propagated (all, or all but a last one with measures or
+        the check) are handed to it in one call in place of their ``after_step`` (their samples, end times,
+        p, v, q rows and covariances: nothing else changed the state meanwhile), before the last one's measures.
         While the heading is unknown the steps have its extra noise, and the heading hypotheses take the same
         steps in one compiled call of their own. Returns how many were taken: none while a
         recorder watches the steps, or where the propagator has no compiled sequence (a map, non-isotropic
@@ -315,12 +338,14 @@ class Estimator:
         if self.recorder is not None:
             return 0
         end = i
+        measured = False  # the last step has measures or the check
         while end < len(order):
             k = order[end]
             if k not in step_at:
                 break
             end += 1
             if k in chunks or k in levels or self.health.check_would_be_due(t_ns[k]):
+                measured = True
                 break  # the measures or the check change the state: the next steps start from what they leave
         j0, j1 = step_at[order[i]], step_at[order[end - 1]] + 1
         state = self.state
@@ -335,8 +360,25 @@ class Estimator:
         if bank is not None and not bank.propagate_run(steps.deltas[j0:j1], steps.dts[j0:j1], int(steps.times[j1 - 1, 1])):
             return 0
         states, covs, means = computed
-        ends = steps.times[j0:j1, 1].tolist()
-        for x in range(end - i):
+        m = end - i
+        ends = steps.times[j0:j1, 1]
+        if after_steps is not None:
+            # The state as the stretch's steps leave it, then their poses at once: all but a last step with measures.
+            k, row = order[end - 1], states[m - 1]
+            self._last_imu_t, self._gyro, self._horizontal_accel = t_ns[k], gyro[k], means[m - 1]
+            # A copy: the state's covariance is changed in place by the next update, the steps' are kept as they are.
+            state.p, state.v, state.q, state.cov, state.t_ns = row[0:3], row[3:6], row[6:10], covs[m - 1].copy(), int(ends[m - 1])
+            clean = m - 1 if measured else m
+            if clean:
+                after_steps(order[i:i + clean], ends[:clean], states[:clean], covs[:clean])
+            if measured:
+                if self.health.check_due(t_ns[k]):
+                    self._check_state()
+                self._level_and_rest(levels.get(k), chunks.get(k))
+                after_step(k)
+            return m
+        ends = ends.tolist()
+        for x in range(m):
             k = order[i + x]
             self._last_imu_t, self._gyro = t_ns[k], gyro[k]
             row = states[x]
@@ -346,7 +388,7 @@ class Estimator:
                 self._check_state()
             self._level_and_rest(levels.get(k), chunks.get(k))  # only the last step's sample may have any
             after_step(k)
-        return end - i
+        return m
 
     def _propagate(self, delta: ImuDelta) -> None:
         extra = 0.0
@@ -384,15 +426,12 @@ class Estimator:
         heading has the variance of a heading uniform on the circle, uncorrelated with the rest. In a
         frame of its own (``local_position``) the heading is the frame's: its variance is the filter's,
         what the heading may have drifted since the start (never below the start's own gauge sigma)."""
-        cov9 = covariance.nav_block(self.state.cov)
-        if self.heading_aligned:
-            return cov9
-        if self.local_position:
-            cov9[YAW, YAW] = max(cov9[YAW, YAW], math.radians(self.options.visual_inertial.heading_sigma_deg) ** 2)
-            return cov9
-        covariance.forget_yaw(cov9)
-        cov9[YAW, YAW] = UNKNOWN_HEADING_VAR
-        return cov9
+        return published_cov9(self.state.cov, self.heading_aligned, self.local_heading_floor())
+
+    def local_heading_floor(self) -> float | None:
+        """In a frame of its own, the variance its published heading never falls below (the start's gauge sigma,
+        squared); None in the world's frame."""
+        return math.radians(self.options.visual_inertial.heading_sigma_deg) ** 2 if self.local_position else None
 
     def imu_discontinuity(self, lost_s: float) -> None:
         """``lost_s`` of IMU data before the next sample were refused (stamped in the past: a backward

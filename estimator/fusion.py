@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from vtolpose.estimator.filter import Estimator
+from vtolpose.estimator.filter import Estimator, published_cov9
 from vtolpose.estimator.core.measurements import ImuSample, RejectionCounts, readings_finite, rows_finite
 from vtolpose.estimator.inertial.propagator import is_isotropic, noise_dt_polynomial, process_noise
 from vtolpose.estimator.core.rotation import quat_product, rot_of, rotate, rotvec_quat, skew
@@ -102,6 +102,47 @@ class OutputPose:
         return self.t_ns == self.fused_t_ns
 
 
+@dataclass(slots=True)
+class FusedRun:
+    """The fused poses of consecutive filter steps that only propagated, as arrays (a row per step): what an
+    offline replay records without making an :class:`OutputPose` per step. The published covariances are
+    worked out when asked for (:meth:`cov9`, :meth:`pose_cov`: a recorder wants one now and then);
+    :meth:`poses` makes the poses, equal to the ones the steps one by one would have made."""
+
+    t_ns: np.ndarray
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+    omega_b: np.ndarray
+    robot_cov: np.ndarray  # the filter's robot covariance after each step (never changed)
+    omega_var: np.ndarray
+    heading_aligned: bool
+    position_initialized: bool
+    reset_counter: int
+    quality_cap: list[int]
+    local_position: bool
+    local_heading_floor: float | None  # Estimator.local_heading_floor
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def cov9(self) -> np.ndarray:
+        """Each step's published ``[δp, δv, δθ]`` covariance (``OutputPose.cov9``), stacked."""
+        return published_cov9(self.robot_cov, self.heading_aligned, self.local_heading_floor)
+
+    def pose_cov(self, x: int) -> np.ndarray:
+        """Step ``x``'s ``OutputPose.pose_cov``."""
+        return _pose_cov(published_cov9(self.robot_cov[x], self.heading_aligned, self.local_heading_floor))
+
+    def poses(self) -> list[OutputPose]:
+        cov9 = self.cov9()
+        pose_cov = cov9.reshape(len(cov9), 81)[:, _POSE_FLAT].reshape(len(cov9), 6, 6)
+        flags = (self.heading_aligned, self.position_initialized, self.reset_counter)
+        return [OutputPose(t, p, v, q, w, c9, pc, ov, *flags, t, cap, self.local_position)
+                for t, p, v, q, w, c9, pc, ov, cap in zip(self.t_ns.tolist(), self.p, self.v, self.q, self.omega_b,
+                                                          cov9, pose_cov, self.omega_var, self.quality_cap)]
+
+
 def nominal_step(
     p: tuple, v: tuple, q: tuple, b_g: tuple, b_a: tuple,
     g0: tuple, a0: tuple, g1: tuple, a1: tuple, dt: float, gravity_down: float,
@@ -154,7 +195,8 @@ class FusionCore:
     """Feeds an :class:`Estimator` in time order on a delayed horizon; predicts the present.
 
     ``on_fused(pose)`` is called after every IMU sample the estimator consumed that advanced its
-    state (the same rule as the offline replay's recorder), with the fused pose.
+    state (the same rule as the offline replay's recorder), with the fused pose; ``on_fused_run(run)``, if
+    given, in its place with the poses of a run's compiled steps at once (:class:`FusedRun`).
     """
 
     def __init__(
@@ -162,11 +204,13 @@ class FusionCore:
         estimator: Estimator,
         options: FusionOptions | None = None,
         on_fused: Callable[[OutputPose], None] | None = None,
+        on_fused_run: Callable[[FusedRun], None] | None = None,
     ) -> None:
         self.est = estimator
         self.options = opts = options or FusionOptions()
         self.delay_ns = int(round(opts.delay_s * 1e9))
         self.on_fused = on_fused
+        self.on_fused_run = on_fused_run
         self.predict = opts.predict  # the runtime turns it off when it has no outputs
         self.counts: dict[str, RejectionCounts] = {"imu": RejectionCounts()}
         self._queue: deque[tuple[int, np.ndarray, np.ndarray, bool]] = deque()  # not yet fused
@@ -365,7 +409,22 @@ class FusionCore:
                 if self.on_fused is not None:
                     self.on_fused(self._fused_pose(gyro[k]))
 
-        if est.process_imu_run(np.array(times, np.int64), gyro, accel, after_step):  # it checks finiteness itself
+        def after_steps(ks: list[int], t_state: np.ndarray, states: np.ndarray, covs: np.ndarray) -> None:
+            last = self._last_reported_t
+            first = 0 if last is None else int(np.searchsorted(t_state, last, side="right"))
+            if first == len(ks):
+                return
+            self._last_reported_t = int(t_state[-1])
+            if self.on_fused_run is None and self.on_fused is None:
+                return
+            run = self._fused_run(t_state[first:], states[first:], covs[first:], gyro[ks[first:]])
+            if self.on_fused_run is not None:
+                self.on_fused_run(run)
+            else:
+                for pose in run.poses():
+                    self.on_fused(pose)
+
+        if est.process_imu_run(np.array(times, np.int64), gyro, accel, after_step, after_steps):  # it checks finiteness itself
             self._fused_until = times[-1]
             self._recent.clear()
             self._recent.append((times[-1], run[-1][1], run[-1][2]))
@@ -459,15 +518,31 @@ class FusionCore:
 
     def _omega_var(self) -> np.ndarray:
         """Variance of the bias-corrected body rate: per-sample gyro noise plus the bias's."""
+        s = self.est.state
+        if s.layout.estimates_biases:
+            return self._white_rate() + s.cov.diagonal()[BG]
+        return self._white_rate().copy()
+
+    def _white_rate(self) -> np.ndarray:
+        """The gyro's white-noise rate variance (per axis), kept while the noise and rate stay."""
         est = self.est
-        s = est.state
         noise, rate = est.noise, est.calibration.imu.rate_hz
         white = self._white_rate_var
         if white is None or white[0] is not noise or white[1] != rate:
             white = self._white_rate_var = (noise, rate, noise.gyro_noise_density**2 * rate)
-        if s.layout.estimates_biases:
-            return white[2] + s.cov.diagonal()[BG]
-        return white[2].copy()
+        return white[2]
+
+    def _fused_run(self, t_ns: np.ndarray, states: np.ndarray, covs: np.ndarray, gyro: np.ndarray) -> FusedRun:
+        """:meth:`_fused_pose` of each of a run's steps that only propagated (end times, p, v, q rows, robot
+        covariances, each step's last gyro reading), as arrays: nothing but the propagation has changed the
+        state since the first of them."""
+        est = self.est
+        s = est.state
+        white = self._white_rate()
+        omega_var = white + covs.diagonal(axis1=1, axis2=2)[:, BG] if s.layout.estimates_biases else np.tile(white, (len(t_ns), 1))
+        return FusedRun(t_ns, states[:, 0:3], states[:, 3:6], states[:, 6:10], gyro - s.b_g, covs, omega_var,
+                        est.heading_aligned, est.position_initialized, est.reset_counter,
+                        est.health.quality_caps(t_ns.tolist()), est.local_position, est.local_heading_floor())
 
     def _noise(self, q: np.ndarray, dt: float) -> np.ndarray:
         """IMU white noise over ``dt`` on [p, v, θ]; for isotropic noise, cached polynomials in dt."""

@@ -133,6 +133,65 @@ def pose_fields(pose) -> tuple:
                  for value in (getattr(pose, f.name) for f in dataclasses.fields(pose)))
 
 
+def fused_pose_fields(flight, cfg, runs: bool) -> tuple[list[tuple], int]:
+    """Every field of every fused pose, fed in batches of 12 samples: sample by sample (a prediction kept: no
+    runs) or as runs with their poses as :class:`FusedRun` (``on_fused_run``); and how many came in runs."""
+    made, in_runs = [], []
+
+    def take_run(run):
+        in_runs.append(len(run))
+        made.extend(pose_fields(pose) for pose in run.poses())
+    core = FusionCore(new_estimator(flight, cfg), FusionOptions(delay_s=DELAY, predict=not runs),
+                      on_fused=lambda pose: made.append(pose_fields(pose)), on_fused_run=take_run if runs else None)
+    fixes, k = gps_fixes(flight), 0
+    samples = imu_samples(flight)
+    for start in range(0, len(samples), 12):
+        batch = samples[start:start + 12]
+        while k < len(fixes) and fixes[k].t_ns <= batch[0].t_ns:
+            core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
+            k += 1
+        core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
+                           np.array([s.accel for s in batch]))
+    core.flush()
+    return made, sum(in_runs)
+
+
+@pytest.mark.parametrize("variant, heading", [("biases", "gps"), ("thesis", "gps"), ("biases", "dataset")])
+def test_the_poses_of_a_fused_run_are_those_made_step_by_step(flight, variant, heading):
+    """A run's compiled steps hand their poses over at once (FusedRun: covariances, rate variances and quality
+    caps worked out for all of them); every field of every pose is the one the steps one by one make, while
+    the heading is searched for (its published variance that of an unknown heading) and once it is known."""
+    cfg = load_config(None, {"estimator": {"variant": variant, "heading": {"source": heading}}})
+    one_by_one, _ = fused_pose_fields(flight, cfg, runs=False)
+    in_runs, from_runs = fused_pose_fields(flight, cfg, runs=True)
+    assert from_runs > len(in_runs) // 2 and len(in_runs) == len(one_by_one) > 1000
+    for now, was in zip(in_runs, one_by_one):
+        for a, b in zip(now, was):
+            assert type(a) is type(b) and np.array_equal(a, b), now[0]
+
+
+def test_a_fused_run_never_changes_after_it_was_made(flight):
+    """A FusedRun works out its published covariances when asked: asked at the end of the flight, after the
+    updates that followed it changed the filter's covariance in place, it says what it said when it was made."""
+    made = []
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY, predict=False),
+                      on_fused_run=lambda run: made.append((run, [pose_fields(pose) for pose in run.poses()])))
+    fixes, k = gps_fixes(flight), 0
+    for s in imu_samples(flight):
+        while k < len(fixes) and fixes[k].t_ns <= s.t_ns:
+            core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
+            k += 1
+        core.add_imu(s, fuse=False)
+        if s.t_ns % 40_000_000 < 8_000_000:
+            core.advance()
+    core.flush()
+    assert sum(len(run) for run, _ in made) > 1000 and core.est.counts["gps"].used > 100
+    for run, then in made:
+        for now, was in zip(run.poses(), then):
+            for a, b in zip(pose_fields(now), was):
+                assert np.array_equal(a, b), now.t_ns
+
+
 @pytest.mark.parametrize("predict, heading", [(True, "gps"), (False, "gps"), (False, "dataset")])
 def test_a_fused_pose_never_changes_after_it_was_made(flight, predict, heading):
     """A fused pose holds the state's own nominal arrays (no copies: the filter replaces them, never changes

@@ -102,6 +102,35 @@ def test_monitor_stale_sensors_and_resets_cap_the_quality():
     assert not mon.measured("gps", 8 * S, used=False, gated=False)  # non-finite fixes never reset
 
 
+def test_quality_caps_over_a_run_of_times_are_the_cap_at_each():
+    """The caps of a run's steps, worked out once where no limit falls among their times, are the cap at each
+    time, also across every edge (a sensor going stale, an innovation run capped, a reset's hold ending, the
+    IMU missing), with an edge at, or a nanosecond beside, the first, second or last time."""
+    opts = HealthOptions(gps_stale_s=1.0, stale_quality_cap=50, reset_quality_cap=20, reset_hold_s=2.0,
+                         innovation_cap_s=1.0, innovation_quality_cap=40)
+    mon = HealthMonitor(opts, gps_reset_after_s=5.0)
+    edges = [S + 1, 4 * S, 8 * S]  # stale from 1 s + 1 ns on; capped from 4 s on; the reset's hold ends at 8 s
+
+    def check() -> set[int]:
+        seen = set()
+        for step in (1, S // 100, S // 3):
+            for t0 in [0, *[e + d - k * step for e in edges for d in (-1, 0, 1) for k in (0, 1, 11)]]:
+                times = list(range(t0, t0 + 12 * step, step))
+                caps = [mon.quality_cap(t) for t in times]
+                assert mon.quality_caps(times) == caps, (t0, step)
+                seen.update(caps)
+        return seen
+    assert check() == {100}
+    mon.measured("gps", 0, used=True)
+    assert check() == {100, 50}
+    mon.innovations("camera", 3 * S, False, "test")
+    assert check() == {100, 50, 40}
+    mon.record_reset(6 * S, "test", "test")
+    assert check() == {20, 50}  # a reset ends the innovation run
+    mon.imu_missing(8 * S)
+    assert check() == {0}
+
+
 def test_camera_frames_are_judged_by_reobservation_nis_and_churn():
     opts = HealthOptions()
     frame = FrameInnovations(0, in_view=20, matched=12, initialised=3, nis=20.0, dof=24)

@@ -2,6 +2,7 @@
 and the estimator sees exactly what it sees one sample at a time (live)."""
 
 import asyncio
+import dataclasses
 
 import numpy as np
 import pytest
@@ -188,3 +189,23 @@ def test_rows_are_screened_as_single_samples_are():
     assert rows_finite(gyro, accel).tolist() == [readings_finite(g, a) for g, a in zip(gyro, accel)]
     assert screened(gyro, accel, limits)[0].tolist() == [limits.exceeded(g, a) for g, a in zip(gyro, accel)]
     assert screened(gyro, accel, limits)[0].tolist() == [False, False, False, False, False, True, True, True]
+
+
+def test_a_replay_records_runs_of_poses_as_it_records_them_one_by_one(dataset, monkeypatch):
+    """An offline replay's recorder takes the poses of a run's compiled steps as arrays (Recorder.record_run);
+    its trajectory and sampled covariances are those it records from each pose (a fused-pose hook given:
+    then every pose is made), bit for bit."""
+    from vtolpose.service.replay.session import Recorder, replay
+
+    in_runs = []
+    record_run = Recorder.record_run
+    monkeypatch.setattr(Recorder, "record_run", lambda self, run: (in_runs.append(len(run)), record_run(self, run)))
+    cfg = load_config(None, {"estimator": {"heading": {"source": "gps"}}})
+    runs = replay(dataset, cfg, ["imu", "gps"])
+    assert sum(in_runs) > len(runs.trajectory.t_ns) // 2
+    in_runs.clear()
+    poses = replay(dataset, cfg, ["imu", "gps"], on_fused=lambda pose: None)
+    assert not in_runs and len(runs.trajectory.t_ns) > 500 and len(runs.covariances.t_ns) > 10
+    for a, b in ((runs.trajectory, poses.trajectory), (runs.covariances, poses.covariances)):
+        for field in dataclasses.fields(a):
+            assert np.array_equal(getattr(a, field.name), getattr(b, field.name)), field.name

@@ -34,9 +34,10 @@ def decorrelate(cov: np.ndarray, block: slice) -> None:
 
 
 def forget_yaw(cov: np.ndarray) -> None:
-    """The heading becomes unknown: the frame's yaw is a gauge, its variance and correlations zero."""
-    cov[YAW, :] = 0.0
-    cov[:, YAW] = 0.0
+    """The heading becomes unknown: the frame's yaw is a gauge, its variance and correlations zero (in each of a
+    stack of covariances too: the last two axes)."""
+    cov[..., YAW, :] = 0.0
+    cov[..., :, YAW] = 0.0
 
 
 def block_variances(cov: np.ndarray, block: slice) -> np.ndarray:
@@ -55,8 +56,8 @@ def robot_reset(layout: StateLayout, var_p: np.ndarray, sigma_velocity: float, s
 
 
 def nav_block(cov: np.ndarray) -> np.ndarray:
-    """A copy of the ``[δp, δv, δθ]`` covariance (9 × 9)."""
-    return cov[NAV, NAV].copy()
+    """A copy of the ``[δp, δv, δθ]`` covariance (9 × 9; of each of a stack of covariances: the last two axes)."""
+    return cov[..., NAV, NAV].copy()
 
 
 def robot_block(cov: np.ndarray, robot_dim: int) -> np.ndarray:

@@ -28,6 +28,7 @@ claim would only repeat. Pure computation: no I/O, no clocks.
 from __future__ import annotations
 
 import math
+from bisect import bisect_left, insort
 from collections import deque
 from typing import Callable
 from dataclasses import dataclass
@@ -41,6 +42,63 @@ from vtolpose.estimator.gnss.gps_update import GPS_COLS, GpsModel, gps_sigmas
 
 MAD_TO_SIGMA = 1.4826  # a normal variable's sigma from its median absolute deviation
 LOWER_DECILE_ABS = 0.1257  # the 10th percentile of |x| for a standard normal x
+
+
+def _has_nan(values: list[float]) -> bool:
+    """Whether any of ``values`` (none negative: sizes, NIS) is NaN: their sum is, then only."""
+    total = sum(values)
+    return total != total
+
+
+def median_of_sorted(values: list[float]) -> float:
+    """``np.median`` of ``values`` (none negative) given sorted, with its arithmetic (the middle two summed,
+    then halved; NaN if any is): on a window of a hundred floats, every fix, numpy's call costs ten times the
+    sort."""
+    n = len(values)
+    if _has_nan(values):
+        return math.nan
+    if n % 2:
+        return values[n // 2]
+    return (values[n // 2 - 1] + values[n // 2]) / 2
+
+
+def percentile_of_sorted(values: list[float], q: float) -> float:
+    """``np.percentile(values, 100 q)`` (its default, linear interpolation between the order statistics around
+    ``(n − 1) q``, with its arithmetic) of ``values`` (none negative) given sorted."""
+    n = len(values)
+    if _has_nan(values):
+        return math.nan
+    virtual = (n - 1) * q
+    below = n - 1 if virtual >= n - 1 else math.floor(virtual)
+    above = n - 1 if virtual >= n - 1 else below + 1
+    gamma = virtual - below
+    a, b = values[below], values[above]
+    return b - (b - a) * (1 - gamma) if gamma >= 0.5 else a + (b - a) * gamma
+
+
+class SortedSizes:
+    """Sizes (never negative) kept in order as they come and go: a window's median and percentiles without a
+    sort per fix. NaN is counted apart (it has no place in the order; any makes every statistic NaN)."""
+
+    def __init__(self) -> None:
+        self._values: list[float] = []
+        self._nans = 0
+
+    def add(self, size: float) -> None:
+        if size != size:
+            self._nans += 1
+        else:
+            insort(self._values, size)
+
+    def remove(self, size: float) -> None:
+        if size != size:
+            self._nans -= 1
+        else:
+            del self._values[bisect_left(self._values, size)]
+
+    def in_order(self) -> list[float]:
+        """The sizes sorted (for :func:`median_of_sorted`, :func:`percentile_of_sorted`), or [NaN] if any is."""
+        return [math.nan] if self._nans else self._values
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,7 +151,9 @@ class GpsNoiseCheck:
         self.changes = 0  # times the belief changed (either way)
         self.on_change = on_change  # told (t_ns, text) of each change of belief: the filter makes it an event
         n = self.options.window
-        self._diffs: deque[np.ndarray] = deque(maxlen=n)  # d_k, NED
+        self._diffs: deque[tuple[float, float, float]] = deque(maxlen=n)  # d_k, NED
+        # Their components' sizes, in order: horizontal (north and east alike) and vertical.
+        self._horizontal, self._vertical = SortedSizes(), SortedSizes()
         m = self.options.nis_window
         self._before_start: deque[GpsFix] = deque(maxlen=max(self.options.min_pairs, m))  # heard before the start
         self._nis: deque[float] = deque(maxlen=m)  # under the claimed noise
@@ -143,7 +203,7 @@ class GpsNoiseCheck:
         self._said_h = float(fix.sigma_h)  # the claim as the receiver made it, for the operator
         last = self._last_posterior
         if last is not None and 0 < fix.t_ns - last[0] <= self.options.max_pair_gap_s * 1e9 and np.all(np.isfinite(nu)):
-            self._diffs.append(nu - last[1])
+            self._take_diff(tuple((nu - last[1]).tolist()))
             self._nis.append(nis if math.isfinite(nis) else 1e300)
             self._claimed_h.append(claimed_h)
             self._claimed_v.append(claimed_v)
@@ -202,12 +262,12 @@ class GpsNoiseCheck:
         """The fixes' own noise (horizontal, vertical) from the window's differences, bounded; None: too few."""
         if len(self._diffs) < self.options.min_pairs_after_resets:
             return None
-        d = np.array(self._diffs)
+        horizontal, vertical = self._horizontal.in_order(), self._vertical.in_order()
         # Each difference carries two fixes' errors: per axis variance 2σ². (The innovations' own size is no
         # measure of it: a jump of 20 m held for seconds would pass for noise and be followed.) Errors that are
         # correlated from fix to fix cancel in part: for them this is a lower bound.
-        h = MAD_TO_SIGMA * float(np.median(np.abs(d[:, :2]))) / math.sqrt(2.0)
-        v = MAD_TO_SIGMA * float(np.median(np.abs(d[:, 2]))) / math.sqrt(2.0)
+        h = MAD_TO_SIGMA * median_of_sorted(horizontal) / math.sqrt(2.0)
+        v = MAD_TO_SIGMA * median_of_sorted(vertical) / math.sqrt(2.0)
         lo, hi = self.sigma_floor_m, self.options.max_sigma_m
         return min(max(h, lo), hi), min(max(v, lo), hi)
 
@@ -215,8 +275,21 @@ class GpsNoiseCheck:
         """The horizontal scatter from the lowest tenth of the differences' sizes: what decides whether a claim
         is believed. Multipath on a third of the fixes spoils half the differences and lifts their median (the
         weight's measure) above three claimed sigmas; those fixes are the gate's to refuse, not a lie."""
-        d = np.abs(np.array(self._diffs)[:, :2])
-        return float(np.percentile(d, 10)) / (LOWER_DECILE_ABS * math.sqrt(2.0))
+        return percentile_of_sorted(self._horizontal.in_order(), 10 / 100) / (LOWER_DECILE_ABS * math.sqrt(2.0))
+
+    def _take_diff(self, diff: tuple[float, float, float]) -> None:
+        """A new difference into the window (the oldest leaves it once it is full), its sizes into their orders."""
+        diffs = self._diffs
+        if len(diffs) == diffs.maxlen:
+            north, east, down = diffs[0]
+            self._horizontal.remove(abs(north))
+            self._horizontal.remove(abs(east))
+            self._vertical.remove(abs(down))
+        diffs.append(diff)
+        north, east, down = diff
+        self._horizontal.add(abs(north))
+        self._horizontal.add(abs(east))
+        self._vertical.add(abs(down))
 
     def _judge(self, t_ns: int) -> None:
         opts = self.options
@@ -232,7 +305,7 @@ class GpsNoiseCheck:
         # A reset for refused fixes is itself the NIS out of band, for gps_reset_after_s on end.
         # Most of the latest fixes refused under their claims (the lower quartile of their NIS beyond the gate):
         # a third of them off by multipath is not that.
-        nis_out = self._resets_in_a_row > 0 or float(np.percentile(self._nis, 25)) > chi2_gate(3, opts.nis_probability)
+        nis_out = self._resets_in_a_row > 0 or percentile_of_sorted(sorted(self._nis), 25 / 100) > chi2_gate(3, opts.nis_probability)
         if self.verdict is None:
             implausible = robust_h > max(opts.implausible_ratio * claimed_h, opts.min_sigma_m)  # no NIS needed
             if implausible or (nis_out and robust_h > max(opts.distrust_ratio * claimed_h, opts.min_sigma_m)):

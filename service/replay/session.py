@@ -13,6 +13,7 @@ import logging
 import threading
 import time
 from collections import deque
+from itertools import repeat
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -21,7 +22,8 @@ import numpy as np
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.lidar import lidar_summary
 from vtolpose.estimator import (
-    CameraFrame, Estimator, extract_features, FeatureOptions, FeatureTracker, FrameFeatures, FrameReport, OutputPose,
+    CameraFrame, Estimator, extract_features, FeatureOptions, FeatureTracker, FrameFeatures, FrameReport, FusedRun,
+    OutputPose,
 )
 from vtolpose.service.replay.faults import Fault, FaultInjector
 from vtolpose.service.runtime.kernels import KernelLoad, load_compiled_kernels
@@ -86,6 +88,18 @@ class Recorder:
         if not unscored and pose.t_ns >= self._next_cov_t:
             self._cov.append((pose.t_ns, pose.p, pose.q, pose.pose_cov))
             self._next_cov_t = pose.t_ns + self.cov_period_ns
+
+    def record_run(self, run: FusedRun) -> None:
+        """:meth:`record` for each pose of ``run``, without making them."""
+        unscored = self.absolute_position and not run.position_initialized
+        times = run.t_ns.tolist()
+        self._rows.extend(zip(times, run.p, run.v, run.q, repeat(unscored)))
+        if unscored:
+            return
+        for x, t in enumerate(times):
+            if t >= self._next_cov_t:
+                self._cov.append((t, run.p[x], run.q[x], run.pose_cov(x)))
+                self._next_cov_t = t + self.cov_period_ns
 
     def trajectory(self) -> Trajectory:
         if not self._rows:
@@ -224,6 +238,7 @@ def replay(
         camera_processor=processor, handle_signals=False, faults=injector, on_progress=progress, start_at_s=start_at_s,
         prepare=prepare, smoothing=smoothing,
         on_fused=recorder.record if on_fused is None else lambda pose: (recorder.record(pose), on_fused(pose)),
+        on_fused_run=recorder.record_run if on_fused is None else None,
     )
     wall = time.perf_counter() - wall0
     bug = runtime.failures.first("handling")

@@ -18,7 +18,7 @@ from vtolpose.config import ConfigError
 from vtolpose.config.outputs import zenoh_prefix
 from vtolpose.config.sections import FusionSection, OutputsSection, ReplaySection, Sections
 from vtolpose.drivers.files.calibration_yaml import CalibrationError, calibration_from_yaml, load_yaml_file
-from vtolpose.estimator import Calibration, Estimator, FusionOptions, OutputPose
+from vtolpose.estimator import Calibration, Estimator, FusedRun, FusionOptions, OutputPose
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.runtime.kernels import load_compiled_kernels
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RuntimeOptions, RunSummary
@@ -68,6 +68,7 @@ def build_runtime(
     on_fused: Callable[[OutputPose], None] | None = None,
     sensor_now: Callable[[], int | None] | None = None,
     smoothing: SmoothingPlan | None = None,
+    on_fused_run: Callable[[FusedRun], None] | None = None,
 ) -> Runtime:
     """The estimator, fusion core, history and the outputs enabled in ``outputs.*``.
 
@@ -96,7 +97,8 @@ def build_runtime(
     )
     path = trajectory_path or sections.run.trajectory
     runtime = Runtime(estimator, options, camera_processor=camera_processor,
-                      trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused, taps=taps)
+                      trajectory=TrajectoryFile(path) if path else None, on_fused=on_fused, taps=taps,
+                      on_fused_run=on_fused_run)
     runtime.origin = origin  # replaceable later (a live GPS fixes its origin at its first fix)
     if outputs.mavlink.enabled:
         from vtolpose.service.outputs.mavlink_output import MavlinkOutput, SensorClock

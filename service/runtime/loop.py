@@ -30,7 +30,7 @@ from typing import Any, AsyncIterator, Callable, Protocol, Sequence
 import numpy as np
 
 from vtolpose.estimator import (
-    Apply, CameraFrame, COV, Estimator, FixedLagSmoother, FusionCore, FusionOptions, GpsFix, ImuBatch, ImuRange,
+    Apply, CameraFrame, COV, Estimator, FixedLagSmoother, FusedRun, FusionCore, FusionOptions, GpsFix, ImuBatch, ImuRange,
     ImuSample, OutputPose, P, PoseHistory, Q, ROW, screened, SmoothedPose, V,
 )
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
@@ -126,13 +126,16 @@ class Runtime:
         trajectory: TrajectoryFile | None = None,
         on_fused: Callable[[OutputPose], None] | None = None,
         taps: StepTaps | None = None,
+        on_fused_run: Callable[[FusedRun], None] | None = None,
     ) -> None:
         """``taps``: who sees the filter's steps (the fixed-lag smoother, a replay's step files); the estimator
-        must have been built with their recorder."""
+        must have been built with their recorder. ``on_fused_run``: takes a run's fused poses at once in place
+        of ``on_fused`` for each, where nothing else here wants them one by one (history, trajectory file)."""
         if taps is not None and estimator.recorder is not taps.recorder:
             raise ValueError("the estimator must be built with the step taps' recorder (Estimator(..., recorder=))")
         self.options = opts = options or RuntimeOptions()
         self.fused_hook = on_fused  # sees every fused pose (a replay's recorder)
+        self.fused_run_hook = on_fused_run  # or, where it may, a run of them at once
         self._close_errors: dict[str, str] = {}  # file outputs whose close failed: name -> why
         # Stamps enter on the IMU clock: each sensor's calibrated offset is added here, before the
         # fusion horizon orders them (so a late camera is fused at the time it really saw).
@@ -140,7 +143,7 @@ class Runtime:
         self._gps_offset_ns = int(round(cal.gps.time_offset_s * 1e9))
         self._camera_offset_ns = int(round(cal.camera.time_offset_s * 1e9)) if cal.camera is not None else 0
         self.est = estimator
-        self.fusion = FusionCore(estimator, opts.fusion, on_fused=self._on_fused)
+        self.fusion = FusionCore(estimator, opts.fusion, on_fused=self._on_fused, on_fused_run=self._on_fused_run)
         self.history = PoseHistory(opts.history_s)
         self.history_lock = threading.Lock()  # queries read the history on Zenoh's threads
         self.keep_history = True  # run() turns it off when there are no outputs to answer from it
@@ -301,6 +304,13 @@ class Runtime:
                 self.failures.record("trajectory file", exc)
         if self.fused_hook is not None:
             self.fused_hook(pose)
+
+    def _on_fused_run(self, run: FusedRun) -> None:
+        if self.fused_run_hook is None or self.keep_history or self.trajectory is not None:
+            for pose in run.poses():
+                self._on_fused(pose)
+            return
+        self.fused_run_hook(run)
 
     def _on_camera(self, frame: CameraFrame) -> None:
         if self._camera_offset_ns:

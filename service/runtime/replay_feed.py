@@ -16,7 +16,7 @@ from typing import Any, AsyncIterator, Callable, Sequence
 
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.service.runtime.daemon import build_runtime, serve
-from vtolpose.estimator import OutputPose
+from vtolpose.estimator import FusedRun, OutputPose
 from vtolpose.service.replay.faults import FaultInjector, inject
 from vtolpose.service.runtime.loop import CameraProcessor, Runtime, RunSummary
 from vtolpose.service.runtime.sources import ReplayClock, ReplaySource
@@ -58,6 +58,7 @@ async def replay_async(
     start_at_s: float | None = None,
     prepare: Callable[[Runtime], None] | None = None,
     smoothing: SmoothingPlan | None = None,
+    on_fused_run: Callable[[FusedRun], None] | None = None,
 ) -> tuple[RunSummary, Runtime]:
     """Replay ``dataset`` through a runtime built from ``cfg`` (outputs included); returns its summary.
 
@@ -90,7 +91,7 @@ async def replay_async(
     runtime = build_runtime(
         cfg, calibration, origin=lambda: origin, trajectory_path=trajectory_path,
         camera_processor=camera_processor, lockstep=speed == 0.0, measure_latency=measure_latency, on_fused=on_fused,
-        sensor_now=clock.now_ns, smoothing=smoothing,
+        sensor_now=clock.now_ns, smoothing=smoothing, on_fused_run=on_fused_run,
     )
     if prepare is not None:
         prepare(runtime)
