@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vtolpose.estimator.core import covariance
 from vtolpose.estimator.vision.camera_model import CameraModel
 from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update
 from vtolpose.estimator.vision.landmarks import ROBOT_POSE_COLS, angles_jacobian, direction, direction_derivatives
@@ -123,7 +124,8 @@ def stacked_update(
     H = observability_constrained(H, unobservable_directions(state, indices))
     residual = (np.asarray(measured_uv, dtype=float) - predictions.uv[indices]).reshape(-1)
     R = np.eye(len(residual)) * pixel_sigma**2
-    return ekf_update(state, cols, H, residual, R, gate=None, held=held)
+    before = heading_gauge(state)
+    return _gauge_carried(state, before, ekf_update(state, cols, H, residual, R, gate=None, held=held))
 
 
 def _stacked_jacobian(
@@ -159,6 +161,7 @@ def iterated_update(
     R = np.eye(len(measured)) * pixel_sigma**2
 
     gauge = unobservable_directions(state, indices)
+    before = heading_gauge(state)
 
     def linearise(at: FilterState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # Only the matched landmarks, and no innovation covariances: the gain is formed from the stack.
@@ -186,7 +189,7 @@ def iterated_update(
         if step < 1e-9:
             break
     cols, H, residual = linearise(estimate)
-    return ekf_update(state, cols, H, residual, R, gate=None, held=held)
+    return _gauge_carried(state, before, ekf_update(state, cols, H, residual, R, gate=None, held=held))
 
 
 _DOWN = np.array([0.0, 0.0, 1.0])
@@ -210,6 +213,30 @@ def unobservable_directions(state: FilterState, indices: np.ndarray) -> np.ndarr
     N[rows[:, None] + np.arange(3), 3] = np.cross(_DOWN, y[:, 0:3])
     N[rows[:, None] + np.arange(3, 5), 3] = turned_rays
     return N
+
+
+def heading_gauge(state: FilterState) -> np.ndarray:
+    """The whole error state's response to turning the vehicle and the map together about world down through
+    the vehicle (per radian): what no camera measurement, nor a GPS at the vehicle, sees while it hovers."""
+    n = state.dim
+    N = np.zeros(n)
+    N[state.layout.V] = np.cross(_DOWN, state.v)
+    N[covariance.YAW] = 1.0
+    if state.n_landmarks:
+        y = state.landmarks
+        m = direction(y[:, 3], y[:, 4])
+        rows = state.robot_dim + LANDMARK_DIM * np.arange(state.n_landmarks)
+        N[rows[:, None] + np.arange(3)] = np.cross(_DOWN, y[:, 0:3] - state.p)
+        N[rows[:, None] + np.arange(3, 5)] = np.einsum("kij,kj->ki", angles_jacobian(m), np.cross(_DOWN, m))
+    return N
+
+
+def _gauge_carried(state: FilterState, before: np.ndarray, outcome: UpdateOutcome) -> UpdateOutcome:
+    """After an accepted update: the heading gauge carried from the prior estimate to the new one
+    (:func:`~vtolpose.estimator.core.covariance.transfer_gauge`)."""
+    if outcome.accepted:
+        covariance.transfer_gauge(state.cov, before, heading_gauge(state))
+    return outcome
 
 
 def observability_constrained(H: np.ndarray, N: np.ndarray) -> np.ndarray:
