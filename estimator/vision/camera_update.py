@@ -232,11 +232,23 @@ def heading_gauge(state: FilterState) -> np.ndarray:
 
 
 def _gauge_carried(state: FilterState, before: np.ndarray, outcome: UpdateOutcome) -> UpdateOutcome:
-    """After an accepted update: the heading gauge carried from the prior estimate to the new one
-    (:func:`~vtolpose.estimator.core.covariance.transfer_gauge`)."""
+    """After an accepted update: the heading gauge carried from the prior estimate to the new one."""
     if outcome.accepted:
-        covariance.transfer_gauge(state.cov, before, heading_gauge(state))
+        carry_gauge(state, before)
     return outcome
+
+
+def carry_gauge(state: FilterState, before: np.ndarray) -> None:
+    """The heading gauge carried from ``before`` (:func:`heading_gauge` at the estimate before an update) to the
+    estimate now (:func:`~vtolpose.estimator.core.covariance.transfer_gauge`); the smoother's recorder told, as of
+    any update. Every update that moves a state with a map needs it (a GPS fix or a rest too), or the camera's
+    next update reads heading out of the move."""
+    after = heading_gauge(state) if state.n_landmarks else before
+    if len(after) != len(before) or np.array_equal(after, before):
+        return  # no map, or nothing moved (a refused update)
+    covariance.transfer_gauge(state.cov, before, after)
+    if state.observer is not None:
+        state.observer.updated(state)
 
 
 def observability_constrained(H: np.ndarray, N: np.ndarray) -> np.ndarray:
