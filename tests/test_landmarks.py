@@ -25,7 +25,8 @@ from vtolpose.estimator.vision.landmarks import (
 )
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.gnss.gps_update import GpsUpdater
-from vtolpose.estimator.core.rotation import quat_exp, quat_from_euler, quat_mul
+from vtolpose.estimator.core.rotation import quat_conj, quat_exp, quat_from_euler, quat_log, quat_mul
+from vtolpose.estimator.vision.camera_pipeline import CameraPipeline
 from vtolpose.estimator.core.state import FilterState, StateLayout
 
 R_BC = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
@@ -325,3 +326,26 @@ def test_stacked_jacobian_puts_each_landmark_block_on_its_own_rows_and_columns()
         assert not others.any()
     # Only the matched landmarks projected: the same numbers as projecting all and picking.
     np.testing.assert_array_equal(predict_h(s, R_BC, T_BC, idx)[0], predict_h(s, R_BC, T_BC)[0][idx])
+
+
+def test_a_guessed_depth_without_a_baseline_still_shows_a_tilt_drift():
+    """Matches of landmarks whose depth is still a guess, the camera where it started them: a turn moves every
+    bearing alike whatever the depth, so they show the attitude (and through it the gyro bias), only not the
+    depth nor what a misread displacement would take (the accelerometer bias). Held, a hover's gyro-bias
+    error from its still window (0.0044 rad/s) drifted the tilt 0.24 -> 0.67° unseen in 2 s, its gravity
+    leak grew a velocity error 4 sigma off, and the first baseline read it as parallax (Test 2: 32 m)."""
+    rng = np.random.default_rng(6)
+    s = _hover_over_floor(rng)
+    s.landmarks[:, 5] = 0.1  # Civera's guess: the floor is really 1.2 m down
+    s.cov[s.robot_dim + 5 :: 6, s.robot_dim + 5 :: 6] += np.eye(s.n_landmarks) * 1.0
+    s.cov[6:8, 6:8] += np.eye(2) * np.radians(0.6) ** 2  # what the tilt grew since the map's start, unshared
+    truth = s.copy()
+    s.q = quat_mul(quat_exp(np.radians([0.5, -0.4, 0.0])), s.q)  # and the estimate's tilt drifted so
+    measured = predict(truth, CAMERA, R_BC, T_BC, 1.0).uv
+    idx = np.arange(s.n_landmarks)
+    for _ in range(5):
+        hold = CameraPipeline._no_baseline_held(s, idx)
+        assert iterated_update(s, CAMERA, R_BC, T_BC, idx, measured + rng.normal(0.0, 1.0, measured.shape), 1.0,
+                               hold, 1).accepted
+    assert np.degrees(np.linalg.norm(quat_log(quat_mul(truth.q, quat_conj(s.q)))[0:2])) < 0.15
+    np.testing.assert_array_equal(s.landmarks[:, 5], 0.1)  # the depth still held
