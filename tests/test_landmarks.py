@@ -237,7 +237,8 @@ def test_iterated_update_keeps_a_far_off_depth_guess_consistent():
 def test_the_camera_is_blind_to_a_shift_and_a_turn_about_down_and_the_iterated_update_stays_blind():
     """The four directions are those the measurement does not change: moved along each, every predicted pixel
     stays (central differences, not the analytic Jacobian). After an iterated update relinearised away from
-    the prior, the heading gained no information: the variance along the turn is what it was."""
+    the prior, the heading gained no information: the information along the turn, carried to the new
+    estimate, is what it was along the turn at the prior."""
     s = make_state(n_landmarks=5, seed=3)
     idx = np.arange(5)
     N = unobservable_directions(s, idx)
