@@ -37,6 +37,7 @@ from vtolpose.estimator.core import covariance
 from vtolpose.estimator.core.calibration import Calibration, ImuNoise
 from vtolpose.estimator.core.covariance import BG, TH, V
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions, CameraPipeline, FrameReport
+from vtolpose.estimator.vision.camera_update import carry_gauge, heading_gauge
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.vision.landmarks import INVERSE_DEPTH, landmark_points
 from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
@@ -666,10 +667,12 @@ class Estimator:
             self.health.measured("gps", fix.t_ns, used=True)
             return UpdateOutcome(True, 0.0, 3, "position initialised")
         self.gps_noise.before_update(state, raw, self.gps.model)  # the GPS noise check (1/2)
+        gauge = heading_gauge(state)
         if self.heading_aligned:
             outcome = self.gps.update(state, fix)
         else:
             outcome = self.gps.update_heading_unknown(state, fix, self._held_until_aligned())
+        carry_gauge(state, gauge)  # the map's heading gauge follows the move (camera_update.carry_gauge)
         if outcome.accepted:
             counts.used += 1
         else:
@@ -917,6 +920,7 @@ class Estimator:
         # Zero velocity holds in any frame, that of arbitrary yaw included: it may correct tilt and
         # biases before the heading is known (the heading itself is uncorrelated with them then).
         sigma = self.options.still.zupt_sigma
+        gauge = heading_gauge(state)
         zupt = ekf_update(state, slice(3, 6), np.eye(3), -state.v, np.eye(3) * sigma**2, chi2_gate(3, 0.999))
         if not zupt.accepted:
             counts.reject(f"zupt_{zupt.reason.replace(' ', '_')}")
@@ -937,6 +941,7 @@ class Estimator:
             gain = prior / (prior + r)
             state.b_g = state.b_g + gain * (chunk.gyro_mean - state.b_g)
             self._fixed_bias_var = (1.0 - gain) * prior
+        carry_gauge(state, gauge)  # the map's heading gauge follows the move (camera_update.carry_gauge)
 
     # ------------------------------------------------------------------------------ output
     def _event(self, t_ns: int, kind: EventKind, message: str, reset_kind: str | None = None, **figures: float) -> None:

@@ -40,6 +40,18 @@ def forget_yaw(cov: np.ndarray) -> None:
     cov[..., :, YAW] = 0.0
 
 
+def transfer_gauge(cov: np.ndarray, before: np.ndarray, after: np.ndarray) -> None:
+    """The heading gauge's direction moved from ``before`` to ``after`` (the error state's response to a turn of
+    everything about world down, at the estimates before and after an update that moved them), in place:
+    ``P ← T P Tᵀ`` with ``T = I + (after − before) e_ψᵀ``, so that the uncertainty the update left along the
+    turn it was blind to is carried to the turn at the new estimate. Without it the next update, blind to the
+    turn at its own estimate, reads a little heading out of the mismatch (EKF-SLAM's inconsistency; this is
+    the observability-constrained transition of OC-EKF, applied where the estimate moves)."""
+    d = after - before
+    c = cov[:, YAW].copy()
+    cov += np.outer(d, c) + np.outer(c, d) + cov[YAW, YAW] * np.outer(d, d)
+
+
 def block_variances(cov: np.ndarray, block: slice) -> np.ndarray:
     """The diagonal of ``block`` (a copy)."""
     return np.diagonal(cov)[block].copy()

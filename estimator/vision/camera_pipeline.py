@@ -201,10 +201,13 @@ class CameraPipeline:
           depth, the robot's correction and both variances wrong (it reads parallax as motion).
         - Depth guessed, no significant baseline yet: such a match still says the camera has
           not moved relative to the scene, so it updates position and velocity (and the
-          landmark's bearing); its depth, the attitude and the biases are held (a Schmidt
-          update). Without a baseline the depth cannot be observed, and an apparent baseline
-          that is only position noise (GPS steps while the vehicle sits on its pad) would
-          otherwise be "explained" by a bogus depth or attitude.
+          landmark's bearing), and, since a turn moves every bearing alike whatever the depth,
+          the attitude and the gyro bias; its depth and the accelerometer bias are held (a
+          Schmidt update). Without a baseline the depth cannot be observed, and an apparent
+          baseline that is only position noise (GPS steps while the vehicle sits on its pad)
+          would otherwise be "explained" by a bogus depth, or taken into the accelerometer
+          bias. A held attitude let a hover's gyro-bias error tilt the estimate unseen, and
+          its gravity leak grew a velocity error that the first baseline read as parallax.
         """
         opts = self.options
         known = depth_known(self.book, state, landmarks, opts.map)
@@ -231,9 +234,11 @@ class CameraPipeline:
 
     @staticmethod
     def _no_baseline_held(state: FilterState, landmarks: np.ndarray) -> np.ndarray:
-        """Everything but position, velocity and the landmarks' bearings and anchors (calibration held too)."""
+        """The landmarks' depths, the accelerometer bias and the calibration states (see :meth:`_update`)."""
         hold = np.zeros(state.dim, dtype=bool)
-        hold[6 : state.map_start] = True
+        if state.layout.estimates_biases:
+            hold[state.layout.BA] = True
+        hold[state.robot_dim : state.map_start] = True
         hold[state.map_start + 6 * landmarks + 5] = True
         return hold
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vtolpose.estimator.core import covariance
 from vtolpose.estimator.vision.camera_model import CameraModel
 from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update
 from vtolpose.estimator.vision.landmarks import ROBOT_POSE_COLS, angles_jacobian, direction, direction_derivatives
@@ -151,7 +152,8 @@ def stacked_update(
     H = observability_constrained(H, unobservable_directions(state, indices))
     residual = (np.asarray(measured_uv, dtype=float) - predictions.uv[indices]).reshape(-1)
     R = np.eye(len(residual)) * pixel_sigma**2
-    return ekf_update(state, cols, H, residual, R, gate=None, held=held)
+    before = heading_gauge(state)
+    return _gauge_carried(state, before, ekf_update(state, cols, H, residual, R, gate=None, held=held))
 
 
 def _stacked_jacobian(
@@ -189,6 +191,7 @@ def iterated_update(
     R = np.eye(len(measured)) * pixel_sigma**2
 
     gauge = unobservable_directions(state, indices)
+    before = heading_gauge(state)
 
     def linearise(at: FilterState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # Only the matched landmarks, and no innovation covariances: the gain is formed from the stack.
@@ -217,7 +220,7 @@ def iterated_update(
         if step < 1e-9:
             break
     cols, H, residual = linearise(estimate)
-    return ekf_update(state, cols, H, residual, R, gate=None, held=held)
+    return _gauge_carried(state, before, ekf_update(state, cols, H, residual, R, gate=None, held=held))
 
 
 _DOWN = np.array([0.0, 0.0, 1.0])
@@ -243,6 +246,42 @@ def unobservable_directions(state: FilterState, indices: np.ndarray) -> np.ndarr
     N[rows[:, None] + np.arange(3), 3] = np.cross(_DOWN, y[:, 0:3])
     N[rows[:, None] + np.arange(3, 5), 3] = turned_rays
     return N
+
+
+def heading_gauge(state: FilterState) -> np.ndarray:
+    """The whole error state's response to turning the vehicle and the map together about world down through
+    the vehicle (per radian): what no camera measurement, nor a GPS at the vehicle, sees while it hovers."""
+    n = state.dim
+    N = np.zeros(n)
+    N[state.layout.V] = np.cross(_DOWN, state.v)
+    N[covariance.YAW] = 1.0
+    if state.n_landmarks:
+        y = state.landmarks
+        m = direction(y[:, 3], y[:, 4])
+        rows = state.map_start + LANDMARK_DIM * np.arange(state.n_landmarks)
+        N[rows[:, None] + np.arange(3)] = np.cross(_DOWN, y[:, 0:3] - state.p)
+        N[rows[:, None] + np.arange(3, 5)] = np.einsum("kij,kj->ki", angles_jacobian(m), np.cross(_DOWN, m))
+    return N
+
+
+def _gauge_carried(state: FilterState, before: np.ndarray, outcome: UpdateOutcome) -> UpdateOutcome:
+    """After an accepted update: the heading gauge carried from the prior estimate to the new one."""
+    if outcome.accepted:
+        carry_gauge(state, before)
+    return outcome
+
+
+def carry_gauge(state: FilterState, before: np.ndarray) -> None:
+    """The heading gauge carried from ``before`` (:func:`heading_gauge` at the estimate before an update) to the
+    estimate now (:func:`~vtolpose.estimator.core.covariance.transfer_gauge`); the smoother's recorder told, as of
+    any update. Every update that moves a state with a map needs it (a GPS fix or a rest too), or the camera's
+    next update reads heading out of the move."""
+    after = heading_gauge(state) if state.n_landmarks else before
+    if len(after) != len(before) or np.array_equal(after, before):
+        return  # no map, or nothing moved (a refused update)
+    covariance.transfer_gauge(state.cov, before, after)
+    if state.observer is not None:
+        state.observer.updated(state)
 
 
 def observability_constrained(H: np.ndarray, N: np.ndarray) -> np.ndarray:
