@@ -120,3 +120,16 @@ def test_without_the_option_nothing_is_estimated_or_reported():
     off.attach(plain)
     assert plain.calib.shape == (0,) and plain.dim == make_state().dim
     assert off.reading(plain) is None
+
+
+def test_the_heading_gauge_turns_the_map_where_it_sits_behind_the_offset():
+    """The turn about down that the camera cannot see moves the landmarks, wherever the offset state puts them,
+    and not the offset itself."""
+    from vtolpose.estimator.vision.camera_update import heading_gauge
+
+    plain = make_state()
+    state, _ = with_offset(0.004)
+    n = state.robot_dim
+    with_clock, without = heading_gauge(state), heading_gauge(plain)
+    assert with_clock[n] == 0.0
+    np.testing.assert_array_equal(np.r_[with_clock[:n], with_clock[n + 1 :]], without)
