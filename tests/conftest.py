@@ -57,6 +57,28 @@ def central_difference(f: Callable[[np.ndarray], np.ndarray], x: np.ndarray, h: 
     return np.stack(cols, axis=-1)
 
 
+def check_projection_jacobian(cam, P: np.ndarray) -> None:
+    """A camera model's ``project_jacobian`` against central differences of ``project`` at the points ``P``."""
+    uv, _, J = cam.project_jacobian(P)
+    for i in range(len(P)):
+        numeric = central_difference(lambda x: cam.project(x[None])[0][0], P[i], 1e-6 * P[i, 2])
+        np.testing.assert_allclose(J[i], numeric, rtol=1e-5, atol=1e-6 * np.abs(J[i]).max())
+    np.testing.assert_allclose(uv, cam.project(P)[0])
+
+
+def check_lens_jacobians(cam, xn: np.ndarray, undistort_rtol: float = 1e-7) -> None:
+    """A camera model's distortion Jacobian at ``xn`` and its undistortion Jacobian (d x / d uv) at their pixels,
+    each against central differences of the function itself."""
+    D = cam.distort_jacobian(xn)
+    for i in range(len(xn)):
+        np.testing.assert_allclose(D[i], central_difference(lambda x: cam.distort(x), xn[i], 1e-7), atol=1e-7)
+    uv = cam.normalized_to_pixel(xn)
+    U = cam.undistort_jacobian(xn)
+    for i in range(len(xn)):
+        np.testing.assert_allclose(U[i], central_difference(lambda p: cam.undistort(p[None])[0], uv[i], 1e-3),
+                                   rtol=undistort_rtol, atol=1e-9)
+
+
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
     """A loopback port nothing listens on now (TCP, or UDP with ``socket.SOCK_DGRAM``), for a real peer."""
     with socket.socket(socket.AF_INET, kind) as s:

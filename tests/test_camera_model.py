@@ -9,7 +9,7 @@ import pytest
 from vtolpose.estimator.core.calibration import CameraCalibration
 from vtolpose.estimator.vision.camera_model import CameraModel
 
-from conftest import central_difference
+from conftest import check_lens_jacobians, check_projection_jacobian
 
 DISTORTION = np.array([-0.28, 0.09, 0.0012, -0.0008, -0.01])
 
@@ -55,26 +55,11 @@ def test_no_distortion_is_the_plain_pinhole():
 
 
 def test_projection_jacobian_matches_central_differences():
-    cam = make_camera()
-    P = points(50, seed=2)
-    uv, front, J = cam.project_jacobian(P)
-    for i in range(len(P)):
-        numeric = central_difference(lambda x: cam.project(x[None])[0][0], P[i], 1e-6 * P[i, 2])
-        np.testing.assert_allclose(J[i], numeric, rtol=1e-5, atol=1e-6 * np.abs(J[i]).max())
-    np.testing.assert_allclose(uv, cam.project(P)[0])
+    check_projection_jacobian(make_camera(), points(50, seed=2))
 
 
 def test_distortion_and_undistortion_jacobians():
-    cam = make_camera()
-    xn = np.random.default_rng(3).uniform(-0.5, 0.5, size=(40, 2))
-    D = cam.distort_jacobian(xn)
-    for i in range(len(xn)):
-        np.testing.assert_allclose(D[i], central_difference(lambda x: cam.distort(x), xn[i], 1e-7), atol=1e-7)
-    # The undistortion Jacobian is d(x)/d(uv): compare with differences of undistort itself.
-    uv = cam.normalized_to_pixel(xn)
-    U = cam.undistort_jacobian(xn)
-    for i in range(len(xn)):
-        np.testing.assert_allclose(U[i], central_difference(lambda p: cam.undistort(p[None])[0], uv[i], 1e-3), atol=1e-9)
+    check_lens_jacobians(make_camera(), np.random.default_rng(3).uniform(-0.5, 0.5, size=(40, 2)))
 
 
 def test_points_behind_the_camera_are_flagged_with_nan_pixels():

@@ -10,7 +10,7 @@ from vtolpose.drivers.files.calibration_yaml import CalibrationError, calibratio
 from vtolpose.estimator.core.calibration import Calibration, CameraCalibration, ImuCalibration, ImuNoise
 from vtolpose.estimator.vision.camera_model import CameraModel
 
-from conftest import central_difference
+from conftest import check_lens_jacobians, check_projection_jacobian
 
 COEFFS = np.array([0.02, -0.01, 0.003, -0.0005])
 
@@ -58,27 +58,13 @@ def test_the_centre_pixel_and_zero_coefficients():
 
 
 def test_projection_jacobian_matches_central_differences():
-    cam = make_fisheye()
-    P = points(60, seed=2)
-    uv, front, J = cam.project_jacobian(P)
-    for i in range(len(P)):
-        numeric = central_difference(lambda x: cam.project(x[None])[0][0], P[i], 1e-6 * P[i, 2])
-        np.testing.assert_allclose(J[i], numeric, rtol=1e-5, atol=1e-6 * np.abs(J[i]).max())
-    np.testing.assert_allclose(uv, cam.project(P)[0])
+    check_projection_jacobian(make_fisheye(), points(60, seed=2))
 
 
 def test_distortion_and_undistortion_jacobians():
-    cam = make_fisheye()
     xn = np.random.default_rng(3).uniform(-1.5, 1.5, size=(40, 2))
     xn[0] = [1e-10, -2e-10]  # the series branch at the optical axis
-    D = cam.distort_jacobian(xn)
-    for i in range(len(xn)):
-        np.testing.assert_allclose(D[i], central_difference(lambda x: cam.distort(x), xn[i], 1e-7), atol=1e-7)
-    uv = cam.normalized_to_pixel(xn)
-    U = cam.undistort_jacobian(xn)
-    for i in range(len(xn)):
-        np.testing.assert_allclose(U[i], central_difference(lambda p: cam.undistort(p[None])[0], uv[i], 1e-3),
-                                   rtol=1e-6, atol=1e-9)
+    check_lens_jacobians(make_fisheye(), xn, undistort_rtol=1e-6)
 
 
 def test_calibration_checks_the_model_and_its_coefficient_count():

@@ -95,7 +95,8 @@ def test_missing_photos_say_why(tmp_path):
 def test_real_photo_mosaic_loads_the_shared_frames(texture, frame_shape):
     source = shared_photo_sources(SHARED_DATA)[texture]
     if source.missing():
-        pytest.skip(f"the shared recordings are not here: {source.missing()}")
+        pytest.skip(f"needs the shared recordings for the texture (present in CI, absent in a plain clone): "
+                    f"{source.missing()}")
     mosaic = photo_mosaic(source)
     rows, cols = source.tiles
     assert mosaic.shape == (rows * frame_shape[0], cols * frame_shape[1]) and mosaic.dtype == np.float32

@@ -133,6 +133,20 @@ def pose_fields(pose) -> tuple:
                  for value in (getattr(pose, f.name) for f in dataclasses.fields(pose)))
 
 
+def feed_in_batches(core: FusionCore, flight, size: int = 12) -> None:
+    """The flight's IMU samples in batches of ``size``, each GPS fix queued before the batch that passes it; flushed."""
+    fixes, k = gps_fixes(flight), 0
+    samples = imu_samples(flight)
+    for start in range(0, len(samples), size):
+        batch = samples[start:start + size]
+        while k < len(fixes) and fixes[k].t_ns <= batch[0].t_ns:
+            core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
+            k += 1
+        core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
+                           np.array([s.accel for s in batch]))
+    core.flush()
+
+
 def fused_pose_fields(flight, cfg, runs: bool) -> tuple[list[tuple], int]:
     """Every field of every fused pose, fed in batches of 12 samples: sample by sample (a prediction kept: no
     runs) or as runs with their poses as :class:`FusedRun` (``on_fused_run``); and how many came in runs."""
@@ -143,16 +157,7 @@ def fused_pose_fields(flight, cfg, runs: bool) -> tuple[list[tuple], int]:
         made.extend(pose_fields(pose) for pose in run.poses())
     core = FusionCore(new_estimator(flight, cfg), FusionOptions(delay_s=DELAY, predict=not runs),
                       on_fused=lambda pose: made.append(pose_fields(pose)), on_fused_run=take_run if runs else None)
-    fixes, k = gps_fixes(flight), 0
-    samples = imu_samples(flight)
-    for start in range(0, len(samples), 12):
-        batch = samples[start:start + 12]
-        while k < len(fixes) and fixes[k].t_ns <= batch[0].t_ns:
-            core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
-            k += 1
-        core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
-                           np.array([s.accel for s in batch]))
-    core.flush()
+    feed_in_batches(core, flight)
     return made, sum(in_runs)
 
 
@@ -201,16 +206,7 @@ def test_a_fused_pose_never_changes_after_it_was_made(flight, predict, heading):
     made = []
     core = FusionCore(new_estimator(flight, cfg), FusionOptions(delay_s=DELAY, predict=predict),
                       on_fused=lambda pose: made.append((pose, pose_fields(pose))))
-    fixes, k = gps_fixes(flight), 0
-    samples = imu_samples(flight)
-    for start in range(0, len(samples), 12):
-        batch = samples[start:start + 12]
-        while k < len(fixes) and fixes[k].t_ns <= batch[0].t_ns:
-            core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
-            k += 1
-        core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
-                           np.array([s.accel for s in batch]))
-    core.flush()
+    feed_in_batches(core, flight)
     est = core.est
     assert len(made) > 1000 and est.counts["gps"].used > 100 and est.counts["still"].used > 0
     if heading == "gps":

@@ -248,37 +248,41 @@ def unobservable_directions(state: FilterState, indices: np.ndarray) -> np.ndarr
     return N
 
 
-def heading_gauge(state: FilterState) -> np.ndarray:
+def heading_gauge(state: FilterState) -> np.ndarray | None:
     """The whole error state's response to turning the vehicle and the map together about world down through
-    the vehicle (per radian): what no camera measurement, nor a GPS at the vehicle, sees while it hovers."""
+    the vehicle (per radian): what no camera measurement, nor a GPS at the vehicle, sees while it hovers.
+    None without a map: nothing then for an update to carry."""
+    if not state.n_landmarks:
+        return None
     n = state.dim
     N = np.zeros(n)
     N[state.layout.V] = np.cross(_DOWN, state.v)
     N[covariance.YAW] = 1.0
-    if state.n_landmarks:
-        y = state.landmarks
-        m = direction(y[:, 3], y[:, 4])
-        rows = state.map_start + LANDMARK_DIM * np.arange(state.n_landmarks)
-        N[rows[:, None] + np.arange(3)] = np.cross(_DOWN, y[:, 0:3] - state.p)
-        N[rows[:, None] + np.arange(3, 5)] = np.einsum("kij,kj->ki", angles_jacobian(m), np.cross(_DOWN, m))
+    y = state.landmarks
+    m = direction(y[:, 3], y[:, 4])
+    rows = state.map_start + LANDMARK_DIM * np.arange(state.n_landmarks)
+    N[rows[:, None] + np.arange(3)] = np.cross(_DOWN, y[:, 0:3] - state.p)
+    N[rows[:, None] + np.arange(3, 5)] = np.einsum("kij,kj->ki", angles_jacobian(m), np.cross(_DOWN, m))
     return N
 
 
-def _gauge_carried(state: FilterState, before: np.ndarray, outcome: UpdateOutcome) -> UpdateOutcome:
+def _gauge_carried(state: FilterState, before: np.ndarray | None, outcome: UpdateOutcome) -> UpdateOutcome:
     """After an accepted update: the heading gauge carried from the prior estimate to the new one."""
     if outcome.accepted:
         carry_gauge(state, before)
     return outcome
 
 
-def carry_gauge(state: FilterState, before: np.ndarray) -> None:
+def carry_gauge(state: FilterState, before: np.ndarray | None) -> None:
     """The heading gauge carried from ``before`` (:func:`heading_gauge` at the estimate before an update) to the
     estimate now (:func:`~vtolpose.estimator.core.covariance.transfer_gauge`); the smoother's recorder told, as of
     any update. Every update that moves a state with a map needs it (a GPS fix or a rest too), or the camera's
     next update reads heading out of the move."""
-    after = heading_gauge(state) if state.n_landmarks else before
-    if len(after) != len(before) or np.array_equal(after, before):
-        return  # no map, or nothing moved (a refused update)
+    if before is None:
+        return  # no map
+    after = heading_gauge(state)
+    if after is None or len(after) != len(before) or np.array_equal(after, before):
+        return  # the map gone, or nothing moved (a refused update)
     covariance.transfer_gauge(state.cov, before, after)
     if state.observer is not None:
         state.observer.updated(state)
