@@ -9,6 +9,7 @@ from conftest import central_difference
 from test_landmarks import CAMERA, R_BC, T_BC, make_state
 from vtolpose.estimator.core import covariance
 from vtolpose.estimator.core.rotation import quat_exp, quat_mul
+from vtolpose.estimator.core.state import NO_CALIBRATION
 from vtolpose.estimator.vision.camera_update import _stacked_jacobian, predict, unobservable_directions
 from vtolpose.estimator.vision.time_offset import TimeOffsetEstimate, TimeOffsetOptions, at_frame_time
 
@@ -38,7 +39,7 @@ def test_the_offset_state_sits_between_the_robot_and_the_map_uncorrelated():
 def test_pixels_are_predicted_at_the_pose_the_frame_saw():
     state, _ = with_offset(0.02)
     shifted = state.copy()
-    shifted.calib = shifted.calib[:0]
+    shifted.calib, shifted.calib_layout = shifted.calib[:0], NO_CALIBRATION
     shifted.cov = covariance.keep_states(state.cov, np.r_[0 : state.robot_dim, state.map_start : state.dim])
     shifted.p = state.p + 0.02 * state.v
     shifted.q = quat_mul(state.q, quat_exp(0.02 * RATE_B))

@@ -6,8 +6,9 @@ error is simply ``δθ_D`` and the quaternion stays unit without renormalisation
 The two robot variants share this code: ``thesis`` (p, v, q; 9 error states) and ``biases``
 (adds gyro and accelerometer biases; 15). Landmarks occupy 6 error states each after the
 robot block (see ``vtolpose.estimator.vision.landmarks``). A camera whose calibration is estimated online
-puts its calibration states (``calib``: the camera's residual time offset) between the robot and the landmarks:
-like the map, a propagation leaves them alone (identity transition, no process noise).
+puts its calibration states (``calib``, described by ``calib_layout``: the camera's residual time offset, the
+error of its mounting) between the robot and the landmarks: like the map, a propagation leaves them alone
+(identity transition, no process noise).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from vtolpose.estimator.core.rotation import quat_product, quat_to_rot, rotvec_quat
+from vtolpose.estimator.core.rotation import quat_conj, quat_exp, quat_log, quat_mul, quat_product, quat_to_rot, rotvec_quat
 
 VARIANTS = ("thesis", "biases")
 LANDMARK_DIM = 6
@@ -49,6 +50,56 @@ class StateLayout:
     BA = slice(12, 15)
 
 
+@dataclass(frozen=True, slots=True)
+class CalibrationLayout:
+    """Which camera calibration states a state holds, in this order: the time offset ``t_d`` (1 state), the
+    mounting's rotation correction ``φ`` (3) and its translation correction ``δt_BC`` (3), the latter two in
+    body axes (``vision.mounting``). The rotation is a rotation vector: an error ``δφ`` composes with it,
+    ``Exp(φ') = Exp(δφ) Exp(φ)``, the others add."""
+
+    time_offset: bool = False
+    mounting: bool = False
+
+    @property
+    def size(self) -> int:
+        return int(self.time_offset) + 6 * int(self.mounting)
+
+    @property
+    def offset(self) -> int:
+        """The time offset's index in ``calib`` (it must be present)."""
+        return 0
+
+    @property
+    def rotation(self) -> slice:
+        """The mounting rotation's indices in ``calib`` (it must be present)."""
+        start = int(self.time_offset)
+        return slice(start, start + 3)
+
+    @property
+    def translation(self) -> slice:
+        start = int(self.time_offset) + 3
+        return slice(start, start + 3)
+
+    def plus(self, calib: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """``calib ⊞ dx``: the error ``dx`` folded into the calibration values."""
+        out = calib + dx
+        if self.mounting:
+            r = self.rotation
+            out[r] = quat_log(quat_mul(quat_exp(dx[r]), quat_exp(calib[r])))
+        return out
+
+    def minus(self, calib: np.ndarray, other: np.ndarray) -> np.ndarray:
+        """``calib ⊟ other``: the error that takes ``other`` to ``calib``."""
+        out = calib - other
+        if self.mounting:
+            r = self.rotation
+            out[r] = quat_log(quat_mul(quat_exp(calib[r]), quat_conj(quat_exp(other[r]))))
+        return out
+
+
+NO_CALIBRATION = CalibrationLayout()
+
+
 class FilterState:
     """Nominal state plus covariance; the single mutable object the filter works on.
 
@@ -67,7 +118,8 @@ class FilterState:
         self.b_g = np.zeros(3)
         self.b_a = np.zeros(3)
         self.landmarks = np.zeros((0, LANDMARK_DIM))
-        self.calib = np.zeros(0)  # camera calibration states (vision.time_offset), between the robot and the map
+        self.calib = np.zeros(0)  # camera calibration states, between the robot and the map
+        self.calib_layout = NO_CALIBRATION  # which they are
         self.cov = np.zeros((layout.robot_dim, layout.robot_dim))
         # Told of every measurement update (``core.kalman.ekf_update``): the smoother's recorder.
         # Copies do not carry it: an update on a scratch copy is no update of the filter.
@@ -117,7 +169,7 @@ class FilterState:
             self.b_g = self.b_g + dx[lay.BG]
             self.b_a = self.b_a + dx[lay.BA]
         if self.calib.shape[0]:
-            self.calib = self.calib + dx[self.calib_slice]
+            self.calib = self.calib_layout.plus(self.calib, dx[self.calib_slice])
         if self.n_landmarks:
             self.landmarks = self.landmarks + dx[self.map_start :].reshape(-1, LANDMARK_DIM)
 
@@ -131,7 +183,7 @@ class FilterState:
         other.t_ns = self.t_ns
         other.p, other.v, other.q = self.p.copy(), self.v.copy(), self.q.copy()
         other.b_g, other.b_a = self.b_g.copy(), self.b_a.copy()
-        other.landmarks, other.calib = self.landmarks.copy(), self.calib.copy()
+        other.landmarks, other.calib, other.calib_layout = self.landmarks.copy(), self.calib.copy(), self.calib_layout
         other.cov = self.cov.copy()
         return other
 
@@ -140,6 +192,7 @@ class FilterState:
         states go with the old one (the camera pipeline keeps the calibration's estimate to put back)."""
         self.landmarks = self.landmarks[:0]
         self.calib = self.calib[:0]
+        self.calib_layout = NO_CALIBRATION
         self.cov = cov
 
     def is_finite(self) -> bool:

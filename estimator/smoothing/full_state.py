@@ -61,7 +61,8 @@ class FullStateRecorder:
 
     ``landmark_ids()`` gives the ids of the landmarks in state order (the camera pipeline's book).
     No resets: the flight must be one segment (check with a StepRecorder beside it). No calibration states
-    (``estimator.camera.estimate_time_offset`` off): the pass knows the robot and the landmarks only.
+    (``estimator.camera.estimate_time_offset`` and ``estimate_extrinsics`` off): the pass knows the robot and the
+    landmarks only.
     """
 
     def __init__(self, landmark_ids: Callable[[], np.ndarray]) -> None:
@@ -75,7 +76,9 @@ class FullStateRecorder:
         if len(ids) != state.n_landmarks:
             raise ValueError("landmark ids and the state's landmarks disagree")
         if state.calib.shape[0]:
-            raise ValueError("the full-state pass has no calibration states: run without estimating the camera's time offset")
+            raise ValueError("the full-state pass has no calibration states (it would smooth the camera's time offset "
+                             "and mounting as if they were landmarks): run without estimating them "
+                             "(estimator.camera.estimate_time_offset and estimate_extrinsics off)")
         return _Posterior(state.t_ns, pack_nominal(state), ids, state.landmarks.copy()), state.cov.copy()
 
     def _observe(self, state: FilterState) -> tuple[_Posterior, np.ndarray]:

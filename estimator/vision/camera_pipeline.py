@@ -26,6 +26,7 @@ from vtolpose.estimator.vision.landmarks import (
     add_landmarks,
     baseline_significance,
     initial_landmarks,
+    landmark_points,
     map_prior_jacobians,
     remove_landmarks,
     world_rays,
@@ -41,6 +42,7 @@ from vtolpose.estimator.vision.map_manager import (
     select_new_features,
 )
 from vtolpose.estimator.core.state import FilterState
+from vtolpose.estimator.vision.mounting import MountingEstimate, MountingOptions, mounted, new_landmark_columns
 from vtolpose.estimator.vision.time_offset import TimeOffsetEstimate, TimeOffsetOptions, at_frame_time, offset_column
 
 
@@ -50,6 +52,7 @@ class CameraOptions:
     association: AssociationOptions = field(default_factory=AssociationOptions)
     map: MapOptions = field(default_factory=MapOptions)
     time_offset: TimeOffsetOptions = field(default_factory=TimeOffsetOptions)
+    mounting: MountingOptions = field(default_factory=MountingOptions)
 
 
 @dataclass(slots=True)
@@ -88,10 +91,11 @@ class CameraPipeline:
         self.options = options or CameraOptions()
         self.calibration = calibration
         self.camera = CameraModel(calibration)
-        self.R_BC = np.asarray(calibration.R_BC, dtype=float)
-        self.t_BC = np.asarray(calibration.t_BC, dtype=float)
+        self.R_BC = np.asarray(calibration.R_BC, dtype=float)  # as configured: a state may hold a correction
+        self.t_BC = np.asarray(calibration.t_BC, dtype=float)  # (vision.mounting.mounted)
         self.book = LandmarkBook()
         self.time_offset = TimeOffsetEstimate(self.options.time_offset)  # what it is while no state holds it
+        self.mounting = MountingEstimate(self.options.mounting)  # likewise
         self._rate_b = np.zeros(3)  # the frame's bias-corrected gyro
         self.initialized_total = 0
         self.deleted_total: dict[str, int] = {}
@@ -99,6 +103,7 @@ class CameraPipeline:
     def attach_calibration(self, state: FilterState) -> None:
         """Give ``state`` the calibration states the options ask for, if it has none (a new or rebuilt state)."""
         self.time_offset.attach(state)
+        self.mounting.attach(state)
 
     def clear(self, state: FilterState) -> int:
         """Forget every landmark (after a filter reset: they belong to the old frame)."""
@@ -182,6 +187,7 @@ class CameraPipeline:
             self._add(state, features, in_view, occupied, absolute_position, report)
         report.n_landmarks = state.n_landmarks
         self.time_offset.remember(state)
+        self.mounting.remember(state)
         t4 = clock()
         report.timing_ms = {
             "predict": (t1 - t0) * 1e3, "associate": (t2 - t1) * 1e3, "update": (t3 - t2) * 1e3,
@@ -214,7 +220,7 @@ class CameraPipeline:
         """
         opts = self.options
         known = depth_known(self.book, state, landmarks, opts.map)
-        baseline = baseline_significance(state, landmarks, self.t_BC) >= opts.map.min_baseline_chi2
+        baseline = baseline_significance(state, landmarks, mounted(state, self.R_BC, self.t_BC)[1]) >= opts.map.min_baseline_chi2
         outcome = None
         if np.any(known):
             outcome = stacked_update(state, pred, landmarks[known], uv[known], opts.pixel_sigma, held)
@@ -237,7 +243,7 @@ class CameraPipeline:
 
     @staticmethod
     def _no_baseline_held(state: FilterState, landmarks: np.ndarray) -> np.ndarray:
-        """The landmarks' depths, both biases and the calibration states (see :meth:`_update`)."""
+        """The landmarks' depths, both biases and the calibration states, time offset and mounting (see :meth:`_update`)."""
         hold = np.zeros(state.dim, dtype=bool)
         if state.layout.estimates_biases:
             hold[state.layout.BG] = True
@@ -254,25 +260,32 @@ class CameraPipeline:
         if len(chosen) == 0:
             return
         at = at_frame_time(state, self._rate_b)  # the pose the frame saw: the state's own without a time offset
+        R_BC, t_BC = mounted(state, self.R_BC, self.t_BC)  # the state's estimate, if it holds one
         R_WB = at.R
-        R_WC = R_WB @ self.R_BC
-        c_w = at.p + R_WB @ self.t_BC
+        R_WC = R_WB @ R_BC
+        c_w = at.p + R_WB @ t_BC
         uv = features.keypoints[chosen]
-        rays_w, xn = world_rays(R_WB, self.R_BC, self.camera, uv)
+        rays_w, xn = world_rays(R_WB, R_BC, self.camera, uv)
         rays_w /= np.linalg.norm(rays_w, axis=1, keepdims=True)
         rays_c = np.column_stack([xn, np.ones(len(xn))])
         reference = scene_depth(self.book, at, R_WC, c_w, in_view, mo)
         rho0, sigma_rho, source = depth_priors(rays_w, rays_c, c_w, absolute_position,
                                                None if reference is None else reference[0], mo)
-        y, J_x, J_z = initial_landmarks(at.p, R_WB, self.camera, self.R_BC, self.t_BC, uv, rho0)
+        y, J_x, J_z = initial_landmarks(at.p, R_WB, self.camera, R_BC, t_BC, uv, rho0)
         extra_cols = J_extra = None
         if source == "map":
             # The prior is the reference landmark's depth, a function of the state: its error is
             # shared, not new (only the scene's spread, depth_sigma_rel, is independent).
             extra_cols, J_extra = map_prior_jacobians(at, R_WC, c_w, reference[1], rho0, J_x)
-        if at is not state:  # placed from the pose at t + t_d: the new landmarks share the offset's error
+        if state.calib.shape[0]:  # placed with the calibration's estimate: the new landmarks share its error
+            calib = []
+            if state.calib_layout.time_offset:  # placed from the pose at t + t_d
+                calib.append(offset_column(J_x, state, self._rate_b))
+            if state.calib_layout.mounting:  # from the camera centre and along the ray the mounting gives
+                point = None if source != "map" else landmark_points(state.landmarks[reference[1]][None, :])[0]
+                calib.append(new_landmark_columns(R_WB, R_BC, rays_c, None if point is None else (point, c_w, rho0)))
             calib_cols = np.arange(state.robot_dim, state.map_start)
-            J_calib = offset_column(J_x, state, self._rate_b)
+            J_calib = np.concatenate(calib, axis=2)
             extra_cols = calib_cols if extra_cols is None else np.concatenate([extra_cols, calib_cols])
             J_extra = J_calib if J_extra is None else np.concatenate([J_extra, J_calib], axis=2)
         px2 = self.options.pixel_sigma**2

@@ -10,7 +10,8 @@ Jacobians are analytic, with the global attitude error ``R_true = Exp(δθ) R``:
 ``∂h_C/∂δp = −ρ A``, ``∂h_C/∂δθ = A ([h_W]× + ρ [R t_BC]×)`` with ``A = R_BCᵀ Rᵀ``, and
 ``∂h_C/∂(a, θ, φ, ρ) = A [ρ I, ∂m/∂θ, ∂m/∂φ, a − c_W]``. Everything is batched over landmarks.
 With the camera's time offset estimated (``vision.time_offset``) the pose is the one at the frame's
-instant and the robot's columns are ``[δp, δθ, δt_d]`` (:func:`robot_cols`).
+instant; with its mounting estimated (``vision.mounting``) ``R_BC``, ``t_BC`` are the state's estimate. The robot's
+columns are ``[δp, δθ]`` and then the calibration states in the state's order (:func:`robot_cols`).
 The update is the shared :func:`vtolpose.estimator.core.kalman.ekf_update` over the sparse column set of a
 frame's matches, once (:func:`stacked_update`) or relinearised (:func:`iterated_update`).
 """
@@ -27,6 +28,7 @@ from vtolpose.estimator.core.kalman import UpdateOutcome, ekf_update
 from vtolpose.estimator.vision.landmarks import ROBOT_POSE_COLS, angles_jacobian, direction, direction_derivatives
 from vtolpose.estimator.core.rotation import quat_conj, quat_log, quat_mul, skew
 from vtolpose.estimator.core.state import LANDMARK_DIM, FilterState
+from vtolpose.estimator.vision.mounting import measurement_columns, mounted
 from vtolpose.estimator.vision.time_offset import at_frame_time, offset_column
 
 _NO_RATE = np.zeros(3)
@@ -66,11 +68,19 @@ def predict_h(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``h_C (M, 3)``, ``h_W``, ``∂h_C/∂[δp, δθ, calibration] (M, 3, 6 + c)`` and ``∂h_C/∂y (M, 3, 6)`` (of
     landmarks ``indices`` only, if given). ``rate_b``: the bias-corrected gyro, which turns the pose over a
-    time offset (used only when the state estimates one)."""
+    time offset (used only when the state estimates one). ``R_BC``, ``t_BC``: the configured mounting (the
+    state's estimate of it is used when it holds one)."""
     at = at_frame_time(state, rate_b)
+    R_BC, t_BC = mounted(state, R_BC, t_BC)
     h_c, h_w, dh_pose, dh_y = _predict_h_at(at, R_BC, t_BC, indices)
-    if at is not state:
-        dh_pose = np.concatenate([dh_pose, offset_column(dh_pose, state, rate_b)], axis=2)
+    calib = []
+    if state.calib_layout.time_offset:
+        calib.append(offset_column(dh_pose, state, rate_b))
+    if state.calib_layout.mounting:
+        rho = (state.landmarks if indices is None else state.landmarks[indices])[:, 5]
+        calib.append(measurement_columns(h_c, rho, R_BC))
+    if calib:
+        dh_pose = np.concatenate([dh_pose, *calib], axis=2)
     return h_c, h_w, dh_pose, dh_y
 
 
@@ -202,7 +212,7 @@ def iterated_update(
         moved = np.concatenate([
             state.p - at.p,
             quat_log(quat_mul(state.q, quat_conj(at.q))),
-            state.calib - at.calib,
+            state.calib_layout.minus(state.calib, at.calib),
             (state.landmarks[indices] - at.landmarks[indices]).reshape(-1),
         ])
         return cols, H, measured - uv.reshape(-1) - H @ moved
@@ -302,7 +312,7 @@ def _nominal_copy(state: FilterState) -> FilterState:
     other = FilterState(state.layout)
     other.t_ns, other.p, other.v, other.q = state.t_ns, state.p.copy(), state.v.copy(), state.q.copy()
     other.b_g, other.b_a, other.landmarks = state.b_g.copy(), state.b_a.copy(), state.landmarks.copy()
-    other.calib = state.calib.copy()
+    other.calib, other.calib_layout = state.calib.copy(), state.calib_layout
     other.cov = state.cov
     return other
 
@@ -325,4 +335,4 @@ def _correction(cov: np.ndarray, cols: np.ndarray, H: np.ndarray, residual: np.n
 def assign_state(state: FilterState, other: FilterState) -> None:
     """Make ``state`` hold ``other``'s values, in place (the estimator holds this very object)."""
     state.p, state.v, state.q, state.b_g, state.b_a = other.p, other.v, other.q, other.b_g, other.b_a
-    state.landmarks, state.calib, state.cov = other.landmarks, other.calib, other.cov
+    state.landmarks, state.calib, state.calib_layout, state.cov = other.landmarks, other.calib, other.calib_layout, other.cov

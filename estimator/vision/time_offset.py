@@ -19,16 +19,13 @@ variance it had (its correlations, with the map that went, go too).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from vtolpose.estimator.core import covariance
 from vtolpose.estimator.core.rotation import quat_mul, rotvec_quat
 from vtolpose.estimator.core.state import FilterState
-
-TIME_OFFSET = 0  # the offset's index among the calibration states
-
 
 @dataclass(frozen=True, slots=True)
 class TimeOffsetOptions:
@@ -50,42 +47,45 @@ class TimeOffsetEstimate:
         self.used = False  # a state has held it: the camera has been in use
 
     def attach(self, state: FilterState) -> None:
-        """Give ``state`` its offset state, if the option is on and it has none yet."""
-        if not self.options.estimate or state.calib.shape[0]:
+        """Give ``state`` its offset state, if the option is on and it has none yet (first among the calibration states)."""
+        if not self.options.estimate or state.calib_layout.time_offset:
             return
         n = state.robot_dim
         state.cov = covariance.insert_states(state.cov, n, np.array([[self.variance]]))
-        state.calib = np.array([self.value_s])
+        state.calib = np.concatenate([[self.value_s], state.calib])
+        state.calib_layout = replace(state.calib_layout, time_offset=True)
         self.used = True
 
     def remember(self, state: FilterState) -> None:
         """Keep what ``state`` knows of the offset (it may be rebuilt without it)."""
-        if state.calib.shape[0]:
-            self.value_s = float(state.calib[TIME_OFFSET])
-            self.variance = float(covariance.block_variances(state.cov, state.calib_slice)[TIME_OFFSET])
+        if state.calib_layout.time_offset:
+            i = state.calib_layout.offset
+            self.value_s = float(state.calib[i])
+            self.variance = float(covariance.block_variances(state.cov, state.calib_slice)[i])
 
     def reading(self, state: FilterState | None) -> tuple[float, float] | None:
         """The offset's estimate and sigma [s], from ``state`` if it holds it; None if never estimated."""
         if not self.used:
             return None
         value, variance = self.value_s, self.variance
-        if state is not None and state.calib.shape[0]:
-            value = float(state.calib[TIME_OFFSET])
-            variance = float(covariance.block_variances(state.cov, state.calib_slice)[TIME_OFFSET])
+        if state is not None and state.calib_layout.time_offset:
+            i = state.calib_layout.offset
+            value = float(state.calib[i])
+            variance = float(covariance.block_variances(state.cov, state.calib_slice)[i])
         return value, float(np.sqrt(max(variance, 0.0)))
 
 
 def at_frame_time(state: FilterState, rate_b: np.ndarray) -> FilterState:
     """``state``'s nominal pose moved to the frame's instant ``t + t_d`` (a copy; the covariance shared, read only).
     ``state`` itself when it has no offset state."""
-    if not state.calib.shape[0]:
+    if not state.calib_layout.time_offset:
         return state
-    t_d = float(state.calib[TIME_OFFSET])
+    t_d = float(state.calib[state.calib_layout.offset])
     other = FilterState(state.layout)
     other.t_ns, other.v, other.b_g, other.b_a = state.t_ns, state.v, state.b_g, state.b_a
     other.p = state.p + state.v * t_d
     other.q = quat_mul(state.q, np.array(rotvec_quat(*(np.asarray(rate_b, dtype=float) * t_d).tolist())))
-    other.landmarks, other.calib, other.cov = state.landmarks, state.calib, state.cov
+    other.landmarks, other.calib, other.calib_layout, other.cov = state.landmarks, state.calib, state.calib_layout, state.cov
     return other
 
 
