@@ -121,5 +121,6 @@ PUBLIC: dict[str, str] = {
     'extract_features': 'vtolpose.estimator.vision.features',
     'FrameQualityOptions': 'vtolpose.estimator.vision.frame_quality',
     'MapOptions': 'vtolpose.estimator.vision.map_manager',
+    'MountingOptions': 'vtolpose.estimator.vision.mounting',
     'TimeOffsetOptions': 'vtolpose.estimator.vision.time_offset',
 }

@@ -975,6 +975,7 @@ class Estimator:
             visual_start_attempts=visual.attempts if visual is not None else 0,
             gps_noise=MappingProxyType(self.gps_noise.report()),
             camera_time_offset_s=camera.time_offset.reading(state) if camera is not None else None,
+            camera_mounting=camera.mounting.reading(state) if camera is not None else None,
         )
 
     def finish_recording(self) -> None:

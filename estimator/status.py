@@ -8,6 +8,7 @@ change the estimator. Events carry their kind and figures as fields, so nobody p
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import Enum
 from types import MappingProxyType
@@ -77,6 +78,10 @@ class EstimatorStatus:
     # The camera's residual time offset beyond the configured one, estimated online: (estimate, sigma) in
     # seconds (a frame stamped t was taken at t + estimate); None unless estimated and the camera used.
     camera_time_offset_s: tuple[float, float] | None = None
+    # The camera's mounting correction beyond the configured R_BC, t_BC, estimated online (vision.mounting): the
+    # estimate [φ (rad, body axes: R_BC = Exp(φ) R_BC⁰), c (m, t_BC = t_BC⁰ + c)] and its six sigmas; None unless
+    # estimated and the camera used.
+    camera_mounting: tuple[tuple[float, ...], tuple[float, ...]] | None = None
 
     @property
     def initialised(self) -> bool:
@@ -114,6 +119,18 @@ class EstimatorStatus:
             return None
         value, sigma = self.camera_time_offset_s
         return {"estimate": round(value * 1e3, 3), "sigma": round(sigma * 1e3, 3)}
+
+    def camera_mounting_document(self) -> dict[str, dict[str, list[float]]] | None:
+        """The estimated mounting correction and its sigmas, rotation in degrees and translation in mm, rounded for
+        documents; None unless estimated."""
+        if self.camera_mounting is None:
+            return None
+        value, sigma = self.camera_mounting
+        deg, mm = 180.0 / math.pi, 1e3
+        return {
+            "rotation_deg": {"estimate": [round(x * deg, 3) for x in value[0:3]], "sigma": [round(x * deg, 3) for x in sigma[0:3]]},
+            "translation_mm": {"estimate": [round(x * mm, 2) for x in value[3:6]], "sigma": [round(x * mm, 2) for x in sigma[3:6]]},
+        }
 
     def first(self, kind: EventKind) -> EstimatorEvent | None:
         """The first event of ``kind``, if any."""

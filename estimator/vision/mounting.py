@@ -70,12 +70,12 @@ class MountingEstimate:
         if state.calib_layout.mounting:
             self.value, self.cov = _held(state)
 
-    def reading(self, state: FilterState | None) -> tuple[np.ndarray, np.ndarray] | None:
+    def reading(self, state: FilterState | None) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
         """The correction ``[φ (rad), c (m)]`` and its six sigmas, from ``state`` if it holds them; None if never estimated."""
         if not self.used:
             return None
         value, cov = _held(state) if state is not None and state.calib_layout.mounting else (self.value, self.cov)
-        return value.copy(), np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return tuple(float(x) for x in value), tuple(float(x) for x in np.sqrt(np.maximum(np.diag(cov), 0.0)))
 
 
 def _held(state: FilterState) -> tuple[np.ndarray, np.ndarray]:

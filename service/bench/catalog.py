@@ -31,6 +31,7 @@ SUMMARIES: dict[str, str] = {
     'results': "The tables of docs/results.md again: Tests 1-3 and the starts in the air (the doc's figures beside).",
     'camera-matrix': 'Tests 1–3 per cell of :data:`CELLS`; prints progress per cell, then the table (long: rendered flights).',
     'camera-clock': 'Base and aggressive cells, Tests 2 and 3: the camera time offset right and 10 ms wrong, its estimation off and on.',
+    'camera-mounting': 'Base and aggressive cells, Tests 2 and 3: the camera mounting right and 1° wrong (and 10 ms wrong too), its estimation off and on.',
     'cold-start': "First replay with an empty kernel cache against the second (target ≤ 1.5 ×), compile time, daemon's first pose.",
 }
 
@@ -38,7 +39,7 @@ SUMMARIES: dict[str, str] = {
 LONG_BENCHMARKS = (
     'runtime-hour', 'soak-camera', 'fault-targets', 'fault-table', 'sensor-lies', 'euroc', 'euroc-reference',
     'euroc-causes', 'zenoh-queries', 'memory-paced', 'smoothing-sim', 'smoothing-landmarks', 'smoothing-hour',
-    'smoothing-latency', 'batch', 'results', 'camera-matrix', 'cold-start', 'camera-clock',
+    'smoothing-latency', 'batch', 'results', 'camera-matrix', 'cold-start', 'camera-clock', 'camera-mounting',
 )
 
 # Several of the above together (camera: features, then replay-camera): only when named.

@@ -30,6 +30,7 @@ from vtolpose.service.bench.sensor_lies import bench_sensor_lies
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.batch import bench_batch
 from vtolpose.service.bench.camera_clock import bench_camera_clock
+from vtolpose.service.bench.camera_mounting import bench_camera_mounting
 from vtolpose.service.bench.camera_matrix import bench_camera_matrix
 from vtolpose.service.bench.camera import bench_camera, bench_camera_update, bench_features, bench_replay_camera
 from vtolpose.service.bench.euroc import bench_euroc
@@ -137,6 +138,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "cold-start": bench_cold_start,
     "camera-matrix": bench_camera_matrix,
     "camera-clock": bench_camera_clock,
+    "camera-mounting": bench_camera_mounting,
 }
 
 

@@ -283,7 +283,17 @@ def camera_summary(result: ReplayResult) -> dict | None:
         "rejected_matches": dict(sorted(matches["rejected"].items())) if matches is not None else {},
         "timing_ms": timing,
         "time_offset_ms": status.camera_time_offset_ms(),
+        "extrinsics": status.camera_mounting_document(),
     }
+
+
+def mounting_lines(mounting: dict) -> list[str]:
+    """The camera mounting's estimated correction, per body axis, for the summary."""
+    rot, tr = mounting["rotation_deg"], mounting["translation_mm"]
+    turn = ", ".join(f"{e:+.3f} ± {s:.3f}" for e, s in zip(rot["estimate"], rot["sigma"]))
+    shift = ", ".join(f"{e:+.1f} ± {s:.1f}" for e, s in zip(tr["estimate"], tr["sigma"]))
+    return [f"  camera mounting beyond the configured one (body x, y, z): rotation {turn} deg (R_BC = Exp(φ) R_BC as "
+            f"configured), translation {shift} mm"]
 
 
 # What each measurement count is, for a person reading the summary (the JSON keeps the short names).
@@ -393,6 +403,9 @@ def count_lines(report: dict) -> list[str]:
         if offset is not None:
             lines.append(f"  camera time offset beyond the configured one: {offset['estimate']:+.2f} ± {offset['sigma']:.2f} ms "
                          "(a frame was taken this much after its stamp)")
+        mounting = cam.get("extrinsics")
+        if mounting is not None:
+            lines += mounting_lines(mounting)
     lines += smoothing_lines(report)
     lines.append(f"  {report['duration_s']:.1f} s of data in {report['wall_s']:.2f} s: {report['realtime_factor']}x real time"
                  + (f" ({report['kernels']})" if report.get("kernels") else ""))

@@ -232,6 +232,9 @@ class StatusTracker:
         offset = status.camera_time_offset_ms()
         if offset is not None:
             doc["camera_time_offset_ms"] = offset  # estimated beyond calibration.camera.time_offset_s
+        mounting = status.camera_mounting_document()
+        if mounting is not None:
+            doc["camera_mounting"] = mounting  # the correction estimated beyond the configured camera R_BC, t_BC
         if (waiting and waiting["check"]) != self._logged_wait:
             if waiting is not None:
                 log.info("visual-inertial start waiting: %s", waiting["text"])

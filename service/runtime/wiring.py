@@ -19,7 +19,7 @@ from vtolpose.config.sections import Sections, build_sections
 from vtolpose.estimator import (
     AssociationOptions, Calibration, CameraOptions, FeatureOptions, FilterOptions, FrameQualityOptions,
     HeadingBankOptions, HealthOptions, ImuNoise, ImuRange, InitOptions, MapOptions, STANDARD_GRAVITY,
-    StillnessOptions, TimeOffsetOptions, VisualInertialOptions,
+    MountingOptions, StillnessOptions, TimeOffsetOptions, VisualInertialOptions,
 )
 
 NOISE_KEYS = ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", "accel_random_walk")
@@ -105,8 +105,10 @@ def camera_options(cfg: dict[str, Any]) -> CameraOptions:
     assoc = {k: values.pop(k) for k in ("gate_px", "ratio_test", "max_descriptor_distance", "max_hamming_fraction", "chi2")}
     pixel_sigma = values.pop("pixel_sigma")
     time_offset = TimeOffsetOptions(values.pop("estimate_time_offset"), values.pop("time_offset_sigma_s"))
+    mounting = MountingOptions(values.pop("estimate_extrinsics"), values.pop("extrinsic_rotation_sigma_deg"),
+                               values.pop("extrinsic_translation_sigma_m"))
     return CameraOptions(pixel_sigma=pixel_sigma, association=AssociationOptions(**assoc), map=MapOptions(**values),
-                         time_offset=time_offset)
+                         time_offset=time_offset, mounting=mounting)
 
 
 def feature_options(cfg: dict[str, Any]) -> FeatureOptions:
