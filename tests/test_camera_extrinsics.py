@@ -198,16 +198,15 @@ def test_a_wrong_mounting_is_recovered_over_a_synthetic_flight():
     R_BC_true = so3_exp(error) @ R_BC  # R_BC as configured is off by Exp(−error): the correction to find is +error
     ground = np.column_stack([rng.uniform(-1.2, 1.2, 30), rng.uniform(-1.2, 1.2, 30), np.zeros(30)])
     state = make_state(n_landmarks=0)
+    n = state.robot_dim
+    state.cov = np.eye(n) * 1e-4
+    mount = MountingEstimate(MountingOptions(estimate=True, rotation_sigma_deg=2.0, translation_sigma_m=0.02))
+    mount.attach(state)
     anchor = np.array([0.0, 0.0, -2.5])
     rays = ground - anchor
     theta, phi = angles(rays)
     state.landmarks = np.column_stack([np.tile(anchor, (30, 1)), theta, phi, 1.0 / np.linalg.norm(rays, axis=1)])
-    n = state.robot_dim
-    state.cov = np.zeros((n + 180, n + 180))
-    state.cov[np.diag_indices(n)] = 1e-4
-    state.cov[np.diag_indices(n + 180)[0][n:], np.diag_indices(n + 180)[1][n:]] = 1e-8  # the map is known
-    mount = MountingEstimate(MountingOptions(estimate=True, rotation_sigma_deg=2.0, translation_sigma_m=0.02))
-    mount.attach(state)
+    state.cov = np.block([[state.cov, np.zeros((n + 6, 180))], [np.zeros((180, n + 6)), np.eye(180) * 1e-8]])  # the map known
     pose_q = np.r_[np.full(3, 1e-4), np.zeros(3), np.full(3, math.radians(0.1) ** 2)]  # what the IMU and GPS leave
     sigmas = []
     for k in range(40):
@@ -230,3 +229,27 @@ def test_a_wrong_mounting_is_recovered_over_a_synthetic_flight():
     assert abs(value[0] - truth[0]) < 0.25 * abs(truth[0]) and abs(value[0] - truth[0]) < 3.0 * sigma[0], (value, sigma)
     assert np.all(np.abs(value - np.r_[truth, 0.0, 0.0, 0.0]) < 3.0 * sigma), (value, sigma)
     assert sigmas[-1] < 0.25 * math.radians(2.0) and sigmas[-1] < sigmas[3]
+
+
+def test_a_map_already_there_takes_the_mounting_error_it_was_placed_with():
+    """A visual-inertial start's landmarks were placed with the mounting as configured: once the mounting states
+    come, each landmark's error carries theirs (anchor with the translation, ray angles with the rotation)."""
+    from vtolpose.estimator.vision.landmarks import angles, direction
+
+    plain = make_state()
+    state, mount = with_mounting()
+    n, cols = state.robot_dim, mounting_cols(state)
+    gain = state.cov[state.map_start :, cols] @ np.linalg.inv(mount.cov)  # how each landmark moves with the mounting
+    for i, y in enumerate(state.landmarks):
+        ray_b = state.R.T @ direction(y[3], y[4])
+
+        def placed(d: np.ndarray) -> np.ndarray:
+            ray = state.R @ so3_exp(d[0:3]) @ ray_b
+            return np.r_[y[0:3] + state.R @ d[3:6], angles(ray), y[5]]
+
+        np.testing.assert_allclose(gain[6 * i : 6 * i + 6], central_difference(placed, np.zeros(6), 1e-7), atol=1e-7)
+    np.testing.assert_array_equal(state.cov[:n, :n], plain.cov[:n, :n])
+    assert np.linalg.eigvalsh(state.cov).min() > 0.0
+    bare = make_state(n_landmarks=0)
+    mount.attach(bare)
+    assert not np.any(bare.cov[:n, cols])

@@ -27,7 +27,7 @@ import numpy as np
 from vtolpose.estimator.core import covariance
 from vtolpose.estimator.core.rotation import skew, so3_exp
 from vtolpose.estimator.core.state import FilterState
-from vtolpose.estimator.vision.landmarks import angles_jacobian
+from vtolpose.estimator.vision.landmarks import angles_jacobian, direction
 
 MOUNTING_DIM = 6  # [δφ, δt]
 
@@ -64,6 +64,8 @@ class MountingEstimate:
         state.calib = np.concatenate([state.calib, self.value])
         state.calib_layout = replace(state.calib_layout, mounting=True)
         self.used = True
+        if state.n_landmarks:
+            _share_with_the_map(state)
 
     def remember(self, state: FilterState) -> None:
         """Keep what ``state`` knows of the mounting (it may be rebuilt without it)."""
@@ -76,6 +78,21 @@ class MountingEstimate:
             return None
         value, cov = _held(state) if state is not None and state.calib_layout.mounting else (self.value, self.cov)
         return tuple(float(x) for x in value), tuple(float(x) for x in np.sqrt(np.maximum(np.diag(cov), 0.0)))
+
+
+def _share_with_the_map(state: FilterState) -> None:
+    """Landmarks already in the map when the mounting states come (a visual-inertial start's) were placed with the
+    mounting as configured: their errors take the mounting's, ``δy ← δy + J δm``, with ``J`` as if each were placed
+    now, from the pose the filter has, along its ray (their inverse depths, triangulated, are left as they are).
+    Without it the map holds the configured mounting as if it were exact and pulls the estimate towards it."""
+    R_WB = state.R
+    R_BC = np.eye(3)  # J is taken in body axes: rays in the body, mounting rotation body-side
+    rays_b = direction(state.landmarks[:, 3], state.landmarks[:, 4]) @ R_WB
+    J = new_landmark_columns(R_WB, R_BC, rays_b)
+    T = np.eye(state.dim)
+    rows = np.arange(state.map_start, state.dim)
+    T[np.ix_(rows, mounting_cols(state))] = J.reshape(-1, MOUNTING_DIM)
+    state.cov = T @ state.cov @ T.T
 
 
 def _held(state: FilterState) -> tuple[np.ndarray, np.ndarray]:
