@@ -81,7 +81,7 @@ def sigmas_off(mounting: dict, truth_deg: np.ndarray) -> np.ndarray:
 
 
 def bench_camera_mounting(echo: Callable[[str], None] = print) -> list[Row]:
-    """Base and aggressive cells, Tests 2 and 3: the mounting right and 1° wrong (and 10 ms wrong too), its estimation off and on."""
+    """Base and aggressive cells, Tests 2 and 3: the camera mounting right and 1° wrong (and 10 ms wrong too), its estimation off and on."""
     rows = []
     lines = ["| cell | case | test | position, attitude, NEES mean / in band, resets | correction found (truth φ_x −1.00° when wrong) |",
              "|---|---|---|---|---|"]
