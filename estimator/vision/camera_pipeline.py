@@ -42,7 +42,7 @@ from vtolpose.estimator.vision.map_manager import (
     select_new_features,
 )
 from vtolpose.estimator.core.state import FilterState
-from vtolpose.estimator.vision.mounting import MountingEstimate, MountingOptions, mounted, mounting_cols, new_landmark_columns
+from vtolpose.estimator.vision.mounting import MountingEstimate, MountingOptions, mounted, new_landmark_columns
 from vtolpose.estimator.vision.time_offset import TimeOffsetEstimate, TimeOffsetOptions, at_frame_time, offset_column
 
 
@@ -217,11 +217,6 @@ class CameraPipeline:
           guess, a translation's flow can pass for a turn, and a bias keeps what it is given (on
           the hand-held recording, freeing it took the path from 2.6 × 2.3 m to 14 × 9 m);
           the attitude is corrected again by every frame.
-
-        An estimated mounting's translation learns from the first group only: a guessed depth's first
-        baseline moves the depth a long way, and a free lever arm takes part of that move and keeps it
-        (on the real hand-held recording, with the rotation free too, the path grew from 2.7 × 2.3 m to
-        14 × 12 m; holding the rotation as well cost the base cell's Test 2 4 cm).
         """
         opts = self.options
         known = depth_known(self.book, state, landmarks, opts.map)
@@ -232,7 +227,7 @@ class CameraPipeline:
             if not outcome.accepted:
                 return outcome
         groups = (
-            (~known & baseline, self._guessed_depth_held(state), opts.map.guessed_iterations),
+            (~known & baseline, None, opts.map.guessed_iterations),
             (~known & ~baseline, self._no_baseline_held(state, landmarks[~known & ~baseline]), 1),
         )
         for members, extra_held, iterations in groups:
@@ -245,15 +240,6 @@ class CameraPipeline:
                 return step
             outcome = step if outcome is None else UpdateOutcome(True, outcome.nis + step.nis, outcome.dof + step.dof)
         return outcome
-
-    @staticmethod
-    def _guessed_depth_held(state: FilterState) -> np.ndarray | None:
-        """The mounting's translation, if estimated (see :meth:`_update`)."""
-        if not state.calib_layout.mounting:
-            return None
-        hold = np.zeros(state.dim, dtype=bool)
-        hold[mounting_cols(state)[3:6]] = True
-        return hold
 
     @staticmethod
     def _no_baseline_held(state: FilterState, landmarks: np.ndarray) -> np.ndarray:

@@ -36,7 +36,7 @@ MOUNTING_DIM = 6  # [δφ, δt]
 class MountingOptions:
     estimate: bool = False  # rotation and translation correction states while the camera is in use
     rotation_sigma_deg: float = 2.0  # their prior sigmas: how far the configured mounting may be off
-    translation_sigma_m: float = 0.02
+    translation_sigma_m: float = 0.005
 
     def __post_init__(self) -> None:
         if not self.rotation_sigma_deg > 0.0:
