@@ -149,6 +149,7 @@ SCHEMA: dict[str, Field] = {
     "replay.nees_rate_hz": POS,
     "replay.speed": Field("float", minimum=0.0, maximum=1000.0),
     "replay.camera_workers": Field("int", minimum=0, maximum=16),
+    "replay.camera_process": Field("bool"),
     "calibration.imu.gravity": Field("float", nullable=True, positive=True),
     "calibration.imu.gyro_bias": Field("vector3", nullable=True),
     "calibration.imu.roll_deg": Field("float", nullable=True, minimum=-180.0, maximum=180.0),

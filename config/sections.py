@@ -104,6 +104,7 @@ class ReplaySection:
     nees_rate_hz: float
     speed: float
     camera_workers: int
+    camera_process: bool
 
 
 @dataclass(frozen=True, slots=True)

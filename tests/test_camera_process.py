@@ -196,7 +196,7 @@ def test_a_full_speed_replay_gives_the_same_trajectory_with_camera_processes(ren
     book = Dataset.open(rendered_book_dir)
     results = {}
     for in_process in (False, True):
-        cfg = load_config(None, {"fusion": {"camera_process": in_process}, "replay": {"camera_workers": 2}})
+        cfg = load_config(None, {"replay": {"camera_process": in_process, "camera_workers": 2}})
         results[in_process] = replay(book, cfg, ["imu", "camera", "gps"])
     threads, processes = results[False], results[True]
     assert len(processes.frames) == len(threads.frames) > 100
