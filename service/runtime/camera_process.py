@@ -21,7 +21,7 @@ import multiprocessing
 import os
 import threading
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.shared_memory import SharedMemory
 from typing import Any, Callable
@@ -99,7 +99,7 @@ class CameraProcessStats:
     restarts: int = 0
     deaths: int = 0
     frames: int = 0
-    failures: list[str] = field(default_factory=list)
+    last_death: str | None = None
 
 
 class CameraProcesses:
@@ -170,7 +170,8 @@ class CameraProcesses:
         with self._lock:
             alive = sum(w.process is not None and w.process.is_alive() for w in self._workers)
         return {"workers": len(self._workers), "alive": alive, "restarts": self.stats.restarts,
-                "deaths": self.stats.deaths, "frames": self.stats.frames, "given_up": self.given_up}
+                "deaths": self.stats.deaths, "last_death": self.stats.last_death, "frames": self.stats.frames,
+                "given_up": self.given_up}
 
     def pids(self) -> list[int]:
         with self._lock:
@@ -268,12 +269,10 @@ class CameraProcesses:
                     job.set_exception(answer if isinstance(answer, BaseException) else RuntimeError(repr(answer)))
 
     def _died(self, worker: _Worker) -> None:
-        code = worker.process.exitcode if worker.process is not None else None
-        worker.process.join(1.0)
-        code = worker.process.exitcode if code is None else code
+        worker.process.join(1.0)  # reaped: its exit code is known
         self.stats.deaths += 1
-        why = f"camera worker {worker.slot} (pid {worker.process.pid}) died, exit code {code}"
-        self.stats.failures.append(why)
+        why = f"camera worker {worker.slot} (pid {worker.process.pid}) died, exit code {worker.process.exitcode}"
+        self.stats.last_death = why
         for conn in (worker.jobs, worker.results):
             conn.close()
         with self._lock:
@@ -285,11 +284,15 @@ class CameraProcesses:
                 self.on_death(CameraWorkerDied(why))
             except Exception as exc:  # a closed loop at shutdown: the death is in the stats all the same
                 log.debug("camera worker death not reported: %s", exc)
-        if self.stats.restarts >= MAX_RESTARTS:
-            with self._lock:
-                self.given_up = not any(w.process is not None for w in self._workers)
-            log.error("%s; restarted %d times already: the camera is given up", why, self.stats.restarts)
-            return
-        log.error("%s; starting it again", why)
-        self.stats.restarts += 1
-        self._spawn(worker)  # its "ready" arrives through this loop
+        if self.stats.restarts < MAX_RESTARTS:
+            log.error("%s; starting it again", why)
+            self.stats.restarts += 1
+            try:
+                self._spawn(worker)  # its "ready" arrives through this loop
+                return
+            except OSError as exc:  # no process to be had (memory, process limits)
+                log.error("camera worker %d could not be started again: %s", worker.slot, exc)
+        else:
+            log.error("%s; restarted %d times already: not again", why, self.stats.restarts)
+        with self._lock:
+            self.given_up = not any(w.process is not None for w in self._workers)
