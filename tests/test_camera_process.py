@@ -5,8 +5,10 @@ unlinked at the end, and a full-speed replay that gives the same trajectory as w
 import asyncio
 import os
 import signal
-import threading
+import subprocess
+import sys
 import time
+from pathlib import Path
 from multiprocessing.shared_memory import SharedMemory
 
 import numpy as np
@@ -206,3 +208,49 @@ def test_a_full_speed_replay_gives_the_same_trajectory_with_camera_processes(ren
     assert np.array_equal(processes.trajectory.t_ns, threads.trajectory.t_ns)
     assert np.array_equal(processes.trajectory.p, threads.trajectory.p)
     assert np.array_equal(processes.trajectory.q, threads.trajectory.q)
+
+
+def children_of(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # gone meanwhile
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def shared_memory_mapped_by(pid: int) -> set[str]:
+    try:
+        maps = Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return set()
+    return {line.split()[-1] for line in maps.splitlines() if "/dev/shm/" in line}
+
+
+def test_a_stopped_daemon_leaves_no_camera_worker_and_no_shared_memory(rendered_book_dir):
+    """`vtolpose run --replay` paced with the camera (camera processes by default), stopped by SIGTERM."""
+    proc = subprocess.Popen([sys.executable, "-m", "vtolpose", "run", "--replay", str(rendered_book_dir),
+                             "--sensors", "imu,camera,gps", "--speed", "1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline, rings, workers = time.monotonic() + 60, set(), []
+        while not rings and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+            workers = [pid for pid in children_of(proc.pid) if shared_memory_mapped_by(pid)]
+            rings = set().union(*(shared_memory_mapped_by(pid) for pid in workers)) if workers else set()
+        assert rings and all(Path(ring).exists() for ring in rings), proc.stderr.read() if proc.poll() is not None else ""
+        time.sleep(1.0)  # frames flow
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "stopped by signal" in out
+    assert not any(Path(ring).exists() for ring in rings)  # unlinked
+    for pid in workers:  # and the workers ended with the daemon
+        assert not Path(f"/proc/{pid}").exists()
