@@ -104,6 +104,28 @@ def test_a_busy_camera_process_takes_no_second_frame_and_closing_unlinks_its_rin
             os.kill(pid, 0)
 
 
+def test_a_worker_killed_with_a_frame_in_hand_fails_that_frame_and_takes_the_next():
+    big = (1600, 1600)  # SIFT takes a second or so on it: the frame is still in hand when the worker is killed
+    deaths = []
+    processes = CameraProcesses(FeatureOptions(sift_image_scale=1.0), big, big, workers=1, on_death=deaths.append)
+    processes.start()
+    try:
+        job = processes.submit(textured(4, big), 1)
+        time.sleep(0.2)
+        pid = processes.pids()[0]
+        os.kill(pid, signal.SIGKILL)
+        with pytest.raises(CameraWorkerDied, match=f"pid {pid}"):
+            job.result(30)
+        assert len(deaths) == 1 and str(pid) in str(deaths[0])
+        deadline = time.monotonic() + 60
+        while not processes.idle and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert processes.pids() != [pid] and processes.submit(textured(5, big), 2).result(60).t_ns == 2
+        assert processes.report()["deaths"] == processes.report()["restarts"] == 1
+    finally:
+        processes.close()
+
+
 @pytest.fixture(scope="module")
 def flight(simulated_flight):
     return simulated_flight("landfill", 16.0, 11)
