@@ -51,12 +51,14 @@ class TimeOffsetEstimate:
 
     def attach(self, state: FilterState) -> None:
         """Give ``state`` its offset state, if the option is on and it has none yet."""
-        if not self.options.estimate or state.calib.shape[0]:
+        if not self.options.estimate:
+            return
+        self.used = True
+        if state.calib.shape[0]:  # a visual-inertial start solved it with the window
             return
         n = state.robot_dim
         state.cov = covariance.insert_states(state.cov, n, np.array([[self.variance]]))
         state.calib = np.array([self.value_s])
-        self.used = True
 
     def remember(self, state: FilterState) -> None:
         """Keep what ``state`` knows of the offset (it may be rebuilt without it)."""
