@@ -21,6 +21,7 @@ from vtolpose.estimator.inertial.imu_delta import ImuDownsampler
 from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialStart
 from vtolpose.estimator.init.window_solver import Layout, _Estimate, _Residuals, solve_window, tangent_basis
 from vtolpose.estimator.start import StartCoordinator
+from vtolpose.estimator.vision.time_offset import TimeOffsetEstimate, TimeOffsetOptions
 
 LATE_S = 0.010  # each frame stamped this late: the residual offset is −LATE_S
 PRIOR_SIGMA_S = 0.010
@@ -29,6 +30,12 @@ PRIOR_SIGMA_S = 0.010
 @pytest.fixture(scope="module")
 def flight():
     return simulate_flight("book", 6.0, 3, SimulationOptions(start_s=20.0))
+
+
+@pytest.fixture(scope="module")
+def solved(flight):
+    """The initializer and the start of the late frames, the offset solved from a 10 ms prior."""
+    return start_from_late_frames(flight, LATE_S, PRIOR_SIGMA_S)
 
 
 def start_from_late_frames(flight, late_s: float, prior_sigma_s: float) -> tuple[VisualInertialInitializer, VisualInertialStart | None]:
@@ -83,8 +90,8 @@ def test_a_window_solved_with_a_wrong_offset_is_bent_by_it(flight):
     assert np.max(np.abs(down_wrong[:2]) / sd_wrong[6:8]) > 2.0
 
 
-def test_the_window_finds_the_offset_and_the_state_it_bent(flight):
-    _, start = start_from_late_frames(flight, LATE_S, PRIOR_SIGMA_S)
+def test_the_window_finds_the_offset_and_the_state_it_bent(flight, solved):
+    _, start = solved
     assert start is not None and start.time_offset_s is not None
     v_err, down_err, sd = errors(flight, start)
     sigma_td = sd[15]
@@ -100,8 +107,8 @@ def test_the_window_finds_the_offset_and_the_state_it_bent(flight):
     assert np.linalg.eigvalsh(start.cov).min() > -1e-12 * np.abs(start.cov).max()
 
 
-def test_pixel_jacobians_with_the_offset_match_central_differences(flight):
-    init, start = start_from_late_frames(flight, LATE_S, PRIOR_SIGMA_S)
+def test_pixel_jacobians_with_the_offset_match_central_differences(solved):
+    init, start = solved
     assert start is not None
     problem, _, _ = init._problem(init._usable_frames())
     solution = solve_window(problem)
@@ -133,8 +140,8 @@ def test_pixel_jacobians_with_the_offset_match_central_differences(flight):
     assert np.abs(analytic[..., lay.TD]).max() > 1e-3 * scale  # the offset's column is not vacuous
 
 
-def test_the_filter_starts_with_the_offset_state_the_window_solved(flight):
-    _, start = start_from_late_frames(flight, LATE_S, PRIOR_SIGMA_S)
+def test_the_filter_starts_with_the_offset_state_the_window_solved(solved):
+    _, start = solved
     assert start is not None
     layout = StateLayout("biases")
     built = StartCoordinator.from_window(_coordinator_stub(layout), start).state
@@ -147,3 +154,14 @@ def test_the_filter_starts_with_the_offset_state_the_window_solved(flight):
 def _coordinator_stub(layout: StateLayout):
     """The two attributes :meth:`StartCoordinator.from_window` reads."""
     return type("Stub", (), {"layout": layout, "gravity": 9.81})()
+
+
+def test_the_filter_reads_the_offset_a_start_brought_and_keeps_its_correlations(solved):
+    _, start = solved
+    state = StartCoordinator.from_window(_coordinator_stub(StateLayout("biases")), start).state
+    before = state.cov.copy()
+    clock = TimeOffsetEstimate(TimeOffsetOptions(estimate=True, sigma_s=PRIOR_SIGMA_S))
+    clock.attach(state)  # what the camera pipeline does before each frame: the start's state is kept
+    np.testing.assert_array_equal(state.cov, before)
+    value, sigma = clock.reading(state)
+    assert value == start.time_offset_s and sigma == pytest.approx(np.sqrt(start.cov[15, 15]))
