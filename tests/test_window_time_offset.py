@@ -18,6 +18,7 @@ from vtolpose.drivers.simulator import SimulationOptions, simulate_flight
 from vtolpose.estimator.core.rotation import quat_to_rot
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.inertial.imu_delta import ImuDownsampler
+from vtolpose.estimator.inertial.initializer import InitOptions
 from vtolpose.estimator.init.visual_inertial import Gauge, VisualInertialInitializer, VisualInertialStart
 from vtolpose.estimator.init.window_solver import Layout, _Estimate, _Residuals, solve_window, tangent_basis
 from vtolpose.estimator.start import StartCoordinator
@@ -143,22 +144,21 @@ def test_pixel_jacobians_with_the_offset_match_central_differences(solved):
 def test_the_filter_starts_with_the_offset_state_the_window_solved(solved):
     _, start = solved
     assert start is not None
-    layout = StateLayout("biases")
-    built = StartCoordinator.from_window(_coordinator_stub(layout), start).state
+    built = coordinator().from_window(start).state
     assert isinstance(built, FilterState)
     assert built.calib.tolist() == [start.time_offset_s]
     assert built.map_start == built.robot_dim + 1 and built.n_landmarks == len(start.landmarks)
     np.testing.assert_array_equal(built.cov, start.cov)  # the window's joint covariance, offset row included
 
 
-def _coordinator_stub(layout: StateLayout):
-    """The two attributes :meth:`StartCoordinator.from_window` reads."""
-    return type("Stub", (), {"layout": layout, "gravity": 9.81})()
+def coordinator() -> StartCoordinator:
+    """The filter's start coordinator (biases estimated, no heading known, no camera initializer of its own)."""
+    return StartCoordinator(StateLayout("biases"), InitOptions(), 9.81, None, 0.035, 0.02, None)
 
 
 def test_the_filter_reads_the_offset_a_start_brought_and_keeps_its_correlations(solved):
     _, start = solved
-    state = StartCoordinator.from_window(_coordinator_stub(StateLayout("biases")), start).state
+    state = coordinator().from_window(start).state
     before = state.cov.copy()
     clock = TimeOffsetEstimate(TimeOffsetOptions(estimate=True, sigma_s=PRIOR_SIGMA_S))
     clock.attach(state)  # what the camera pipeline does before each frame: the start's state is kept
