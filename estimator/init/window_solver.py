@@ -482,7 +482,7 @@ class _Residuals:
                 out.J_v = -est.t_d * out.J_f
                 # ∂d/∂t_d = −ω × d − Exp(ω t_d)ᵀ R_kᵀ v_k: the body's turn and its motion over the offset
                 seen_motion = np.cross(d, frame_rates(pr, est.b_g)[k]) - np.einsum("nab,ncb,nc->na", turn_t, R[k], est.v[k])
-                out.J_td = (A @ seen_motion[..., None])
+                out.J_td = A @ seen_motion[..., None]
             out.J_p = -out.J_f  # w.r.t. p_k (none for frame 0, the origin)
         # IMU increments between frames, then the bias priors: few rows, dense over the non-point unknowns.
         rows, dense = [], []
