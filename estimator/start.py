@@ -172,10 +172,13 @@ class StartCoordinator:
         if self.layout.estimates_biases:
             state.b_a = start.b_a.copy()
         state.landmarks = start.landmarks.copy()
+        calib = 0 if start.time_offset_s is None else 1  # the window solved the camera's time offset: its state
+        if calib:
+            state.calib = np.array([start.time_offset_s])
         state.cov = covariance.robot_and_map(start.cov, VI_ROBOT_DIM, self.layout.robot_dim)
         return Start(state, self.gravity, start.describe(), ModeEvent.VISUAL_START, True,
                      covariance.block_variances(start.cov, BG), None, start.descriptors,
-                     covariance.landmark_sigmas(start.cov, VI_ROBOT_DIM, INVERSE_DEPTH))
+                     covariance.landmark_sigmas(start.cov, VI_ROBOT_DIM + calib, INVERSE_DEPTH))
 
     def join(self, fix: GpsFix) -> Join | None:
         """A fix of a GPS joining a filter without a world frame: None while its first ``VELOCITY_FIT_S`` of
