@@ -87,6 +87,7 @@ class FusionSection:
     max_pending: int
     max_imu_buffer: int
     camera_workers: int
+    camera_process: bool
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,6 +104,7 @@ class ReplaySection:
     nees_rate_hz: float
     speed: float
     camera_workers: int
+    camera_process: bool
 
 
 @dataclass(frozen=True, slots=True)

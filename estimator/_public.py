@@ -117,6 +117,7 @@ PUBLIC: dict[str, str] = {
     'predict': 'vtolpose.estimator.vision.camera_update',
     'FeatureOptions': 'vtolpose.estimator.vision.features',
     'FeatureTracker': 'vtolpose.estimator.vision.feature_tracker',
+    'FrameExtractor': 'vtolpose.estimator.vision.feature_tracker',
     'FrameFeatures': 'vtolpose.estimator.vision.features',
     'extract_features': 'vtolpose.estimator.vision.features',
     'FrameQualityOptions': 'vtolpose.estimator.vision.frame_quality',

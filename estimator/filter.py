@@ -835,6 +835,9 @@ class Estimator:
         for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
             if delta is not None:
                 self.visual_inertial.add_delta(delta)
+        clock = self.camera.time_offset
+        if clock.options.estimate:  # the window solves the offset too, from what the filter knows of it
+            self.visual_inertial.set_time_offset_prior(clock.value_s, math.sqrt(clock.variance))
         start = self.visual_inertial.add_frame(features, self._starter.gauge())
         self.health.measured("camera", t_ns, used=True)  # alive and in use, by the start
         if start is None:

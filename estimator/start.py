@@ -28,7 +28,7 @@ from vtolpose.estimator.core.covariance import BG, V
 from vtolpose.estimator.core.kalman import chi2_gate
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.core.rotation import yaw_of
-from vtolpose.estimator.core.state import FilterState, StateLayout
+from vtolpose.estimator.core.state import CalibrationLayout, FilterState, StateLayout
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions, StaticInitializer
 from vtolpose.estimator.inertial.startup import (
     mean_acceleration_from_fixes, state_from_static, tilt_sigma_of_mean_acceleration, velocity_from_fixes,
@@ -172,10 +172,13 @@ class StartCoordinator:
         if self.layout.estimates_biases:
             state.b_a = start.b_a.copy()
         state.landmarks = start.landmarks.copy()
+        calib = 0 if start.time_offset_s is None else 1  # the window solved the camera's time offset: its state
+        if calib:
+            state.calib, state.calib_layout = np.array([start.time_offset_s]), CalibrationLayout(time_offset=True)
         state.cov = covariance.robot_and_map(start.cov, VI_ROBOT_DIM, self.layout.robot_dim)
         return Start(state, self.gravity, start.describe(), ModeEvent.VISUAL_START, True,
                      covariance.block_variances(start.cov, BG), None, start.descriptors,
-                     covariance.landmark_sigmas(start.cov, VI_ROBOT_DIM, INVERSE_DEPTH))
+                     covariance.landmark_sigmas(start.cov, VI_ROBOT_DIM + calib, INVERSE_DEPTH))
 
     def join(self, fix: GpsFix) -> Join | None:
         """A fix of a GPS joining a filter without a world frame: None while its first ``VELOCITY_FIT_S`` of

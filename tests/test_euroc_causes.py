@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from vtolpose.service.bench.euroc_causes import (
-    GAP_EDGES_S, bench_euroc_causes, rmse_by_gap, steady_state_ratio, stretch_ratios,
+    GAP_EDGES_S, bench_euroc_causes, over_draws, rmse_by_gap, steady_state_ratio, stretch_ratios,
 )
 
 
@@ -101,3 +101,12 @@ def test_without_flights_the_bench_says_where_to_put_them(tmp_path, monkeypatch)
     lines: list[str] = []
     assert bench_euroc_causes(lines.append) == []
     assert len(lines) == 1 and "skipped" in lines[0] and "VTOLPOSE_EUROC_DATA" in lines[0]
+
+
+def test_draws_of_the_gps_noise_are_summed_up_per_flight_and_per_stretch():
+    """The ratio's mean and range over draws; a stretch's mean over the draws that reach it, none: no figure."""
+    draws = [(0.60, (0.68, 0.65, 0.58)), (0.58, (0.58, 0.60, None)), (0.56, (0.53, 0.61, 0.56))]
+    mean, least, most, stretches = over_draws(draws)
+    assert mean == pytest.approx(0.58) and least == 0.56 and most == 0.60
+    assert stretches == pytest.approx(((0.68 + 0.58 + 0.53) / 3, (0.65 + 0.60 + 0.61) / 3, (0.58 + 0.56) / 2))
+    assert over_draws([(0.5, (0.5, None))])[3] == (0.5, None)

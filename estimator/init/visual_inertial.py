@@ -13,6 +13,11 @@ landmarks for the points seen in the last frame, with their descriptors.
 Position and heading are not observable from a camera and an IMU: they are the frame's gauge,
 set to what the caller gives (the filter's last position and heading, or a known heading with
 its sigma) with a small variance.
+
+When the filter estimates the camera's time offset, the window solves it too, from the same prior,
+and the start hands it over with its correlations: a window solved with a wrong configured offset
+bends its state to fit it, and a filter whose offset state joins later, uncorrelated, cannot undo
+that bend; it reads the bent state as the truth and keeps most of the wrong offset.
 """
 
 from __future__ import annotations
@@ -93,7 +98,7 @@ class VisualInertialStart:
     b_g: np.ndarray
     b_a: np.ndarray
     landmarks: np.ndarray  # (L, 6) inverse depth, anchored at the camera of the last frame
-    cov: np.ndarray  # (15 + 6L) over [δp, δv, δθ, δb_g, δb_a, δy...]
+    cov: np.ndarray  # (15 [+ 1] + 6L) over [δp, δv, δθ, δb_g, δb_a, (δt_d when solved), δy...]
     descriptors: np.ndarray
     binary: bool
     window_s: float
@@ -104,6 +109,7 @@ class VisualInertialStart:
     sigma_scale_rel: float
     sigma_velocity: float
     depth_sigma_rel: float
+    time_offset_s: float | None = None  # the camera's residual time offset, when solved (then in cov after the robot)
 
     def describe(self) -> str:
         return (f"visual-inertial start from {self.n_frames} frames over {self.window_s:.1f} s, {self.n_points} tracked "
@@ -188,6 +194,7 @@ class VisualInertialInitializer:
         self.tracker = FeatureTracker(self.model, dataclasses.replace(opts.tracks, max_frames=frames_kept), association)
         self._deltas: deque[ImuDelta] = deque()
         self.bias_prior = (np.zeros(3), 0.01, 0.1)  # b_g, σ_bg [rad/s], σ_ba [m/s²]
+        self.time_offset_prior = (0.0, 0.0)  # the camera's residual offset and its sigma [s]; sigma 0: not solved
         self.attempts = 0
         self.progress: VisualStartProgress | None = None  # why it has not started yet (None before any frame)
         self.history: deque[VisualStartProgress] = deque(maxlen=50)  # each change of the failing check, in order
@@ -209,6 +216,10 @@ class VisualInertialInitializer:
 
     def set_bias_prior(self, b_g: np.ndarray, sigma_g: float, sigma_a: float) -> None:
         self.bias_prior = (np.asarray(b_g, dtype=float).copy(), float(sigma_g), float(sigma_a))
+
+    def set_time_offset_prior(self, value_s: float, sigma_s: float) -> None:
+        """Solve the camera's residual time offset in the window, from this prior (a sigma of 0: take it as exact)."""
+        self.time_offset_prior = (float(value_s), float(sigma_s))
 
     def add_delta(self, delta: ImuDelta) -> None:
         if self._deltas and delta.t0_ns != self._deltas[-1].t1_ns:
@@ -292,6 +303,7 @@ class VisualInertialInitializer:
             R_BC=self.R_BC, t_BC=self.t_BC, focal_px=0.5 * (self.model.fx + self.model.fy),
             pixel_sigma=self.pixel_sigma, gravity=self.gravity, accel_noise=self.accel_noise,
             gyro_noise=self.gyro_noise, bias_g=b_g, sigma_bias_g=sigma_g, sigma_bias_a=sigma_a,
+            time_offset_prior=self.time_offset_prior[0], sigma_time_offset=self.time_offset_prior[1],
         )
         return problem, chosen, frames
 
@@ -345,7 +357,7 @@ class VisualInertialInitializer:
         measured.update(frames=problem.n_frames, window_s=float(problem.frame_t[-1]), tracks=problem.n_points,
                         excitation=acceleration_spread(problem))
         solution = solve_window(problem, opts.max_gravity_error)
-        lay = Layout(problem.n_frames, problem.n_points)
+        lay = Layout.of(problem)
         tilt = math.degrees(math.sqrt(max(np.linalg.eigvalsh(solution.cov[lay.G, lay.G]).max(), 0.0)))
         measured.update(scale_sigma_rel=scale_sigma(problem, solution), gravity_sigma_deg=tilt)
         if solution.residual_ratio > opts.max_residual_ratio:
@@ -388,7 +400,7 @@ class VisualInertialInitializer:
                    last: TrackedFrame, gauge: Gauge, tilt_deg: float, scale_sigma_rel: float) -> VisualInertialStart:
         """Nominal state at the last frame and its covariance, by first-order change of variables."""
         opts = self.options
-        lay = Layout(problem.n_frames, problem.n_points)
+        lay = Layout.of(problem)
         k = problem.n_frames - 1
         points = [j for j, _ in seen]
         heading_sigma = math.radians(opts.heading_sigma_deg) if gauge.heading_sigma_rad is None else gauge.heading_sigma_rad
@@ -462,14 +474,22 @@ class VisualInertialInitializer:
         order = np.argsort(sigma_rho / rho)[: opts.max_landmarks]
         keep = np.concatenate([np.arange(ROBOT_DIM), ROBOT_DIM + (LANDMARK_DIM * order[:, None] + np.arange(LANDMARK_DIM)).ravel()])
         rows = np.array([r for _, r in seen], dtype=int)[order]
+        start_cov = cov[np.ix_(keep, keep)]
+        if lay.time_offset:
+            # The state at the last stamp does not depend on t_d, but its errors do, through the window: the
+            # offset's row is the window's, mapped like the others (the gauge is independent of it).
+            cross = (E @ solution.cov[cols, lay.TD.start])[keep]
+            start_cov = covariance.append_states(start_cov, cross[None, :], solution.cov[lay.TD, lay.TD])
+            start_cov = start_cov[np.ix_(_offset_after_robot(len(start_cov)), _offset_after_robot(len(start_cov)))]
         return VisualInertialStart(
             t_ns=last.t_ns, p=nominal[0], v=nominal[1], q=rot_to_quat(nominal[2]), b_g=nominal[3], b_a=nominal[4],
-            landmarks=nominal[5][order], cov=cov[np.ix_(keep, keep)], descriptors=last.descriptors[rows],
+            landmarks=nominal[5][order], cov=start_cov, descriptors=last.descriptors[rows],
             binary=last.binary, window_s=float(problem.frame_t[-1]), n_frames=problem.n_frames,
             n_points=problem.n_points, residual_ratio=solution.residual_ratio, sigma_tilt_deg=tilt_deg,
             sigma_scale_rel=scale_sigma_rel,
             sigma_velocity=float(np.sqrt(np.max(covariance.block_variances(cov, V)))),
             depth_sigma_rel=float(np.median(sigma_rho[order] / rho[order])) if len(order) else math.inf,
+            time_offset_s=solution.time_offset if lay.time_offset else None,
         )
 
 
@@ -478,6 +498,11 @@ def velocity_sigma_limit(options: VisualInertialOptions, speed: float) -> float:
     window finds the velocity only up to the scale, so a tighter relative limit than the scale's would refuse
     starts the scale test accepts (a cruise at 8 m/s with the scale known to 9 %)."""
     return options.max_velocity_sigma + options.max_scale_sigma_rel * speed
+
+
+def _offset_after_robot(n: int) -> np.ndarray:
+    """The order that moves the last of ``n`` states (the time offset) between the robot and the landmarks."""
+    return np.r_[0:ROBOT_DIM, n - 1, ROBOT_DIM : n - 1]
 
 
 def _levelling(g_dir: np.ndarray) -> np.ndarray:

@@ -18,6 +18,13 @@ too little motion. Then damped Gauss–Newton refines
 residuals, the IMU's position and velocity increments between frames (with the white-noise
 covariance of the accelerometer and of gravity turned by the gyro's angle random walk) and
 the bias priors. The inverse of its information matrix is the window's covariance.
+
+With ``sigma_time_offset`` set, the camera's residual time offset ``t_d`` is one more unknown
+(prior ``N(time_offset_prior, σ²)``), as in the filter (``vision.time_offset``): frame k, stamped ``τ_k``, was
+exposed at ``τ_k + t_d``, when the body was at ``p_k + v_k t_d`` turned by ``Exp(ω_k t_d)``, with
+``ω_k`` the bias-corrected gyro of the IMU step that ends at ``τ_k``. Solved with the configured
+offset taken as exact, a wrong one bends the window's path and gravity to fit it; the filter then
+starts from that bent state with a covariance that does not know why.
 """
 
 from __future__ import annotations
@@ -52,6 +59,12 @@ class WindowProblem:
     bias_g: np.ndarray  # prior mean
     sigma_bias_g: float
     sigma_bias_a: float
+    time_offset_prior: float = 0.0  # s, the camera's residual offset as known before the window
+    sigma_time_offset: float = 0.0  # s, its sigma; 0: not solved (the prior taken as exact)
+
+    @property
+    def solves_time_offset(self) -> bool:
+        return self.sigma_time_offset > 0.0
 
     @property
     def n_frames(self) -> int:
@@ -79,14 +92,20 @@ class WindowSolution:
     linear_gravity: float  # |g| of the linear first guess
     inliers: np.ndarray  # (N,) observations kept
     iterations: int
+    time_offset: float = 0.0  # s, the camera's residual offset (0 when not solved)
 
 
 @dataclass(frozen=True, slots=True)
 class Layout:
-    """Where each unknown of the refinement sits."""
+    """Where each unknown of the refinement sits: the camera's time offset, when solved, after the velocities."""
 
     n_frames: int
     n_points: int
+    time_offset: bool = False
+
+    @classmethod
+    def of(cls, problem: WindowProblem) -> "Layout":
+        return cls(problem.n_frames, problem.n_points, problem.solves_time_offset)
 
     G = slice(0, 2)
     BG = slice(2, 5)
@@ -99,13 +118,18 @@ class Layout:
         start = 8 + 3 * (self.n_frames - 1)
         return slice(start + 3 * k, start + 3 * k + 3)
 
-    def point(self, j: int) -> slice:
+    @property
+    def TD(self) -> slice:  # empty when the offset is not solved
         start = 8 + 6 * self.n_frames - 3
+        return slice(start, start + int(self.time_offset))
+
+    def point(self, j: int) -> slice:
+        start = self.TD.stop
         return slice(start + 3 * j, start + 3 * j + 3)
 
     @property
     def size(self) -> int:
-        return 8 + 6 * self.n_frames - 3 + 3 * self.n_points
+        return self.TD.stop + 3 * self.n_points
 
 
 class WindowFailure(Exception):
@@ -129,6 +153,25 @@ def tangent_basis(u: np.ndarray) -> np.ndarray:
 
 def _integrals(problem: WindowProblem, b_g: np.ndarray):
     return integrate(problem.imu_t, problem.dtheta, problem.dvel, b_g, problem.frame_t)
+
+
+def frame_rates(problem: WindowProblem, b_g: np.ndarray) -> np.ndarray:
+    """``(K, 3)``: the bias-corrected gyro at each frame, that of the IMU step ending at its stamp (the first
+    frame's: the step starting there), as the filter turns a frame's pose by its latest gyro."""
+    step = np.clip(np.searchsorted(problem.imu_t, problem.frame_t, side="left") - 1, 0, len(problem.dtheta) - 1)
+    return problem.dtheta[step] / np.diff(problem.imu_t)[step, None] - b_g
+
+
+def exposure_bodies(problem: WindowProblem, est: "_Estimate", R: np.ndarray, k: np.ndarray, j: np.ndarray,
+                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Points ``j`` in the body of frame ``k`` at its exposure ``τ_k + t_d``: ``Exp(ω_k t_d)ᵀ u`` with
+    ``u = R_kᵀ (f_j − p_k − v_k t_d)``. Returns ``(d, u, Exp(ω_k t_d))``; without the offset solved, ``d = u``
+    at ``τ_k`` and the other two are None."""
+    if not problem.solves_time_offset:
+        return np.einsum("nba,nb->na", R[k], est.f[j] - est.p[k]), None, None
+    turn = so3_exp(frame_rates(problem, est.b_g) * est.t_d)[k]
+    u = np.einsum("nba,nb->na", R[k], est.f[j] - est.p[k] - est.v[k] * est.t_d)
+    return np.einsum("nba,nb->na", turn, u), u, turn
 
 
 def _rays(problem: WindowProblem, R: np.ndarray) -> np.ndarray:
@@ -286,14 +329,15 @@ class _Estimate:
     p: np.ndarray  # (K, 3), p[0] = 0
     v: np.ndarray
     f: np.ndarray
+    t_d: float = 0.0  # the camera's residual time offset
 
     def moved(self, dx: np.ndarray, lay: Layout, tangent: np.ndarray) -> "_Estimate":
         p = self.p.copy()
         p[1:] += dx[lay.p(1).start : lay.v(0).start].reshape(-1, 3)
         g_dir = so3_exp(tangent @ dx[lay.G]) @ self.g_dir
         return _Estimate(g_dir / np.linalg.norm(g_dir), self.b_g + dx[lay.BG], self.b_a + dx[lay.BA], p,
-                         self.v + dx[lay.v(0).start : lay.point(0).start].reshape(-1, 3),
-                         self.f + dx[lay.point(0).start :].reshape(-1, 3))
+                         self.v + dx[lay.v(0).start : lay.v(lay.n_frames - 1).stop].reshape(-1, 3),
+                         self.f + dx[lay.point(0).start :].reshape(-1, 3), self.t_d + float(np.sum(dx[lay.TD])))
 
 
 class _Linearised:
@@ -305,26 +349,31 @@ class _Linearised:
         self.r_pix = np.zeros((0, 2))
         self.frame = self.point = np.zeros(0, dtype=int)
         self.J_bg = self.J_f = self.J_p = np.zeros((0, 2, 3))
+        self.J_v = self.J_td = None  # with the time offset solved: each pixel's v_k and t_d columns
         self.r_dense = np.zeros(0)
         self.J_dense = np.zeros((0, n_c))
 
     def chi2(self) -> np.ndarray:
         return np.sum(self.r_pix**2, axis=1)
 
-    def normal_equations(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def normal_equations(self, weights: np.ndarray, lay: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``H_cc, H_cf (n_c, 3M), H_ff (M, 3, 3), g_c, g_f`` of the (weighted) least squares."""
-        lay = Layout(0, 0)
         n_c, M = self.n_c, self.n_points
         w = weights[:, None, None]
         H_cc = self.J_dense.T @ self.J_dense
         g_c = self.J_dense.T @ self.r_dense
-        # Pose columns of each pixel row: b_g, and p_k unless k = 0.
-        Jc = np.concatenate([self.J_bg, self.J_p], axis=2)  # (n, 2, 6)
-        cols = np.zeros((len(self.frame), 6), dtype=int)
+        # Pose columns of each pixel row: b_g, and p_k unless k = 0 (then v_k and t_d when the offset is solved).
+        blocks = [self.J_bg, self.J_p] if self.J_v is None else [self.J_bg, self.J_p, self.J_v, self.J_td]
+        Jc = np.concatenate(blocks, axis=2)  # (n, 2, 6 or 10)
+        cols = np.zeros((len(self.frame), Jc.shape[2]), dtype=int)
         cols[:, 0:3] = np.arange(lay.BG.start, lay.BG.stop)
         cols[:, 3:6] = lay.p(1).start + 3 * (self.frame[:, None] - 1) + np.arange(3)
         has_p = self.frame >= 1
-        mask = np.concatenate([np.ones((len(self.frame), 3), bool), np.repeat(has_p[:, None], 3, axis=1)], axis=1)
+        mask = np.ones(cols.shape, bool)
+        mask[:, 3:6] = has_p[:, None]
+        if self.J_v is not None:
+            cols[:, 6:9] = lay.v(0).start + 3 * self.frame[:, None] + np.arange(3)
+            cols[:, 9] = lay.TD.start
         Jc = Jc * mask[:, None, :]
         cols = np.where(mask, cols, 0)
         JtJ = np.einsum("nai,naj->nij", Jc, Jc * w)
@@ -397,7 +446,7 @@ class _Residuals:
         their Jacobians in the sparse form the normal equations need."""
         pr = self.problem
         K, M = pr.n_frames, pr.n_points
-        lay = Layout(K, M)
+        lay = Layout.of(pr)
         n_c = lay.point(0).start  # everything but the points
         eps = 1e-6
         b_batch = est.b_g + np.vstack([np.zeros(3), eps * np.eye(3)]) if jacobian else est.b_g[None, :]
@@ -409,7 +458,7 @@ class _Residuals:
         obs = np.flatnonzero(self.inliers)
         k, j = pr.obs_frame[obs], pr.obs_point[obs]
         scale = pr.focal_px / pr.pixel_sigma
-        d = np.einsum("nba,nb->na", R[k], est.f[j] - est.p[k])  # body k
+        d, u, turn = exposure_bodies(pr, est, R, k, j)  # body k (at its exposure)
         h = (d - pr.t_BC) @ pr.R_BC  # camera k: R_BCᵀ (d − t_BC)
         z = h[:, 0:2] / h[:, 2:3]
         out.r_pix = (z - pr.obs_xn[obs]) * scale
@@ -423,8 +472,17 @@ class _Residuals:
             # R_k(b + δ) = R_k Exp(J_k δ): J_k column i from the perturbed integration.
             Jrot = np.stack([np.stack([so3_log(R[kk].T @ ints.R[1 + i][kk]) / eps for i in range(3)], axis=1)
                              for kk in range(K)])
-            out.J_bg = A @ skew(d) @ Jrot[k]
-            out.J_f = A @ np.swapaxes(R[k], 1, 2)
+            if turn is None:
+                out.J_bg = A @ skew(d) @ Jrot[k]
+                out.J_f = A @ np.swapaxes(R[k], 1, 2)
+            else:  # d = Exp(ω t_d)ᵀ u, ω = gyro − b_g: the bias turns u and, over t_d, the exposure's turn
+                turn_t = np.swapaxes(turn, 1, 2)
+                out.J_bg = A @ (turn_t @ skew(u) @ Jrot[k] - est.t_d * skew(d))
+                out.J_f = A @ turn_t @ np.swapaxes(R[k], 1, 2)
+                out.J_v = -est.t_d * out.J_f
+                # ∂d/∂t_d = −ω × d − Exp(ω t_d)ᵀ R_kᵀ v_k: the body's turn and its motion over the offset
+                seen_motion = np.cross(d, frame_rates(pr, est.b_g)[k]) - np.einsum("nab,ncb,nc->na", turn_t, R[k], est.v[k])
+                out.J_td = A @ seen_motion[..., None]
             out.J_p = -out.J_f  # w.r.t. p_k (none for frame 0, the origin)
         # IMU increments between frames, then the bias priors: few rows, dense over the non-point unknowns.
         rows, dense = [], []
@@ -458,11 +516,15 @@ class _Residuals:
                 dense.append(W @ Jk)
         rows.append((est.b_g - pr.bias_g) / pr.sigma_bias_g)
         rows.append(est.b_a / pr.sigma_bias_a)
+        if pr.solves_time_offset:
+            rows.append(np.array([(est.t_d - pr.time_offset_prior) / pr.sigma_time_offset]))
         out.r_dense = np.concatenate(rows)
         if jacobian:
-            Jb = np.zeros((6, n_c))
+            Jb = np.zeros((6 + lay.time_offset, n_c))
             Jb[0:3, lay.BG] = np.eye(3) / pr.sigma_bias_g
             Jb[3:6, lay.BA] = np.eye(3) / pr.sigma_bias_a
+            if pr.solves_time_offset:
+                Jb[6, lay.TD] = 1.0 / pr.sigma_time_offset
             dense.append(Jb)
             out.J_dense = np.vstack(dense)
         return out
@@ -472,7 +534,7 @@ class _Residuals:
         pr = self.problem
         R = _integrals(pr, est.b_g).R
         k, j = pr.obs_frame, pr.obs_point
-        d = np.einsum("nba,nb->na", R[k], est.f[j] - est.p[k])
+        d = exposure_bodies(pr, est, R, k, j)[0]
         h = (d - pr.t_BC) @ pr.R_BC
         with np.errstate(divide="ignore", invalid="ignore"):
             z = h[:, 0:2] / h[:, 2:3]
@@ -506,13 +568,14 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     p = np.outer(tau, v0) + 0.5 * np.outer(tau * tau, problem.gravity * g_dir) + ints.S - ints.M @ b_a
     v = v0 + np.outer(tau, problem.gravity * g_dir) + ints.V - ints.MV @ b_a
     model = _Residuals(problem, np.ones(len(problem.obs_frame), dtype=bool))
-    first = _Estimate(g_dir, b_g.copy(), b_a, p - p[0], v, triangulate(problem, ints.R, p - p[0] + ints.R @ problem.t_BC))
+    first = _Estimate(g_dir, b_g.copy(), b_a, p - p[0], v, triangulate(problem, ints.R, p - p[0] + ints.R @ problem.t_BC),
+                      problem.time_offset_prior if problem.solves_time_offset else 0.0)
     first, used = _refine(model, first, iterations, robust=2.0)
     fits = [(_robust(model, model.evaluate(first, tangent_basis(first.g_dir), False), 2.0)[0], first)]
     for factor in rescales:
         R = _integrals(problem, first.b_g).R
         other = _Estimate(first.g_dir, first.b_g.copy(), first.b_a.copy(), first.p * factor, first.v * factor,
-                          triangulate(problem, R, first.p * factor + R @ problem.t_BC))
+                          triangulate(problem, R, first.p * factor + R @ problem.t_BC), first.t_d)
         other, more = _refine(model, other, iterations, robust=2.0)
         used += more
         fits.append((_robust(model, model.evaluate(other, tangent_basis(other.g_dir), False), 2.0)[0], other))
@@ -528,7 +591,7 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     used += more
     tangent = tangent_basis(est.g_dir)
     lin = model.evaluate(est, tangent)
-    H_cc, H_cf, H_ff, _, _ = lin.normal_equations(np.ones(len(lin.frame)))
+    H_cc, H_cf, H_ff, _, _ = lin.normal_equations(np.ones(len(lin.frame)), Layout.of(problem))
     # Points left without observations are not in the solution: any pin keeps the inverse defined.
     H_ff[counts < 2] += np.eye(3)
     try:
@@ -539,16 +602,16 @@ def solve_window(problem: WindowProblem, max_gravity_error: float = 0.1, iterati
     if not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov[:n_c, :n_c]).min() <= 0.0:
         raise WindowFailure("information matrix too ill-conditioned for a covariance", "information")
     r2 = float(np.sum(lin.r_pix**2) + lin.r_dense @ lin.r_dense)
-    ratio = math.sqrt(r2 / max(2 * len(lin.frame) + len(lin.r_dense) - Layout(K, M).size, 1))
+    ratio = math.sqrt(r2 / max(2 * len(lin.frame) + len(lin.r_dense) - Layout.of(problem).size, 1))
     cov *= max(1.0, ratio**2)
     # Another start that fits about as well at a clearly different velocity: the scale is ambiguous.
-    lay = Layout(K, M)
+    lay = Layout.of(problem)
     sigma_v = math.sqrt(max(float(np.trace(cov[lay.v(0), lay.v(0)])), 0.0))
     for other_cost, other in fits:
         if other_cost <= cost + 4.0 and np.linalg.norm(other.v[0] - est.v[0]) > 3.0 * sigma_v + 1e-3:
             raise WindowFailure("two scales fit the window about equally well", "scale")
     return WindowSolution(est.g_dir, est.b_g, est.b_a, est.p, est.v, _integrals(problem, est.b_g).R, est.f,
-                          cov, tangent, ratio, g_norm, inliers, used)
+                          cov, tangent, ratio, g_norm, inliers, used, est.t_d)
 
 
 def scale_sigma(problem: WindowProblem, solution: WindowSolution) -> float:
@@ -560,7 +623,7 @@ def scale_sigma(problem: WindowProblem, solution: WindowSolution) -> float:
     barely moves, or whose acceleration is drowned by the accelerometer's noise, leaves it
     large; a lively one makes it small whatever the excitation's RMS.
     """
-    lay = Layout(problem.n_frames, problem.n_points)
+    lay = Layout.of(problem)
     cols = slice(lay.p(1).start, lay.v(0).start)
     p = solution.p[1:].reshape(-1)
     norm = float(p @ p)
@@ -584,14 +647,14 @@ def _robust(model: _Residuals, lin: _Linearised, robust: float | None) -> tuple[
 def _refine(model: _Residuals, est: _Estimate, iterations: int, robust: float | None = None) -> tuple[_Estimate, int]:
     """Levenberg–Marquardt from ``est`` (iteratively reweighted under a Cauchy loss when ``robust``)."""
     pr = model.problem
-    lay = Layout(pr.n_frames, pr.n_points)
+    lay = Layout.of(pr)
     lam = 1e-4
     used = 0
     for used in range(1, iterations + 1):
         tangent = tangent_basis(est.g_dir)
         lin = model.evaluate(est, tangent)
         cost, w = _robust(model, lin, robust)
-        H_cc, H_cf, H_ff, g_c, g_f = lin.normal_equations(w)
+        H_cc, H_cf, H_ff, g_c, g_f = lin.normal_equations(w, lay)
         improved = False
         for _ in range(6):
             try:

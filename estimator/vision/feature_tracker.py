@@ -105,3 +105,26 @@ class FeatureTracker:
         keep = ok_ahead.ravel().astype(bool) & ok_back.ravel().astype(bool) & inside \
             & (round_trip < self.options.max_flow_error_px) & (residual.ravel() < MAX_PATCH_RESIDUAL_DN)
         return keep, ahead
+
+
+class FrameExtractor:
+    """A frame's features as ``options`` say: detected in every frame, or tracked between detections.
+
+    The one extraction of the camera's workers, threads or a process alike, so that both give the same
+    features. Tracking makes a frame's features depend on the frame before: the frames must then come one
+    at a time, in time order (:attr:`in_order`), and the image is kept (copy it if its buffer is reused).
+    """
+
+    def __init__(self, options: FeatureOptions, expected_shape: tuple[int, int] | None) -> None:
+        self.options = options
+        self.expected_shape = expected_shape
+        self.tracker = FeatureTracker(options) if options.track_between else None
+
+    @property
+    def in_order(self) -> bool:
+        return self.tracker is not None
+
+    def __call__(self, image: np.ndarray, t_ns: int) -> FrameFeatures:
+        if self.tracker is None:
+            return extract_features(image, t_ns, self.options, self.expected_shape)
+        return self.tracker.features(image, t_ns, self.expected_shape)

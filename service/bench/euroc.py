@@ -254,10 +254,11 @@ def _angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
-def imported_flight(flight: Flight, work: Path) -> Dataset:
-    """``flight`` imported into ``work`` the one way every flight is (GPS from the truth at 10 Hz, 2 cm, seed 1)."""
+def imported_flight(flight: Flight, work: Path, seed: int = GPS_SEED) -> Dataset:
+    """``flight`` imported into ``work`` the one way every flight is (GPS from the truth at 10 Hz, 2 cm, seed 1;
+    another ``seed`` draws the GPS's noise again over the same truth)."""
     out = work / flight.name
-    import_euroc(flight.source, out, gps_rate_hz=GPS_RATE_HZ, gps_sigma_m=GPS_SIGMA_M, seed=GPS_SEED,
+    import_euroc(flight.source, out, gps_rate_hz=GPS_RATE_HZ, gps_sigma_m=GPS_SIGMA_M, seed=seed,
                  overwrite=True, truth_file=flight.truth_file, camera=False)
     return Dataset.open(out)
 

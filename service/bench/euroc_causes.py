@@ -9,6 +9,8 @@ predicted for up to 100 ms. This bench scores the default model's plain replay (
   reference's way), and the RMSE by time since the last fix: what the prediction between fixes adds;
 - the ratio per stretch of the flight against the GPS's error in the same stretch: what the start-up
   (heading placed in motion, biases settling) costs against the steady state;
+- the same replay with the GPS's noise drawn again (``OTHER_GPS_SEEDS``; the import's seed 1 draws the same
+  noise sequence for every flight): what of each figure, and of each stretch's, is that one draw's;
 - the same ratio with the GPS stamps moved by ``±TIMING_SHIFTS_S`` (``calibration.gps.time_offset_s``):
   whether the fixes and the IMU share one clock;
 - the same ratio with the vehicle file's white noise scaled by ``NOISE_SCALES``: whether the inflated
@@ -30,7 +32,7 @@ import numpy as np
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.estimator import DEFAULT_BAND_HZ, gps_error_rmse, interpolate_poses, quat_to_rot, vibration_floor
-from vtolpose.service.bench.euroc import GPS_RATE_HZ, SCORE_FROM_S, aligned_position_errors, flights_or_skip, imported_flight
+from vtolpose.service.bench.euroc import GPS_RATE_HZ, GPS_SEED, SCORE_FROM_S, aligned_position_errors, flights_or_skip, imported_flight
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import replay
 from vtolpose.service.runtime.kernels import load_compiled_kernels
@@ -41,6 +43,7 @@ TIMING_SHIFTS_S = (-0.01, 0.01)
 NOISE_SCALES = {"accel_noise_density": (0.4, 1.6), "gyro_noise_density": (0.25,)}
 MIN_SAMPLES = 20  # fewer samples in a band: no figure
 FLOOR_DENSITIES = (0.04, 0.03, 0.02)  # m/s²/√Hz: the linear filter's floor at these besides the vehicle file's
+OTHER_GPS_SEEDS = (2, 3, 4, 5)  # the GPS's noise drawn again: the spread of the ratio over draws of the same flight
 
 
 def rmse_by_gap(t_ns: np.ndarray, error: np.ndarray, fix_t_ns: np.ndarray,
@@ -68,6 +71,17 @@ def stretch_ratios(t_rel_s: np.ndarray, error: np.ndarray, gps_t_rel_s: np.ndarr
             continue
         out.append(float(np.sqrt(np.mean(np.sum(error[mine] ** 2, axis=1)) / np.mean(np.sum(gps_error[fixes] ** 2, axis=1)))))
     return tuple(out)
+
+
+def over_draws(draws: list[tuple[float, tuple[float | None, ...]]]) -> tuple[float, float, float, tuple[float | None, ...]]:
+    """Replays of one flight under several draws of the GPS's noise, each (its ratio, its ratios per stretch):
+    the ratios' mean, least and largest, and each stretch's mean over the draws that reach it (None: none does)."""
+    ratios = [r for r, _ in draws]
+    stretches = []
+    for k in range(max(len(s) for _, s in draws)):
+        known = [s[k] for _, s in draws if k < len(s) and s[k] is not None]
+        stretches.append(float(np.mean(known)) if known else None)
+    return float(np.mean(ratios)), min(ratios), max(ratios), tuple(stretches)
 
 
 def steady_state_ratio(accel_density: float, rate_hz: float, sigma_h: float, sigma_v: float,
@@ -115,13 +129,23 @@ def _ratio(dataset: Dataset, overrides: dict) -> tuple[float, object, np.ndarray
     return float(np.sqrt(np.mean(np.sum(error**2, axis=1))) / gps_rmse), result, error
 
 
+def _ratio_and_stretches(dataset: Dataset) -> tuple[float, tuple[float | None, ...], object, np.ndarray]:
+    """The default model's plain replay: its ratio (the ``euroc`` table's), its ratios per stretch, the replay, errors."""
+    ratio, result, error = _ratio(dataset, {})
+    truth = dataset.truth()
+    t = truth.t_ns[aligned_position_errors(result.trajectory, dataset)[0]]
+    fix_t, fix_error = _gps_errors(dataset)
+    by_stretch = stretch_ratios((t - truth.t_ns[0]) * 1e-9, error, (fix_t - truth.t_ns[0]) * 1e-9, fix_error)
+    return ratio, by_stretch, result, error
+
+
 def _fmt(value: float | None, spec: str) -> str:
     return "—" if value is None else f"{value:{spec}}"
 
 
 def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
     """Each EuRoC flight: the default model's ratio scored three ways, then with the GPS timing and the IMU's
-    white noise moved one at a time (see the module docstring)."""
+    white noise moved one at a time, and under other draws of the GPS's noise (see the module docstring)."""
     flights = flights_or_skip("euroc-causes", echo)
     if not flights:
         return []
@@ -137,19 +161,21 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
     lo, hi = DEFAULT_BAND_HZ
     floors = [f"| flight | accelerometer {lo:g}-{hi:g} Hz, per axis | vehicle file | gyroscope {lo:g}-{hi:g} Hz, per axis | vehicle file |",
               "|---|---|---|---|---|"]
+    all_seeds = " / ".join(str(x) for x in (GPS_SEED, *OTHER_GPS_SEEDS))
+    seeds = [f"| flight | every sample, GPS seed {all_seeds} | mean (range) | ratio per stretch, mean over the seeds: "
+             + " / ".join(stretches) + f" | {stretches[0]} per seed |", "|---|---|---|---|---|"]
     rows: list[Row] = []
     with tempfile.TemporaryDirectory() as tmp:
         for flight in flights:
             dataset = imported_flight(flight, Path(tmp))
             truth = dataset.truth()
-            ratio, result, error = _ratio(dataset, {})
+            ratio, by_stretch, result, error = _ratio_and_stretches(dataset)
             inside = aligned_position_errors(result.trajectory, dataset)[0]
             t = truth.t_ns[inside]
             fix_t, fix_error = _gps_errors(dataset)
             at_fix = np.array([np.interp(fix_t, t, error[:, c]) for c in range(3)]).T
             ratio_at_fixes = float(np.sqrt(np.mean(np.sum(at_fix**2, axis=1)) / np.mean(np.sum(fix_error**2, axis=1))))
             by_gap = rmse_by_gap(t, error, dataset.gps().t_ns)
-            by_stretch = stretch_ratios((t - truth.t_ns[0]) * 1e-9, error, (fix_t - truth.t_ns[0]) * 1e-9, fix_error)
             scoring.append(f"| {flight.name} | {ratio:.3f} | {ratio_at_fixes:.3f} | "
                            + " / ".join(_fmt(g and g * 100, ".2f") for g in by_gap) + " cm | "
                            + " / ".join(_fmt(s, ".3f") for s in by_stretch) + " |")
@@ -174,11 +200,21 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
                           f"{np.max(noise.gyro_noise_density):.4f} |")
             rows.append(Row(f"{flight.name}: accelerometer vibration floor (RMS of axes)", float(np.sqrt(np.mean(accel**2))),
                             "m/s²/√Hz", f"{lo:g}-{hi:g} Hz; vehicle file {np.max(noise.accel_noise_density):g}"))
+            draws = [(ratio, by_stretch)]
+            for seed in OTHER_GPS_SEEDS:
+                redrawn = imported_flight(flight, Path(tmp) / f"seed{seed}", seed=seed)
+                draws.append(_ratio_and_stretches(redrawn)[:2])
+            mean, least, most, stretch_means = over_draws(draws)
+            seeds.append(f"| {flight.name} | " + " / ".join(f"{r:.3f}" for r, _ in draws) + f" | {mean:.3f} ({least:.3f}-{most:.3f}) | "
+                         + " / ".join(_fmt(s, ".3f") for s in stretch_means) + " | "
+                         + " / ".join(_fmt(s[0], ".3f") for _, s in draws) + " |")
+            rows.append(Row(f"{flight.name}: position / GPS, mean over {len(draws)} draws of the GPS's noise", mean, "ratio",
+                            f"seeds {GPS_SEED}, {', '.join(map(str, OTHER_GPS_SEEDS))}: {least:.3f}-{most:.3f}"))
     bound = ["| white acceleration density | at the fixes | over the interval |", "|---|---|---|"]
     for density in sorted({vehicle_density, *FLOOR_DENSITIES}, reverse=True):
         at, over = steady_state_ratio(density, GPS_RATE_HZ, *fix_sigmas)
         bound.append(f"| {density:g} m/s²/√Hz | {at:.3f} | {over:.3f} |")
         rows.append(Row(f"linear filter's floor at {density:g} m/s²/√Hz, over the interval", over, "ratio"))
-    for line in scoring + [""] + moved + [""] + bound + [""] + floors:
+    for line in scoring + [""] + seeds + [""] + moved + [""] + bound + [""] + floors:
         echo("  " + line)
     return rows

@@ -2,7 +2,8 @@
 
 ``runtime-latency``: simulated IMU and GPS arrive in real time through the live path (a reader
 thread per device handing samples to the loop), a camera thread delivers 656 × 494 frames at
-7.5 Hz whose SIFT extraction runs in the runtime's executor, ODOMETRY goes out over UDP at
+7.5 Hz whose SIFT extraction runs in the runtime's camera workers (threads, then processes:
+``fusion.camera_process``, the two compared in the same run), ODOMETRY goes out over UDP at
 every sample and every pose is published on Zenoh to a subscriber in another process. The
 latency is from the moment a sample is handed over by its reader thread to the moment both
 outputs have returned. Targets: p99 ≤ 1 ms, and the loop's own handling of a sample ≤ 0.2 ms (p50).
@@ -34,7 +35,8 @@ from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.drivers.simulator.render import default_camera
-from vtolpose.estimator import CameraFrame, extract_features, GpsFix, ImuSample
+from vtolpose.estimator import CameraFrame, GpsFix, ImuSample
+from vtolpose.service.replay.session import FrameProcessor
 from vtolpose.service.runtime.daemon import build_runtime, serve
 from vtolpose.service.commands.run import camera_processor
 from vtolpose.service.runtime.loop import set_thread_priority
@@ -123,13 +125,42 @@ def _test_image(seed: int = 0) -> np.ndarray:
 
 
 def bench_runtime_latency(duration_s: float = 15.0) -> list[Row]:
-    """IMU sample in → ODOMETRY and Zenoh pose out, p50/p99, with SIFT at 7.5 Hz in the executor (targets: p99 ≤ 1 ms, handling p50 ≤ 0.2 ms)."""
+    """IMU sample in → ODOMETRY and Zenoh pose out, p50/p99, with SIFT at 7.5 Hz in camera threads, then processes (targets: p99 ≤ 1 ms, handling p50 ≤ 0.2 ms)."""
+    in_process = {"fusion": {"camera_process": True}}
     rows = latency_run(duration_s, None, "normal")
+    processes = latency_run(duration_s, None, "camera process", in_process)
+    rows += processes + process_ratios(rows, processes)
     if set_thread_priority(20) and set_thread_priority(None):  # permitted here: measure it too
-        rows += latency_run(duration_s, 20, "SCHED_FIFO 20")
+        threads = latency_run(duration_s, 20, "SCHED_FIFO 20")
+        processes = latency_run(duration_s, 20, "SCHED_FIFO 20, camera process", in_process)
+        rows += threads + processes + process_ratios(threads, processes, "SCHED_FIFO 20: ")
     else:
         rows.append(("(real-time priority not permitted here: not measured)", 0.0, "", "needs CAP_SYS_NICE"))
     return rows
+
+
+def process_ratios(threads: list[Row], processes: list[Row], label: str = "") -> list[Row]:
+    """Camera processes against camera threads, figure by figure, from the two runs just made."""
+    def figure(rows: list[Row], what: str) -> float:
+        return next(row[1] for row in rows if row[0].endswith(what))
+
+    return [(f"{label}camera process / camera threads: {what}", figure(processes, what) / figure(threads, what), "x",
+             "the same bench, the same run; below 1: the process is better")
+            for what in ("MAVLink+Zenoh out, p50", "MAVLink+Zenoh out, p99", "handling on the loop, p50",
+                         "handling on the loop, p99")]
+
+
+class _CountingProcessor(FrameProcessor):
+    """The service's frame processor whose update only counts: the bench's frames are not of the flight."""
+
+    def __init__(self, options: Any, shape: tuple[int, int]) -> None:
+        super().__init__(options, shape)
+        self.features: list[int] = []
+
+    def fusing(self, frame: CameraFrame, features: Any) -> Any:
+        self.extract_ms.append(features.extract_ms)
+        self.features.append(len(features))
+        return lambda est: None  # the measurement hook, as process_features will use it
 
 
 def latency_run(duration_s: float, priority: int | None, label: str, overrides: dict | None = None) -> list[Row]:
@@ -152,15 +183,8 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
     gps_fixes = [GpsFix(int(t), p, float(h), float(v)) for t, p, h, v in zip(gps.t_ns, gps.p_ned, gps.sigma_h, gps.sigma_v)]
     image = _test_image()
     options = feature_options(cfg)  # the service's own extraction, as features.* configure it
-    features: list[int] = []
-
-    extract_ms: list[float] = []
-
-    def extract(frame: CameraFrame):
-        found = extract_features(frame.image, frame.t_ns, options, image.shape)
-        extract_ms.append(found.extract_ms)
-        features.append(len(found))
-        return lambda est: None  # the measurement hook, as process_features will use it
+    extract = _CountingProcessor(options, image.shape)
+    features, extract_ms = extract.features, extract.extract_ms
 
     runtime = build_runtime(cfg, dataset.calibration, camera_processor=extract, measure_latency=True)
     runtime.options.realtime_priority = priority
@@ -218,7 +242,9 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
         (f"[{label}] floor: a bare UDP datagram + a bare Zenoh put, p50", udp_us + put_us, "us",
          f"{udp_us:.0f} + {put_us:.0f} us for {datagram} + {document} bytes to peers in other processes, "
          f"paced at 1 kHz, nothing else in the loop; {udp_got} and {put_got} of 2000 received"),
-        (f"[{label}] camera frames through {options.detector.upper()} in the executor", float(len(features)), "frames", extract_note),
+        (f"[{label}] camera frames through {options.detector.upper()} in the "
+         f"{'camera process' if runtime.options.camera_process else 'camera threads'}", float(len(features)), "frames",
+         extract_note),
         (f"[{label}] Zenoh poses received by the subscriber process", float(received), "poses",
          f"{summary.status['outputs'].get('mavlink', {}).get('odometry_sent', 0)} ODOMETRY sent, "
          f"{datagrams} datagrams received by the UDP peer"),

@@ -22,8 +22,7 @@ import numpy as np
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.lidar import lidar_summary
 from vtolpose.estimator import (
-    CameraFrame, Estimator, extract_features, FeatureOptions, FeatureTracker, FrameFeatures, FrameReport, FusedRun,
-    OutputPose,
+    CameraFrame, Estimator, FeatureOptions, FrameExtractor, FrameFeatures, FrameReport, FusedRun, OutputPose,
 )
 from vtolpose.service.replay.faults import Fault, FaultInjector
 from vtolpose.service.runtime.kernels import KernelLoad, load_compiled_kernels
@@ -153,20 +152,25 @@ class FrameProcessor:
         self.reports: deque[FrameReport] = deque(maxlen=keep)
         self.extract_ms: deque[float] = deque(maxlen=keep)
         self.extract_cpu_ms: deque[float] = deque(maxlen=keep)
-        self.tracker = FeatureTracker(options) if options.track_between else None
-        self._tracker_lock = threading.Lock()
+        self.extractor = FrameExtractor(options, expected_shape)
+        self._extractor_lock = threading.Lock()
 
     @property
     def in_order(self) -> bool:
         """Frames must reach this processor one at a time, in time order (features tracked between detections)."""
-        return self.tracker is not None
+        return self.extractor.in_order
 
     def __call__(self, frame: CameraFrame) -> Callable[[Estimator], FrameReport]:
-        if self.tracker is None:
-            features = extract_features(frame.image, frame.t_ns, self.options, self.expected_shape)
+        """On a camera worker thread: the features, and the update that fuses them."""
+        if self.extractor.in_order:
+            with self._extractor_lock:
+                features = self.extractor(frame.image, frame.t_ns)
         else:
-            with self._tracker_lock:
-                features = self.tracker.features(frame.image, frame.t_ns, self.expected_shape)
+            features = self.extractor(frame.image, frame.t_ns)
+        return self.fusing(frame, features)
+
+    def fusing(self, frame: CameraFrame, features: FrameFeatures) -> Callable[[Estimator], FrameReport]:
+        """The update for ``frame`` whose ``features`` were extracted elsewhere (a camera process)."""
 
         def fuse(est: Estimator) -> FrameReport:
             report = est.process_features(features)

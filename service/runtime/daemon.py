@@ -92,6 +92,7 @@ def build_runtime(
         fusion=fusion_options(sections.fusion), history_s=outputs.zenoh.history_s,
         camera_workers=1 if getattr(camera_processor, "in_order", False) else (
             replay_camera_workers(sections.replay) if lockstep else sections.fusion.camera_workers),
+        camera_process=sections.replay.camera_process if lockstep else sections.fusion.camera_process,
         lockstep=lockstep, measure_latency=measure_latency,
         realtime_priority=sections.run.realtime_priority if live else None, imu_range=imu_range(cfg),
     )

@@ -4,10 +4,11 @@ Timing rules (spec "Fusion order"):
 - An IMU sample is handled the moment it arrives: it goes into the fusion core, the pose
   predicted to it is published (ODOMETRY, Zenoh) and stored in the history. Nothing on this
   path waits for anything else.
-- Camera work (feature extraction) runs in a thread pool off the loop; its result becomes a
-  measurement queued at the frame's own timestamp, fused when the delayed horizon reaches it.
-  One frame at most per worker is in flight: a frame arriving while all workers are busy is
-  dropped and counted, never queued without bound.
+- Camera work (feature extraction) runs in a thread pool off the loop, or (``camera_process``)
+  in worker processes fed through shared memory, so that it never holds the loop's interpreter;
+  its result becomes a measurement queued at the frame's own timestamp, fused when the delayed
+  horizon reaches it. One frame at most per worker is in flight: a frame arriving while all
+  workers are busy is dropped and counted, never queued without bound.
 - In lock-step mode (a replay at full speed) the loop waits for a frame's features before the
   horizon passes the frame, so a replay gives the same result however fast the machine is.
 Shutdown (SIGINT/SIGTERM, the end of a replay, a duration): sources are stopped, camera work
@@ -30,10 +31,11 @@ from typing import Any, AsyncIterator, Callable, Protocol, Sequence
 import numpy as np
 
 from vtolpose.estimator import (
-    Apply, CameraFrame, COV, Estimator, FixedLagSmoother, FusedRun, FusionCore, FusionOptions, GpsFix, ImuBatch, ImuRange,
-    ImuSample, OutputPose, P, PoseHistory, Q, ROW, screened, SmoothedPose, V,
+    Apply, CameraFrame, COV, Estimator, FixedLagSmoother, FrameFeatures, FusedRun, FusionCore, FusionOptions, GpsFix,
+    ImuBatch, ImuRange, ImuSample, OutputPose, P, PoseHistory, Q, ROW, screened, SmoothedPose, V,
 )
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
+from vtolpose.service.runtime.camera_process import CAMERA_NICE, CameraProcesses, CameraWorkerDied
 from vtolpose.service.runtime.step_taps import StepTaps
 from vtolpose.service.runtime.status import (FailureBook, LatencyProbe, StatusTracker, pose_problem, pose_quality,
                                              stopped_within)
@@ -75,9 +77,6 @@ def set_thread_priority(priority: int | None) -> bool:
         return False
 
 
-CAMERA_NICE = 10  # camera worker threads: feature extraction yields a contended core to the pose path
-
-
 def background_thread_priority() -> None:
     """For camera worker threads: normal scheduling (never the loop's SCHED_FIFO), niced so that the
     loop wins a contended core. Raising one's own nice needs no privilege (Linux: per thread)."""
@@ -93,6 +92,7 @@ class RuntimeOptions:
     fusion: FusionOptions = field(default_factory=FusionOptions)
     history_s: float = 120.0
     camera_workers: int = 1
+    camera_process: bool = False  # extraction in worker processes (frames in shared memory), not threads
     lockstep: bool = False  # replay at full speed: wait for camera work at the horizon (deterministic)
     status_period_s: float = 1.0
     measure_latency: bool = False
@@ -171,6 +171,7 @@ class Runtime:
             taps.report_failures_to(self.failures.record)
         self._smoothing_finished = False
         self._executor: ThreadPoolExecutor | None = None
+        self._camera_processes: CameraProcesses | None = None
         self._camera_jobs: list[tuple[int, asyncio.Future]] = []
         self._first_t: int | None = None
         self._sources: Sequence[AsyncIterator] = ()
@@ -316,6 +317,9 @@ class Runtime:
         if self._camera_offset_ns:
             frame = replace(frame, t_ns=frame.t_ns + self._camera_offset_ns)
         self.status.saw("camera")
+        if self._camera_processes is not None:
+            self._submit_to_process(frame)
+            return
         if self.camera_processor is None or self._executor is None:
             self.status.count("camera_frames_unprocessed")
             return
@@ -326,19 +330,54 @@ class Runtime:
         future.add_done_callback(lambda f, t=frame.t_ns: self._camera_done(t, f))
         self._camera_jobs.append((frame.t_ns, future))
 
-    def _camera_done(self, t_ns: int, future: asyncio.Future) -> None:
-        """On the loop, once a frame's work is finished: its measurement joins the fusion queue."""
+    def _submit_to_process(self, frame: CameraFrame) -> None:
+        """The frame into an idle camera process's slot; its features come back as the threads' would."""
+        processes = self._camera_processes
+        if not processes.usable:  # its workers died too often: the camera is degraded, the rest runs on
+            self.status.count("camera_frames_unprocessed")
+            return
+        image = frame.image
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.shape != processes.shape:
+            # No slot fits it: rejected here, as the extraction would reject it (frame_quality's wrong_size).
+            features = FrameFeatures.rejected(frame.t_ns, np.shape(image), "wrong_size")
+            apply = self.camera_processor.fusing(frame, features)
+            if apply is not None:
+                self.fusion.add_measurement(frame.t_ns, apply, "camera")
+            return
+        job = processes.submit(image, frame.t_ns)
+        if job is None:
+            self.status.count("camera_frames_dropped_busy")
+            return
+        future = asyncio.wrap_future(job)
+        future.add_done_callback(lambda f, fr=frame: self._camera_done(fr.t_ns, f, fr))
+        self._camera_jobs.append((frame.t_ns, future))
+
+    def _camera_done(self, t_ns: int, future: asyncio.Future, frame: CameraFrame | None = None) -> None:
+        """On the loop, once a frame's work is finished: its measurement joins the fusion queue.
+
+        ``frame``: the work was a camera process's, whose result is the frame's features."""
         self._camera_jobs = [(t, f) for t, f in self._camera_jobs if f is not future]
         if future.cancelled():
             return
         exc = future.exception()
         if exc is not None:
             self.status.count("camera_processing_errors")
-            log.error("feature extraction failed for the frame at t_ns=%d: %s", t_ns, exc)
+            if not isinstance(exc, CameraWorkerDied):  # a death is reported by itself (on_death)
+                log.error("feature extraction failed for the frame at t_ns=%d: %s", t_ns, exc)
             return
-        apply = future.result()
+        apply = future.result() if frame is None else self.camera_processor.fusing(frame, future.result())
         if apply is not None:
             self.fusion.add_measurement(t_ns, apply, "camera")
+
+    async def _camera_process_idle(self) -> None:
+        """Lock-step: a frame waits for an idle camera process (never dropped), so a replay gives the same result."""
+        processes = self._camera_processes
+        while processes.usable and not processes.idle:
+            if self._camera_jobs:
+                await asyncio.wait([f for _, f in self._camera_jobs], return_when=asyncio.FIRST_COMPLETED)
+            else:  # a worker is being started again
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0)  # their done-callbacks queue the measurements
 
     async def _before_imu(self, t_ns: int) -> None:
         """Lock-step: frames the horizon is about to pass must have their features queued first."""
@@ -359,6 +398,8 @@ class Runtime:
             async for sample in source:
                 if lockstep and self._camera_jobs and isinstance(sample, (ImuSample, ImuBatch)):
                     await self._before_imu(sample.t_ns if isinstance(sample, ImuSample) else int(sample.t_ns[-1]))
+                elif lockstep and self._camera_processes is not None and isinstance(sample, CameraFrame):
+                    await self._camera_process_idle()
                 try:
                     self.handle(sample, getattr(source, "last_arrival_ns", None) if self.latency is not None else None)
                 except Exception as exc:
@@ -382,6 +423,7 @@ class Runtime:
             "quality": pose_quality(self.last_pose) if self.last_pose is not None else 0,
             "pose_problem": pose_problem(self.last_pose) if self.last_pose is not None else "no pose yet",
             **self._imu_missing(),
+            **({"camera_process": self._camera_processes.report()} if self._camera_processes is not None else {}),
             "failures": self.failures.report(),  # isolated failures of outputs, sources, the trajectory file
         }
         # Input links with their own counters (the GPS over MAVLink on a link of its own), beside the outputs'.
@@ -446,15 +488,17 @@ class Runtime:
         wall0 = time.perf_counter()
         self._sources = sources
         # Camera work runs at normal scheduling, niced, even when the loop (and the threads it starts) is real-time.
-        self._executor = ThreadPoolExecutor(max_workers=self.options.camera_workers, thread_name_prefix="camera",
-                                            initializer=background_thread_priority)
+        in_process = self.options.camera_process and self.camera_processor is not None
+        if not in_process:
+            self._executor = ThreadPoolExecutor(max_workers=self.options.camera_workers, thread_name_prefix="camera",
+                                                initializer=background_thread_priority)
         # Paced (live) runs: OpenCV's own worker pool would run feature extraction on every core at
         # normal priority beside the loop; one thread per camera worker keeps it in the niced workers
         # (SIFT ~40 % slower per frame, well inside a frame period). Full-speed replays with several
         # workers (two per core) extract whole frames in parallel, each on one thread; with one
         # worker they keep the pool. Without a camera OpenCV is not even loaded.
         opencv_threads = None
-        if self.camera_processor is not None:
+        if self.camera_processor is not None and not in_process:
             import cv2
 
             opencv_threads = cv2.getNumThreads()
@@ -471,6 +515,11 @@ class Runtime:
                 except Exception as exc:  # zenoh.ZError, serial and socket errors: say which output
                     raise OSError(f"the {out.name} output could not open: {exc}") from exc
                 opened.append(out)
+            if in_process:
+                loop = asyncio.get_running_loop()
+                self._camera_processes = await asyncio.to_thread(
+                    self._start_camera_processes,
+                    lambda exc: loop.call_soon_threadsafe(self.failures.record, "camera process", exc))
             # Everything built so far lives for the whole run: keep it out of the cyclic collector's
             # full passes, whose pauses would otherwise land on the pose path. Only the young
             # generations are collected first: a full pass over the imported libraries' objects
@@ -508,7 +557,10 @@ class Runtime:
                     log.error("closing %s: %s", type(out).__name__, exc)
                     if hasattr(out, "incomplete"):  # a file output that could not be finished
                         self._close_errors[out.name] = f"{getattr(exc, 'strerror', None) or exc}"
-            self._executor.shutdown(wait=True, cancel_futures=True)
+            if self._executor is not None:
+                self._executor.shutdown(wait=True, cancel_futures=True)
+            if self._camera_processes is not None:
+                self._camera_processes.close()  # the ring unlinked; its report stays for the summary
             if opencv_threads is not None:
                 import cv2
 
@@ -532,6 +584,27 @@ class Runtime:
             trajectory_error=self.trajectory.error if self.trajectory is not None else None,
             incomplete=self.incomplete_outputs(),
         )
+
+    @property
+    def camera_processes(self) -> CameraProcesses | None:
+        """The camera's worker processes while a run with ``camera_process`` goes on (their pids, their report)."""
+        return self._camera_processes
+
+    def _start_camera_processes(self, on_death: Callable[[CameraWorkerDied], None]) -> CameraProcesses:
+        """``camera_workers`` extraction processes for the processor's frames (its ``options``, ``expected_shape``
+        and ``fusing``: a FrameProcessor's), started and ready."""
+        processor = self.camera_processor
+        shape = getattr(processor, "expected_shape", None)
+        if shape is None or not hasattr(processor, "fusing"):
+            raise ValueError("camera processes need a frame processor that knows the camera's frame shape "
+                             "(expected_shape) and fuses features extracted elsewhere (fusing)")
+        processes = CameraProcesses(processor.options, shape, shape, self.options.camera_workers, on_death)
+        try:
+            processes.start()
+        except BaseException:
+            processes.close()
+            raise
+        return processes
 
     def incomplete_outputs(self) -> list[str]:
         """Each requested file output (the trajectory file, an MCAP recording) that could not be written in full,
