@@ -666,13 +666,21 @@ class Estimator:
             counts.used += 1
             self.health.measured("gps", fix.t_ns, used=True)
             return UpdateOutcome(True, 0.0, 3, "position initialised")
-        self.gps_noise.before_update(state, raw, self.gps.model)  # the GPS noise check (1/2)
-        gauge = heading_gauge(state)
-        if self.heading_aligned:
-            outcome = self.gps.update(state, fix)
+        aligned = self.heading_aligned
+        posterior = None  # the fix's residual after its update, where the compiled fix works it out
+        if aligned and not state.n_landmarks and not state.calib.shape[0] and state.cov.flags.c_contiguous:
+            # IMU+GPS: the noise check's innovation (1/2), the update and the posterior residual in one call.
+            outcome, info = self.gps.update_filter(state, fix, self.gps_noise.claims(raw))
+            self.gps_noise.innovation(raw, info[3:6], float(info[2]))
+            posterior = info[6:9]
         else:
-            outcome = self.gps.update_heading_unknown(state, fix, self._held_until_aligned())
-        carry_gauge(state, gauge)  # the map's heading gauge follows the move (camera_update.carry_gauge)
+            self.gps_noise.before_update(state, raw, self.gps.model)  # the GPS noise check (1/2)
+            gauge = heading_gauge(state)
+            if aligned:
+                outcome = self.gps.update(state, fix)
+            else:
+                outcome = self.gps.update_heading_unknown(state, fix, self._held_until_aligned())
+            carry_gauge(state, gauge)  # the map's heading gauge follows the move (camera_update.carry_gauge)
         if outcome.accepted:
             counts.used += 1
         else:
@@ -682,14 +690,17 @@ class Estimator:
                                 "" if outcome.accepted else f"fix refused by the gate (NIS {outcome.nis:.1f})")
         if self.health.measured("gps", fix.t_ns, outcome.accepted, gated=True):
             self._reset_from_gps(raw)
-        self._noise_checked(raw, fix, outcome.accepted)  # the GPS noise check (2/2)
+            posterior = None  # against the state the reset made
+        self._noise_checked(raw, fix, outcome.accepted, posterior)  # the GPS noise check (2/2)
         if not self.heading_aligned:
             self._search_heading(fix)
         return outcome
 
-    def _noise_checked(self, raw: GpsFix, weighed: GpsFix, accepted: bool) -> None:
-        """The GPS noise check sees the fix's residual after its update; a change of belief is an event."""
-        self.gps_noise.after_update(raw.t_ns, self.gps.residual(self.state, raw), accepted)
+    def _noise_checked(self, raw: GpsFix, weighed: GpsFix, accepted: bool, posterior: np.ndarray | None = None) -> None:
+        """The GPS noise check sees the fix's residual after its update (``posterior``, when worked out already);
+        a change of belief is an event."""
+        residual = self.gps.residual(self.state, raw) if posterior is None else posterior
+        self.gps_noise.after_update(raw.t_ns, residual, accepted)
         if weighed is not raw:
             self.counts["gps"].flag("sigma_not_believed")
 

@@ -279,3 +279,52 @@ def test_a_gps_update_on_a_covariance_that_is_not_contiguous_takes_the_model_pat
     out_a, out_b = gps.update(a, fix), gps.update(b, fix)
     assert out_a.accepted and out_b.accepted and out_a.nis == out_b.nis
     assert np.array_equal(a.p, b.p) and np.array_equal(a.q, b.q) and np.array_equal(a.cov, b.cov)
+
+
+@pytest.mark.parametrize("variant", ["biases", "thesis"])
+@pytest.mark.parametrize("case", ["plain", "gated", "singular", "non_finite", "unchecked"])
+def test_the_filters_compiled_fix_is_the_noise_checks_update_and_residual_in_python(variant, case):
+    """Without a map the filter fuses a fix in one compiled call (gps_kernel.filter_fix): the noise check's
+    innovation and NIS under the claimed sigmas, the update, the injection and the residual after it. The
+    Python path (before_update, update_reference, FilterState.inject, residual) is the reference: the same
+    state and outcome to the last bit, the same innovation, NIS and residual in the noise check."""
+    from vtolpose.estimator.gnss.noise_check import GpsNoiseCheck
+
+    rng = np.random.default_rng(len(case) + 10 * len(variant))
+    for trial in range(20):
+        start = make_state(variant, seed=trial)
+        start.q = quat_exp(rng.normal(size=3) * 2.0)
+        start.b_g, start.b_a = rng.normal(size=3) * 1e-3, rng.normal(size=3) * 1e-2
+        lever = rng.normal(size=3) * 0.5
+        raw = GpsFix(2, start.p + rng.normal(size=3) * 0.3, float(rng.uniform(0.05, 2.0)),
+                     float(rng.uniform(0.05, 3.0)) if trial % 2 else float("nan"))
+        weighed = GpsFix(raw.t_ns, raw.p_ned, raw.sigma_h * rng.uniform(1.0, 3.0), raw.sigma_v)  # the check's belief
+        gps = GpsUpdater(lever, gate=1e6 if trial % 2 else None)
+        if case == "gated":
+            gps.gate = 1e-9
+        elif case == "singular":
+            start.cov = -np.eye(start.dim) * 1e3
+        elif case == "non_finite":
+            raw = weighed = GpsFix(2, np.array([np.nan, 0.0, 0.0]), 1.0, 1.0)
+        checks, previous = [], rng.normal(size=3) * 0.1
+        for _ in range(2):
+            check = GpsNoiseCheck(sigma_floor_m=gps.sigma_floor_m)
+            check.options = type(check.options)(enabled=case != "unchecked")
+            check._last_posterior = (1, previous)  # a previous fix: this one's difference is taken
+            checks.append(check)
+        compiled, python = start.copy(), start.copy()
+        out_c, info = gps.update_filter(compiled, weighed, checks[0].claims(raw))
+        checks[0].innovation(raw, info[3:6], float(info[2]))
+        checks[0].after_update(raw.t_ns, info[6:9], out_c.accepted)
+        checks[1].before_update(python, raw, gps.model)
+        out_p = gps.update_reference(python, weighed)
+        checks[1].after_update(raw.t_ns, gps.residual(python, raw), out_p.accepted)
+        assert out_c.accepted == (case in ("plain", "unchecked"))
+        assert (out_c.accepted, out_c.reason, out_c.dof) == (out_p.accepted, out_p.reason, out_p.dof)
+        assert out_c.nis == out_p.nis or (np.isnan(out_c.nis) and np.isnan(out_p.nis))
+        for name in ("p", "v", "q", "b_g", "b_a", "cov"):
+            assert np.array_equal(getattr(compiled, name), getattr(python, name)), (case, trial, name)
+        np.testing.assert_array_equal(info[6:9], gps.residual(python, raw))
+        assert list(checks[0]._diffs) == list(checks[1]._diffs)
+        np.testing.assert_allclose(list(checks[0]._nis), list(checks[1]._nis), rtol=1e-12)
+        assert len(checks[0]._nis) == (case not in ("non_finite", "unchecked"))

@@ -120,7 +120,7 @@ def _numpy_update(state: FilterState, cols: np.ndarray | slice, H: np.ndarray, r
     return UpdateOutcome(True, nis, m)
 
 
-_REASONS = {1: "singular innovation covariance", 2: "non-finite residual", 3: "chi2 gate"}
+REASONS = {1: "singular innovation covariance", 2: "non-finite residual", 3: "chi2 gate"}
 
 
 def _compiled_update(state: FilterState, cols: slice, H: np.ndarray, residual: np.ndarray, R: np.ndarray,
@@ -138,7 +138,7 @@ def _compiled_update(state: FilterState, cols: slice, H: np.ndarray, residual: n
 def compiled_outcome(state: FilterState, code: int, nis: float, dx: np.ndarray, m: int) -> UpdateOutcome:
     """What a compiled update's (code, NIS, δx) mean for ``state``: the correction folded in when accepted."""
     if code:
-        return UpdateOutcome(False, float(nis), m, _REASONS[code])
+        return UpdateOutcome(False, float(nis), m, REASONS[code])
     state.inject(dx)
     if state.observer is not None:
         state.observer.updated(state)

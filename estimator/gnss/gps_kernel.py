@@ -125,9 +125,63 @@ def gps_update(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a
     return info, dxs
 
 
+FIX_INFO = 9  # filter_fix's row: code, NIS, the noise check's NIS, its innovation (3), the posterior residual (3)
+
+
+@numba.njit(cache=True, nogil=True)
+def claimed_nis(cov: np.ndarray, H: np.ndarray, residual: np.ndarray, var_h: float, var_v: float) -> float:
+    """``ν^T (H P H^T + diag(σ_h², σ_h², σ_v²))⁻¹ ν`` as ``GpsNoiseCheck.before_update`` has it (a solve, not a
+    Cholesky factor: the claimed noise may be anything); inf where that matrix is singular."""
+    S = np.dot(np.dot(H, np.ascontiguousarray(cov[:NAV_DIM, :NAV_DIM])), np.ascontiguousarray(H.T))
+    S[0, 0] += var_h
+    S[1, 1] += var_h
+    S[2, 2] += var_v
+    try:
+        return np.dot(residual, np.linalg.solve(S, residual))
+    except Exception:  # numpy's LinAlgError: an exactly singular matrix
+        return math.inf
+
+
+@numba.njit(cache=True, nogil=True)
+def filter_fix(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, cov: np.ndarray,
+               biases: bool, lever_b: np.ndarray, fix: np.ndarray, var_h: float, var_v: float, gate: float,
+               check: bool, claim_h: float, claim_v: float) -> tuple[np.ndarray, ...]:
+    """A fix fused into the filter's state without a map: what ``GpsNoiseCheck.before_update``, ``GpsUpdater.update``,
+    ``FilterState.inject`` and the posterior ``GpsUpdater.residual`` do in Python, in one call.
+
+    ``cov`` changes in place; the nominal parts come back as new arrays (a pose keeps the old ones) with the row
+    :data:`FIX_INFO`: ``small_update``'s code and NIS, then with ``check`` the NIS under the claimed variances
+    ``claim_h``, ``claim_v`` (else NaN), the innovation and the residual after the update."""
+    info = np.full(FIX_INFO, math.nan)
+    residual, H, R = fix_model(p, q, lever_b, fix, var_h, var_v)
+    if check:
+        info[2] = claimed_nis(cov, H, residual, claim_h, claim_v)
+    info[3:6] = residual
+    code, nis, dx = small_update(cov, 0, NAV_DIM, H, residual, R, gate, NO_HELD)
+    info[0], info[1] = code, nis
+    p, v, q, b_g, b_a = p.copy(), v.copy(), q.copy(), b_g.copy(), b_a.copy()
+    if code == 0:
+        for i in range(3):
+            p[i] = p[i] + dx[i]
+            v[i] = v[i] + dx[3 + i]
+        dw, ex, ey, ez = rotvec_quat(dx[6], dx[7], dx[8])
+        r0, r1, r2, r3 = quat_product(dw, ex, ey, ez, q[0], q[1], q[2], q[3])
+        norm = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
+        q[0], q[1], q[2], q[3] = r0 / norm, r1 / norm, r2 / norm, r3 / norm
+        if biases:
+            for i in range(3):
+                b_g[i] = b_g[i] + dx[9 + i]
+                b_a[i] = b_a[i] + dx[12 + i]
+    info[6:9] = fix - (p + lever_arm_world(q, lever_b))
+    return info, p, v, q, b_g, b_a
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) for the argument types the filter and the heading hypotheses pass (a
     mask of held states, or none, is the same type)."""
     stack = np.zeros((2, 3))
     gps_update(stack, stack.copy(), np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)), stack.copy(), stack.copy(),
                np.stack([np.eye(15)] * 2), True, True, np.zeros(3), np.zeros(3), 1.0, 2.0, math.inf, NO_HELD)
+    for dim in (9, 15):  # the two models' states
+        filter_fix(np.zeros(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3), np.zeros(3), np.eye(dim),
+                   dim == 15, np.zeros(3), np.zeros(3), 1.0, 2.0, math.inf, True, 1.0, 2.0)

@@ -11,8 +11,8 @@ import math
 import numpy as np
 
 from vtolpose.estimator.core import covariance
-from vtolpose.estimator.core.kalman import (UpdateOutcome, compiled_outcome, ekf_update, innovation_covariance,
-                                            normalized_innovation)
+from vtolpose.estimator.core.kalman import (REASONS, UpdateOutcome, compiled_outcome, ekf_update,
+                                            innovation_covariance, normalized_innovation)
 from vtolpose.estimator.core.update_kernel import NO_HELD
 from vtolpose.estimator.gnss import gps_kernel
 from vtolpose.estimator.core.measurements import GpsFix
@@ -87,6 +87,27 @@ class GpsUpdater:
             NO_HELD if held is None else np.ascontiguousarray(held, dtype=np.bool_))
         code, nis = info[0, :2].tolist()
         return compiled_outcome(state, int(code), nis, dxs[0], 3)
+
+    def update_filter(self, state: FilterState, fix: GpsFix,
+                      claimed: tuple[float, float] | None) -> tuple[UpdateOutcome, np.ndarray]:
+        """The filter's fix where its state has only the robot (IMU+GPS; C-ordered covariance, no map, no
+        calibration states): :meth:`update`, the noise check's innovation and NIS under the ``claimed`` sigmas
+        (None: no check) and :meth:`residual` after the update, in one compiled call (``gps_kernel.filter_fix``:
+        a dozen numpy calls on three-element arrays cost more than their arithmetic). Returns the outcome and
+        the kernel's row (``gps_kernel.FIX_INFO``: the check's NIS, the innovation, the posterior residual)."""
+        sigma_h, sigma_v = gps_sigmas(fix, self.sigma_floor_m)
+        claim_h, claim_v = (1.0, 1.0) if claimed is None else claimed
+        info, p, v, q, b_g, b_a = gps_kernel.filter_fix(
+            state.p, state.v, state.q, state.b_g, state.b_a, state.cov, state.layout.estimates_biases,
+            self.model.lever_arm_b, np.ascontiguousarray(fix.p_ned, dtype=float), sigma_h**2, sigma_v**2,
+            math.inf if self.gate is None else float(self.gate), claimed is not None, claim_h**2, claim_v**2)
+        code, nis = int(info[0]), float(info[1])
+        if code:
+            return UpdateOutcome(False, nis, 3, REASONS[code]), info
+        state.p, state.v, state.q, state.b_g, state.b_a = p, v, q, b_g, b_a
+        if state.observer is not None:
+            state.observer.updated(state)
+        return UpdateOutcome(True, nis, 3), info
 
     def update_reference(self, state: FilterState, fix: GpsFix, held: np.ndarray | None = None) -> UpdateOutcome:
         """:meth:`update` from the model's prediction and Jacobian through :func:`ekf_update`."""

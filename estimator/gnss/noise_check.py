@@ -199,6 +199,18 @@ class GpsNoiseCheck:
             nis = float(nu @ np.linalg.solve(s, nu))
         except np.linalg.LinAlgError:
             nis = math.inf
+        self.innovation(fix, nu, nis)
+
+    def claims(self, fix: GpsFix) -> tuple[float, float] | None:
+        """The sigmas :meth:`before_update` weighs ``fix``'s innovation with; None while the check is off."""
+        return self._claimed(fix) if self.options.enabled else None
+
+    def innovation(self, fix: GpsFix, nu: np.ndarray, nis: float) -> None:
+        """:meth:`before_update` given the fix's innovation ``nu`` and its NIS under :meth:`claims` (the filter's
+        compiled fix works both out with its update)."""
+        if not self.options.enabled:
+            return
+        claimed_h, claimed_v = self._claimed(fix)
         self._pending = (fix.t_ns, nu, claimed_h, claimed_v)
         self._said_h = float(fix.sigma_h)  # the claim as the receiver made it, for the operator
         last = self._last_posterior
