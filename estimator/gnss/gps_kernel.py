@@ -1,5 +1,7 @@
 """A GPS fix's whole EKF update in one compiled call: lever arm, residual, Jacobian, noise and the update, for
-the filter's state or for every heading hypothesis at once (with what a hypothesis' weight needs).
+the filter's state or for every heading hypothesis at once (with what a hypothesis' weight needs); for the
+filter without a map (:func:`filter_fix`) with the noise check's innovation, the injection and the residual
+after the update as well.
 
 In Python the fix costs a dozen calls on three-element arrays (rotation, lever arm, prediction,
 Jacobian, noise, each wrapper dearer than its arithmetic) around the compiled update. Here the same
