@@ -211,8 +211,9 @@ class CameraProcesses:
                 with self._lock:
                     worker.ready = True
                 return True
-        except (EOFError, OSError):
-            pass
+        except (EOFError, OSError) as exc:  # the worker died before it answered: its pipe is closed
+            log.error("camera worker %d did not start: %s", worker.slot, exc or type(exc).__name__)
+            return False
         log.error("camera worker %d did not start", worker.slot)
         return False
 
@@ -222,8 +223,8 @@ class CameraProcesses:
             return
         try:
             worker.jobs.send(None)
-        except OSError:
-            pass
+        except OSError as exc:  # already gone (its pipe closed): the join below finds it ended
+            log.debug("camera worker %d: stop not sent: %s", worker.slot, exc)
         process.join(timeout_s)
         if process.is_alive():
             process.kill()
