@@ -17,6 +17,8 @@ PUBLIC: dict[str, str] = {
     'calibrate_imu': 'vtolpose.estimator.calibration.imu',
     'StaticOptions': 'vtolpose.estimator.calibration.static_detection',
     'find_static_stretches': 'vtolpose.estimator.calibration.static_detection',
+    'FrameRotations': 'vtolpose.estimator.calibration.timesync',
+    'TimeSyncError': 'vtolpose.estimator.calibration.timesync',
     'TimeSyncOptions': 'vtolpose.estimator.calibration.timesync',
     'TimeSyncResult': 'vtolpose.estimator.calibration.timesync',
     'correlate': 'vtolpose.estimator.calibration.timesync',

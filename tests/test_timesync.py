@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from vtolpose.config import load_config
-from vtolpose.drivers.files.dataset import DatasetWriter
+from vtolpose.drivers.files.dataset import Dataset, DatasetWriter
 from vtolpose.drivers.files.series import ImuSeries
 from vtolpose.drivers.simulator import ImuErrorModel, simulate_flight
 from vtolpose.drivers.simulator.flight import sample_times_ns
@@ -22,6 +22,7 @@ from vtolpose.drivers.simulator.render import default_camera, render_frames
 from vtolpose.drivers.simulator.trajectory import EulerTrajectory, SineMotion
 from vtolpose.estimator.calibration.timesync import TimeSyncError, correlate, frame_rotations
 from vtolpose.service.cli import main
+from vtolpose.service.commands.importer import settle_camera_time_offset
 
 G = 9.80665
 SHIFT_NS = 37_000_000  # the camera stamps are this late: the offset to find is -37 ms
@@ -93,3 +94,54 @@ def test_cli_writes_the_offset_for_the_config(swung, tmp_path, capsys) -> None:
     assert load_config(out)["calibration.camera.time_offset_s"] == pytest.approx(-0.037, abs=0.002)
     assert "camera: time_offset_s: -0.03" in out.read_text()
     assert "correlation peak" in capsys.readouterr().out
+
+
+def test_one_wrongly_decomposed_pair_does_not_make_a_swing(swung) -> None:
+    flight, frames = swung
+    rotations = frame_rotations(frames, CAMERA)
+    clean = correlate(rotations, flight.imu.t_ns, flight.imu.gyro, CAMERA.R_BC)
+    rotvec = rotations.rotvec.copy()
+    rotvec[len(rotvec) // 2] = [3.0, 0.0, 0.0]  # a homography decomposed the wrong way: 3 rad in one pair
+    broken = correlate(dataclasses.replace(rotations, rotvec=rotvec), flight.imu.t_ns, flight.imu.gyro, CAMERA.R_BC)
+    assert broken.rate_rms == pytest.approx(clean.rate_rms, rel=0.05)  # 14x the swing's rate without the median gate
+    assert broken.offset_s == pytest.approx(clean.offset_s, abs=0.001)
+
+
+def _swung_dataset(root, flight, frames, offset_s: float = 0.0):
+    writer = DatasetWriter(root)
+    camera = dataclasses.replace(CAMERA, time_offset_s=offset_s)
+    writer.write_calibration(dataclasses.replace(flight.calibration, camera=camera), "swung", "timesync test")
+    writer.write_imu(flight.imu)
+    writer.write_camera_frames(frames)
+    return root
+
+
+def test_import_measures_the_offset_and_writes_it(swung, tmp_path) -> None:
+    flight, frames = swung
+    root = _swung_dataset(tmp_path / "late", flight, frames)
+    line = settle_camera_time_offset(root, None, keep_stamps=False)
+    assert "measured and written to dataset.yaml" in line
+    dataset = Dataset.open(root)
+    assert dataset.calibration.camera.time_offset_s == pytest.approx(-SHIFT_NS * 1e-9, abs=0.002)
+    assert "measured at import" in dataset.meta["description"]
+
+
+def test_import_keeps_stamps_that_are_right_given_or_asked_for(swung, tmp_path) -> None:
+    flight, frames = swung
+    on_time = [(t - SHIFT_NS, image) for t, image in frames]
+    root = _swung_dataset(tmp_path / "on_time", flight, on_time)
+    line = settle_camera_time_offset(root, None, keep_stamps=False)
+    assert "within 3 sigma of zero" in line and Dataset.open(root).calibration.camera.time_offset_s == 0.0
+    late = _swung_dataset(tmp_path / "late", flight, frames)
+    assert settle_camera_time_offset(late, None, keep_stamps=True).startswith("0 (--no-timesync")
+    assert Dataset.open(late).calibration.camera.time_offset_s == 0.0
+    assert settle_camera_time_offset(late, -0.04, keep_stamps=False) == "-40.00 ms, as given"
+    assert Dataset.open(late).calibration.camera.time_offset_s == -0.04
+
+
+def test_import_says_why_a_record_without_rotation_keeps_its_stamps(tmp_path) -> None:
+    flight = simulate_flight("book", 6.0, seed=2)  # at rest
+    root = _swung_dataset(tmp_path / "still", flight, list(render_frames(flight, CAMERA)))
+    line = settle_camera_time_offset(root, None, keep_stamps=False)
+    assert line.startswith("0, not measured: too little rotation to correlate") and "--camera-time-offset" in line
+    assert Dataset.open(root).calibration.camera.time_offset_s == 0.0

@@ -287,6 +287,18 @@ def refuse_existing_dataset(out: str | Path, overwrite: bool) -> None:
         raise FileExistsError(f"{out}: already holds a dataset (dataset.yaml); use --force to replace it")
 
 
+def set_camera_time_offset(root: str | Path, offset_s: float, note: str) -> None:
+    """Rewrite ``root``'s dataset.yaml with ``camera.time_offset_s = offset_s`` (added to every frame stamp to put
+    it on the IMU clock), ``note`` appended to its description so the file says where the number came from."""
+    dataset = Dataset.open(root)
+    camera = dataset.calibration.camera
+    if camera is None:
+        raise ValueError(f"{root}: dataset.yaml has no camera to give a time offset")
+    camera.time_offset_s = float(offset_s)
+    description = "; ".join(x for x in (dataset.meta["description"], note) if x)
+    DatasetWriter(root).write_calibration(dataset.calibration, dataset.meta["name"], description)
+
+
 class DatasetWriter:
     """Writes the files of one dataset folder (created if needed)."""
 

@@ -150,19 +150,14 @@ def run_timesync(args: argparse.Namespace) -> int:
     import numpy as np
 
     from vtolpose.drivers.files.dataset import Dataset
-    from vtolpose.estimator import correlate, frame_rotations, TimeSyncOptions
+    from vtolpose.estimator import TimeSyncOptions
     from vtolpose.service.calibration import output as out
+    from vtolpose.service.calibration.timesync import measure
 
     dataset = Dataset.open(args.dataset)
     camera = dataset.calibration.camera
-    if camera is None or not dataset.has_camera:
-        raise ValueError(f"{args.dataset}: no camera (dataset.yaml camera: and mav0/cam0/data.csv are both needed)")
-    imu = dataset.imu()
-    index = dataset.camera_frames()
-    frames = ((t, image) for t, path in index if (image := dataset.load_frame(path)) is not None)
-    rotations = frame_rotations(frames, camera)
-    r = correlate(rotations, imu.t_ns, imu.gyro, camera.R_BC,
-                  TimeSyncOptions(max_offset_s=args.max_offset, step_s=args.step))
+    m = measure(dataset, TimeSyncOptions(max_offset_s=args.max_offset, step_s=args.step))
+    r, rotations = m.result, m.rotations
     summary = [
         f"camera time offset (added to the frame stamps to put them on the IMU clock): {r.offset_s * 1e3:+.2f} ms "
         f"+- {r.sigma_s * 1e3:.2f} ms",

@@ -46,6 +46,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--truth", metavar="FILE|TOPIC", help="euroc: truth as a TUM (or EuRoC CSV) file, the IMU's pose on "
                    "the IMU clock; rosbag: a geometry_msgs/PoseStamped or nav_msgs/Odometry topic")
     p.add_argument("--no-camera", action="store_true", help="euroc: leave mav0/cam0 out")
+    sync = p.add_mutually_exclusive_group()
+    sync.add_argument("--camera-time-offset", type=float, metavar="S",
+                      help="euroc: the camera's offset against the IMU clock, added to every frame stamp [s] (from "
+                      "your calibration); without it the import measures it (gyro against frame rotation)")
+    sync.add_argument("--no-timesync", action="store_true",
+                      help="euroc: take the frame stamps as they are (offset 0), measuring nothing")
     p.add_argument("--force", action="store_true", help="replace an existing dataset in --out")
     bag = p.add_argument_group("rosbag")
     bag.add_argument("--imu", metavar="TOPIC", help="sensor_msgs/Imu topic (required for rosbag)")
@@ -90,7 +96,35 @@ def run(args: argparse.Namespace) -> int:
             args.src, args.out, gps_rate_hz=args.gps_rate, gps_sigma_m=args.gps_sigma, seed=args.seed,
             mounting=args.mounting, overwrite=args.force, truth_file=args.truth, camera=not args.no_camera,
         )
+    if args.format == "euroc" and summary.get("camera_frames"):
+        summary["camera_time_offset"] = settle_camera_time_offset(Path(args.out), args.camera_time_offset, args.no_timesync)
     print(f"imported {args.src} into {args.out}")
     for line in field_lines(summary):
         print(line)
     return 0
+
+
+def settle_camera_time_offset(out: Path, given: float | None, keep_stamps: bool) -> str:
+    """The camera's time offset written into the imported dataset: given, or measured on its own frames and
+    gyro (an ASL/EuRoC folder has no field for it, and a replay whose frames are stamped tens of milliseconds
+    late gets lost); what was done, as one line for the summary."""
+    from vtolpose.drivers.files.dataset import Dataset, set_camera_time_offset
+    from vtolpose.service.calibration.timesync import describe, measure, SIGNIFICANT_SIGMAS
+
+    if keep_stamps:
+        return "0 (--no-timesync: the frame stamps taken as they are)"
+    if given is not None:
+        set_camera_time_offset(out, given, f"camera time offset {given * 1e3:+.2f} ms as given (--camera-time-offset)")
+        return f"{given * 1e3:+.2f} ms, as given"
+    print("measuring the camera's time offset against the IMU clock (gyro against frame rotation) ...", flush=True)
+    try:
+        m = measure(Dataset.open(out))
+    except ValueError as exc:  # TimeSyncError: the recording cannot show it
+        return (f"0, not measured: {exc}. The frame stamps are taken as they are; give the offset with "
+                "--camera-time-offset S, or measure it on a recording made for it (vtolpose calibrate timesync)")
+    if not m.significant:
+        return (f"0: measured {describe(m)}, within {SIGNIFICANT_SIGMAS:g} sigma of zero: the frame stamps are "
+                "taken as they are")
+    set_camera_time_offset(out, round(m.result.offset_s, 6), f"camera time offset {describe(m)}, measured at import")
+    return f"{describe(m)}, measured and written to dataset.yaml (camera: time_offset_s)"
+
