@@ -69,6 +69,7 @@ SCHEMA: dict[str, Field] = {
     "estimator.alignment.hypotheses": Field("int", minimum=3, maximum=36),
     "estimator.alignment.place_sigma_deg": Field("float", positive=True, maximum=89.0),
     "estimator.camera.pixel_sigma": POS,
+    "estimator.camera.working_width": Field("int", minimum=0, maximum=100000),
     "estimator.camera.gate_px": POS,
     "estimator.camera.ratio_test": Field("float", positive=True, maximum=1.0),
     "estimator.camera.max_descriptor_distance": Field("float", positive=True, maximum=2.0),

@@ -154,7 +154,8 @@ class Estimator:
         self._last_imu_t: int | None = None
         self._lost_before_next_s = 0.0  # refused IMU data the next sample must account for (imu_discontinuity)
         self._gyro = np.zeros(3)
-        cam = calibration.camera
+        # The camera as the features see it: a frame wider than the working width is reduced first (FrameExtractor).
+        cam = calibration.camera.working(opts.camera.working_width) if calibration.camera is not None else None
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received
         # Facts of the input's history, not modes: how the filter started (a start in motion: the camera waits
@@ -878,7 +879,7 @@ class Estimator:
             return "no_camera_calibration"
         if features.problem is not None:
             return features.problem
-        cam = self.calibration.camera
+        cam = self.camera.calibration  # the working size: the frame as the features were found on it
         if tuple(features.image_shape) != (cam.height, cam.width):
             return "wrong_size"
         last = self._last_frame

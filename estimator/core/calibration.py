@@ -7,7 +7,7 @@ body FRD, metres.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -106,6 +106,25 @@ class CameraCalibration:
     @property
     def K(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def working(self, max_width: int) -> "CameraCalibration":
+        """This camera as its frames are seen once reduced to at most ``max_width`` pixels across (0: as it is):
+        :func:`working_size` wide and high, the focal lengths and the principal point (pixel centres: x' + ½ =
+        s (x + ½)) scaled with them. The lens model works in normalised coordinates and the mounting in metres:
+        both stay."""
+        width, height = working_size(self.width, self.height, max_width)
+        if width == self.width:
+            return self
+        sx, sy = width / self.width, height / self.height
+        return replace(self, width=width, height=height, fx=self.fx * sx, fy=self.fy * sy,
+                       cx=(self.cx + 0.5) * sx - 0.5, cy=(self.cy + 0.5) * sy - 0.5)
+
+
+def working_size(width: int, height: int, max_width: int) -> tuple[int, int]:
+    """A frame's size reduced, aspect kept, to at most ``max_width`` across (0, or a narrower frame: unchanged)."""
+    if max_width <= 0 or width <= max_width:
+        return width, height
+    return max_width, max(1, round(height * max_width / width))
 
 
 @dataclass(slots=True)

@@ -53,6 +53,7 @@ class CameraOptions:
     map: MapOptions = field(default_factory=MapOptions)
     time_offset: TimeOffsetOptions = field(default_factory=TimeOffsetOptions)
     mounting: MountingOptions = field(default_factory=MountingOptions)
+    working_width: int = 0  # frames wider than this are seen reduced to it (CameraCalibration.working); 0: as they are
 
 
 @dataclass(slots=True)

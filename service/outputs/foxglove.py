@@ -39,6 +39,7 @@ from vtolpose.estimator import (
     rot_to_quat,
 )
 from vtolpose.service.outputs.view_worker import ViewWorker
+from vtolpose.service.replay.overlay import working_picture
 
 log = logging.getLogger(__name__)
 
@@ -160,8 +161,8 @@ class FoxgloveScene:
               landmarks_ned: np.ndarray | None) -> None:
         """The camera picture (JPEG), its overlay, and the landmark map after this frame (if given)."""
         t, ts = report.t_ns, stamp(report.t_ns)
-        if image is not None:
-            ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 85])
+        if image is not None:  # at the features' frame size: the overlay's pixels are those
+            ok, jpeg = cv2.imencode(".jpg", working_picture(image, features), [cv2.IMWRITE_JPEG_QUALITY, 85])
             if ok:
                 self.image.log(CompressedImage(timestamp=ts, frame_id="camera", data=jpeg.tobytes(), format="jpeg"), log_time=t)
         self.overlay.log(overlay(features, report, ts), log_time=t)

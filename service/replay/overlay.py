@@ -38,8 +38,17 @@ def _band(canvas: np.ndarray, top: int, height: int) -> None:
     band[:] = (band * 0.25).astype(canvas.dtype)
 
 
+def working_picture(image: np.ndarray, features: FrameFeatures) -> np.ndarray:
+    """``image`` reduced to the features' frame size when the camera pipeline reduced it (the keypoints are there)."""
+    height, width = features.image_shape[:2]
+    if image.shape[:2] == (height, width) or not width or not height:
+        return image
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+
+
 def draw_overlay(image: np.ndarray, features: FrameFeatures, report: FrameReport) -> np.ndarray:
-    """The annotated BGR picture of one frame."""
+    """The annotated BGR picture of one frame, at the size the features were found on (the working width)."""
+    image = working_picture(image, features)
     canvas = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
     gate = int(round(report.gate_px))
     predicted = {int(i): uv for i, uv in zip(report.predicted_ids, report.predicted_uv)}

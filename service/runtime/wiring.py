@@ -104,17 +104,19 @@ def camera_options(cfg: dict[str, Any]) -> CameraOptions:
     values = get(cfg, "estimator.camera")
     assoc = {k: values.pop(k) for k in ("gate_px", "ratio_test", "max_descriptor_distance", "max_hamming_fraction", "chi2")}
     pixel_sigma = values.pop("pixel_sigma")
+    working_width = values.pop("working_width")
     time_offset = TimeOffsetOptions(values.pop("estimate_time_offset"), values.pop("time_offset_sigma_s"))
     mounting = MountingOptions(values.pop("estimate_extrinsics"), values.pop("extrinsic_rotation_sigma_deg"),
                                values.pop("extrinsic_translation_sigma_m"))
     return CameraOptions(pixel_sigma=pixel_sigma, association=AssociationOptions(**assoc), map=MapOptions(**values),
-                         time_offset=time_offset, mounting=mounting)
+                         time_offset=time_offset, mounting=mounting, working_width=working_width)
 
 
 def feature_options(cfg: dict[str, Any]) -> FeatureOptions:
     values = get(cfg, "features")
     quality = {k: values.pop(k) for k in ("black_level", "saturated_level", "saturated_fraction", "min_texture_std")}
-    return FeatureOptions(**values, quality=FrameQualityOptions(**quality))
+    # The camera's working width is the estimator's (it scales the intrinsics to it): one key for both sides.
+    return FeatureOptions(**values, quality=FrameQualityOptions(**quality), working_width=cfg["estimator.camera.working_width"])
 
 
 _CAMERA_FIELDS = ("width", "height", "fx", "fy", "cx", "cy")
