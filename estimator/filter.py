@@ -152,6 +152,7 @@ class Estimator:
         self._horizontal_accel = np.zeros(2)  # horizontal acceleration, averaged (see _propagate)
         self._accel_at_rest = np.zeros(2)  # what it read at the last still chunk
         self._last_imu_t: int | None = None
+        self._ahead: tuple[int, np.ndarray, np.ndarray] | None = None  # the next IMU sample, while known (imu_ahead)
         self._lost_before_next_s = 0.0  # refused IMU data the next sample must account for (imu_discontinuity)
         self._gyro = np.zeros(3)
         # The camera as the features see it: a frame wider than the working width is reduced first (FrameExtractor).
@@ -512,11 +513,26 @@ class Estimator:
         self.health.record_reset(t_ns, kind, reason)
         self._event(t_ns, EventKind.RESET, f"reset #{self.reset_counter}: {reason}", reset_kind=kind)
 
+    def imu_ahead(self, sample: tuple[int, np.ndarray, np.ndarray] | None) -> None:
+        """The IMU sample that follows the measurements about to be applied (time, gyro, accel), or None: the
+        fusion horizon keeps it buffered. A measurement between two samples is then reached with the reading
+        interpolated to its time, not the last one held (:meth:`ImuDownsampler.hold`)."""
+        self._ahead = sample
+
+    def _next_sample(self, t_ns: int) -> tuple[int, np.ndarray, np.ndarray] | None:
+        """The next sample to interpolate towards at ``t_ns``: the one :meth:`imu_ahead` gave, if it is after
+        ``t_ns`` and within the gap the filter steps over (beyond it the last reading is held, as in a gap)."""
+        ahead, last = self._ahead, self._last_imu_t
+        if ahead is None or last is None or ahead[0] <= t_ns or (ahead[0] - last) * 1e-9 > self.options.max_imu_gap_s:
+            return None
+        return ahead
+
     def _propagate_to(self, t_ns: int) -> None:
-        """Bring the state to a measurement's time: the partial step, then hold the last sample."""
+        """Bring the state to a measurement's time: the partial step, then the step to it from the last
+        sample, with the reading interpolated towards the next sample if known (else held)."""
         if self._last_imu_t is not None and (t_ns - self._last_imu_t) * 1e-9 > self.options.max_imu_gap_s:
             self._in_gap(t_ns)
-        for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
+        for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns, self._next_sample(t_ns))):
             if delta is not None:
                 self._propagate(delta)
 
@@ -844,7 +860,7 @@ class Estimator:
     def _visual_start_frame(self, features: FrameFeatures, counts: RejectionCounts) -> FrameReport:
         """A frame for the visual-inertial start (the IMU brought to its time first); the start once it converges."""
         t_ns = features.t_ns
-        for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns)):
+        for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns, self._next_sample(t_ns))):
             if delta is not None:
                 self.visual_inertial.add_delta(delta)
         clock = self.camera.time_offset

@@ -357,9 +357,21 @@ class FusionCore:
                     return
                 t, _, _, kind, apply = heapq.heappop(pending)
                 self._fused_until = max(t, self._fused_until or t)
+                est.imu_ahead(self._sample_after())
                 apply(est)
+                est.imu_ahead(None)
                 self.counts[kind].used += 1
                 self._measured = True
+
+    def _sample_after(self) -> tuple[int, np.ndarray, np.ndarray] | None:
+        """The next buffered IMU sample, for a measurement about to be applied (the samples up to it are fused):
+        the estimator interpolates the reading to the measurement's time. The horizon lags the newest sample,
+        so one is there unless the buffer is flushed past it; None too if the estimator will refuse it (not
+        finite) or widen for time lost before it."""
+        if not self._queue:
+            return None
+        t, gyro, accel, finite = self._queue[0]
+        return (t, gyro, accel) if finite and t not in self._discontinuities else None
 
     def _last_time_until(self, horizon: int) -> int:
         """The time of the last buffered IMU sample at or before ``horizon`` (there is one; the times increase)."""
@@ -466,9 +478,17 @@ class FusionCore:
         if s is None:
             return None
         samples = list(chain(self._recent, ((t, g, a) for t, g, a, ok in self._queue if ok)))
-        # The readings at the state's time: the last sample at or before it (held, as the filter does).
-        anchor = next((x for x in reversed(samples) if x[0] <= s.t_ns), samples[0] if samples else None)
-        gyro, accel = (anchor[1], anchor[2]) if anchor is not None else (np.zeros(3), np.zeros(3))
+        # The readings at the state's time: the last sample at or before it, interpolated towards the next one
+        # when the state lies between them (a measurement's time), as the filter does (Estimator.imu_ahead).
+        i = next((i for i in range(len(samples) - 1, -1, -1) if samples[i][0] <= s.t_ns), 0 if samples else None)
+        if i is None:
+            gyro, accel = np.zeros(3), np.zeros(3)
+        else:
+            t0, gyro, accel = samples[i]
+            if t0 < s.t_ns and i + 1 < len(samples) and (samples[i + 1][0] - t0) * 1e-9 <= self.est.options.max_imu_gap_s:
+                t1, g1, a1 = samples[i + 1]
+                w = (s.t_ns - t0) / (t1 - t0)
+                gyro, accel = gyro + w * (g1 - gyro), accel + w * (a1 - accel)
         pred = _Prediction(s.t_ns, tuple(s.p.tolist()), tuple(s.v.tolist()), tuple(s.q.tolist()), gyro, accel,
                            self._newest_t or s.t_ns, self._signature())
         for t, g, a in samples:

@@ -47,18 +47,22 @@ def gps_fixes(flight) -> list[GpsFix]:
 
 
 def in_order(flight, cfg=None):
-    """The plain offline loop: every sample in time order (IMU first at equal times), state recorded when it advanced."""
+    """The plain offline loop: every sample in time order (IMU first at equal times), state recorded when it
+    advanced; a fix is given the next sample, as the fusion gives it (Estimator.imu_ahead)."""
     est = new_estimator(flight, cfg)
     events = sorted([(s.t_ns, 0, s) for s in imu_samples(flight)] + [(f.t_ns, 1, f) for f in gps_fixes(flight)],
                     key=lambda e: (e[0], e[1]))
     out, last = [], None
-    for _, kind, s in events:
+    for i, (_, kind, s) in enumerate(events):
         if kind == 0:
             if est.process_imu(s.t_ns, s.gyro, s.accel) and est.state is not None and (last is None or est.state.t_ns > last):
                 last = est.state.t_ns
                 out.append((last, est.state.p.copy(), est.state.q.copy()))
         else:
+            after = next((x for _, k, x in events[i + 1:] if k == 0), None)
+            est.imu_ahead((after.t_ns, after.gyro, after.accel) if after is not None else None)
             est.process_gps(s)
+            est.imu_ahead(None)
     return est, out
 
 

@@ -128,13 +128,26 @@ class ImuDownsampler:
         self._reset()
         return delta
 
-    def hold(self, t_ns: int) -> ImuDelta | None:
-        """A delta from the last sample to ``t_ns`` holding its readings, for a measurement that
-        falls between samples. Call :meth:`flush` first; the next delta then starts at ``t_ns``."""
+    def hold(self, t_ns: int, after: tuple[int, np.ndarray, np.ndarray] | None = None) -> ImuDelta | None:
+        """A delta from the last sample to ``t_ns``, for a measurement that falls between samples. Call
+        :meth:`flush` first; the next delta then starts at ``t_ns`` from the reading this one ends with.
+
+        ``after``, the next sample (time, gyro, accel), if known: the reading at ``t_ns`` is interpolated
+        linearly between the two and the part-step is the trapezoid up to it, so that the part-step and the
+        rest of the step, which starts from that reading, together make the full step's trapezoid (the
+        integral of the linear reading). Without it the last reading is held, and each measurement costs
+        the step ½·Δω·(t_ns − t_last) of rotation (a lag under angular acceleration)."""
         if self._last is None or t_ns <= self._last[0] or self._t0 is not None:
             return None
         t_last, gyro, accel, g, a = self._last
         dt = (t_ns - t_last) * 1e-9
+        if after is not None and after[0] > t_ns:
+            s = (t_ns - t_last) / (after[0] - t_last)
+            g_at, a_at = gyro + s * (after[1] - gyro), accel + s * (after[2] - accel)
+            self._last = (t_ns, g_at, a_at, g_at.tolist(), a_at.tolist())
+            w, f = (0.5 * dt) * (gyro + g_at), (0.5 * dt) * (accel + a_at)
+            half = rotvec_quat(*(0.5 * w).tolist())
+            return ImuDelta(t_last, t_ns, dt, w, np.array(rotate(*half, *f.tolist())))
         self._last = (t_ns, gyro, accel, g, a)
         half = rotvec_quat(*(0.5 * dt * gyro).tolist())
         return ImuDelta(t_last, t_ns, dt, gyro * dt, np.array(rotate(*half, *(dt * accel).tolist())))

@@ -65,8 +65,21 @@ class FeatureTracker:
         self._age = np.zeros(0, dtype=np.int64)
 
     def image_moving(self, t_ns: int, within_s: float, flow_px: float) -> bool:
-        """Whether a frame of the last ``within_s`` before ``t_ns`` saw the scene move more than ``flow_px``."""
-        return any(f.flow_px > flow_px for f in self.frames if 0 <= (t_ns - f.t_ns) * 1e-9 <= within_s)
+        """Whether the scene moved more than ``flow_px`` within the last ``within_s`` before ``t_ns``: from one frame
+        to the next, or over the frames of that span (the features tracked from its first frame to its last). A
+        hover's wander moves the image half a pixel a frame, inside the features' noise from frame to frame, but
+        steadily: ten pixels over the span, where a vehicle at rest moves no more than from frame to frame."""
+        recent = [f for f in self.frames if 0 <= (t_ns - f.t_ns) * 1e-9 <= within_s]
+        if any(f.flow_px > flow_px for f in recent):
+            return True
+        return len(recent) >= 2 and self._displacement_px(recent[0], recent[-1]) > flow_px
+
+    def _displacement_px(self, first: TrackedFrame, last: TrackedFrame) -> float:
+        """Median image motion of the features tracked from ``first`` to ``last`` (NaN if too few were)."""
+        _, a, b = np.intersect1d(first.track_ids, last.track_ids, return_indices=True)
+        if len(a) < self.options.min_matches_for_flow:
+            return float("nan")
+        return float(np.median(np.linalg.norm(last.uv[b] - first.uv[a], axis=1)))
 
     def add(self, features: FrameFeatures) -> TrackedFrame:
         """Match ``features`` to the live tracks, extend or start tracks, keep the frame."""

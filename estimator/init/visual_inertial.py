@@ -74,7 +74,7 @@ class VisualInertialOptions:
     max_depth_sigma_rel: float = 0.25  # median σ_ρ/ρ of the landmarks handed over (the EKF carries the rest)
     min_landmarks: int = 10
     max_landmarks: int = 30  # handed to the EKF (seen in the last frame, best depth first)
-    still_flow_px: float = 2.0  # features moving more than this between frames: the vehicle is not at rest,
+    still_flow_px: float = 2.0  # features moving more than this between frames, or over the window: not at rest,
     still_window_s: float = 2.0  # (a steady cruise feels still to the IMU) over the IMU's still window
     position_sigma_m: float = 0.002  # gauge: the frame's origin
     heading_sigma_deg: float = 0.01  # gauge: the frame's heading, when no heading is known
