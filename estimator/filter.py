@@ -163,6 +163,7 @@ class Estimator:
         # for the heading bank) and whether any usable GPS fix was heard (no visual start then, no own frame).
         self._moving_start = False
         self._gps_seen = False
+        self._gps_heard_ns: int | None = None  # the last usable fix's time, before the start too
         self.visual_inertial = None
         if cam is not None and opts.visual_inertial.enabled:
             self.visual_inertial = VisualInertialInitializer(cam, self.noise, calibration.imu.gravity, opts.camera.pixel_sigma,
@@ -650,6 +651,7 @@ class Estimator:
             counts.reject("non_finite")
             self.health.measured("gps", fix.t_ns, used=False)  # alive, but not usable
             return None
+        self._gps_heard_ns = fix.t_ns
         # The GPS noise check: the fix weighed with the noise it really has when its claim is not believed.
         raw, fix = fix, self.gps_noise.believed(fix)
         state = self.state
@@ -907,7 +909,18 @@ class Estimator:
             return "before_start"
         if t_ns < self.state.t_ns:
             return "older_than_filter"
+        if self._position_pending(t_ns):
+            return "position_pending"
         return None
+
+    def _position_pending(self, t_ns: int) -> bool:
+        """Started with a GPS heard, its first fix since still to come (and not overdue). A map made now is
+        placed around the vehicle where the filter has it before any fix, and that fix moves the vehicle, not
+        the map: the next frame reads the jump (a metre, on the camera matrix) as a baseline never flown, and
+        its iterated update bends the depths, the attitude and an estimated mounting to explain it (φ_z −6°
+        in one frame). The first fix comes within the GPS's period; a GPS gone quiet lets the camera in."""
+        return (self.mode is FilterMode.UNREFERENCED and self._gps_heard_ns is not None
+                and (t_ns - self._gps_heard_ns) * 1e-9 <= self.options.health.gps_stale_s)
 
     # ------------------------------------------------------------------- rest and levelling
     def _level(self, t_ns: int, accel: np.ndarray) -> None:

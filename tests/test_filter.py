@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from vtolpose.estimator.core import covariance
 from vtolpose.estimator.core.calibration import Calibration, ImuCalibration, ImuNoise
+from vtolpose.estimator.core.covariance import TH, YAW
 from vtolpose.estimator.core.measurements import GpsFix
 from vtolpose.estimator.filter import Estimator
 from vtolpose.estimator.start import VELOCITY_FIT_S
@@ -68,3 +70,66 @@ def test_a_gps_joining_a_camera_frame_of_its_own_resets_once_onto_the_fixes() ->
     joined = [e.message for e in est.events if e.kind is EventKind.GPS_JOINED]
     assert len(joined) == 1 and f"reset #{before + 1}" in joined[0]
     assert not est.local_position
+
+
+
+def _started_with_fixes_heard(p0: np.ndarray, velocity: np.ndarray) -> tuple[Estimator, int]:
+    """A start with a second of fixes heard during the IMU's window, before there is a state: the fixes move
+    (``velocity``), so it is a start in motion (heading given), its position left for the next fix."""
+    cal = Calibration(imu=ImuCalibration(125.0, ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4)), camera=CAM,
+                      initial_heading_rad=0.3)
+    est = Estimator(cal)
+    t_ns, fixes = EPOCH, {EPOCH + k * 100_000_000: k for k in range(19)}  # 0–1.8 s, 10 Hz
+    while not est.initialized:
+        est.process_imu(t_ns, np.zeros(3), STILL_F)
+        if t_ns in fixes:
+            est.process_gps(GpsFix(t_ns, p0 + velocity * (t_ns - EPOCH) * 1e-9, 0.01, 0.015))
+        t_ns += IMU_DT_NS
+    assert not est.position_initialized and not est.local_position
+    return est, t_ns
+
+
+def _tilt_known(est: Estimator) -> None:
+    """The tilt known to 0.06°, as gravity makes it within a second or two of a start in motion: the camera may map."""
+    covariance.reinitialise(est.state.cov, TH, np.diag([1e-6, 1e-6, est.state.cov[YAW, YAW]]))
+
+
+def _imu_until(est: Estimator, t_ns: int, until_ns: int) -> int:
+    while t_ns <= until_ns:
+        est.process_imu(t_ns, np.zeros(3), STILL_F)
+        t_ns += IMU_DT_NS
+    return t_ns
+
+
+def test_with_a_gps_heard_the_camera_maps_only_once_the_first_fix_has_placed_the_vehicle() -> None:
+    """Started with a GPS heard, the filter's position is the origin until its first fix, which moves the vehicle
+    (here 14 m) and not the map: a frame in between would leave its landmarks behind, and the next frame read
+    the jump as a baseline never flown. Such a frame waits (``position_pending``); the first after the fix maps,
+    its anchors at the camera centre in the GPS's frame."""
+    p0, velocity = np.array([12.0, -7.0, -1.5]), np.array([0.3, 0.0, 0.0])
+    est, t_ns = _started_with_fixes_heard(p0, velocity)
+    _tilt_known(est)
+    report = est.process_features(extract_features(textured(5), EPOCH + 2_000_000_000, FeatureOptions()))
+    assert not report.accepted and report.reason == "position_pending" and est.state.n_landmarks == 0
+    fix_t = EPOCH + 2_100_000_000
+    t_ns = _imu_until(est, t_ns, fix_t)
+    placed_at = p0 + velocity * (fix_t - EPOCH) * 1e-9  # 14 m from the origin the filter had
+    assert est.process_gps(GpsFix(fix_t, placed_at, 0.02, 0.03)).reason == "position initialised"
+    _imu_until(est, t_ns, EPOCH + 2_200_000_000)
+    _tilt_known(est)
+    assert est.process_features(extract_features(textured(6), EPOCH + 2_200_000_000, FeatureOptions())).accepted
+    state = est.state
+    assert state.n_landmarks > 0
+    camera_centre = state.p + state.R @ CAM.t_BC
+    assert np.abs(state.p - placed_at).max() < 0.05
+    assert np.abs(state.landmarks[:, 0:3] - camera_centre).max() < 0.01  # anchored where the camera is
+    assert est.counts["camera"].rejected == {"position_pending": 1}
+
+
+def test_a_gps_heard_and_gone_quiet_does_not_keep_the_camera_out() -> None:
+    est, t_ns = _started_with_fixes_heard(np.array([12.0, -7.0, -1.5]), np.array([0.3, 0.0, 0.0]))
+    frame_t = EPOCH + 2_900_000_000  # over gps_stale_s (1 s) since the last fix
+    _imu_until(est, t_ns, frame_t)
+    _tilt_known(est)
+    assert est.process_features(extract_features(textured(5), frame_t, FeatureOptions())).accepted
+    assert est.state.n_landmarks > 0
