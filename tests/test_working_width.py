@@ -12,7 +12,7 @@ from vtolpose.estimator.filter import Estimator, FilterOptions  # noqa: E402
 from vtolpose.estimator.vision.camera_model import CameraModel  # noqa: E402
 from vtolpose.estimator.vision.camera_pipeline import CameraOptions  # noqa: E402
 from vtolpose.estimator.vision.feature_tracker import FrameExtractor  # noqa: E402
-from vtolpose.estimator.vision.features import FeatureOptions  # noqa: E402
+from vtolpose.estimator.vision.features import FeatureOptions, extract_features  # noqa: E402
 
 WIDE = CameraCalibration(1280, 720, 910.0, 905.0, 641.3, 352.8, np.array([-0.1, 0.03, 4e-4, -2e-4, 0.0]))
 
@@ -44,6 +44,11 @@ def test_the_extractor_reduces_a_wide_frame_and_still_refuses_a_wrong_one() -> N
     assert extract(textured(3, (480, 640)), 2_000).problem == "wrong_size"
     as_is = FrameExtractor(FeatureOptions(working_width=0), (720, 1280))(textured(2, (720, 1280)), 3_000)
     assert as_is.image_shape == (720, 1280)
+    # The same from extract_features called alone, and through the optical-flow tracker.
+    direct = extract_features(textured(2, (720, 1280)), 4_000, FeatureOptions(working_width=640), (720, 1280))
+    assert direct.image_shape == (360, 640) and np.array_equal(direct.keypoints, features.keypoints)
+    tracked = FrameExtractor(FeatureOptions(working_width=640, track_between=2), (720, 1280))
+    assert all(tracked(textured(2, (720, 1280)), t).image_shape == (360, 640) for t in (5_000, 6_000, 7_000))
 
 
 def test_the_estimator_takes_the_reduced_frames_of_a_wide_camera() -> None:

@@ -21,8 +21,7 @@ import time
 
 import numpy as np
 
-from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features, image_digest
-from vtolpose.estimator.core.calibration import working_size
+from vtolpose.estimator.vision.features import FeatureOptions, FrameFeatures, extract_features, image_digest, working_frame
 from vtolpose.estimator.vision.frame_quality import frame_problem
 
 LK_WINDOW_PX = 21  # Lucas–Kanade window, each pyramid level
@@ -52,7 +51,7 @@ class FeatureTracker:
 
     def features(self, image: np.ndarray, t_ns: int, expected_shape: tuple[int, int] | None = None) -> FrameFeatures:
         """Features of the frame at ``t_ns``: tracked from the last frame, or detected afresh."""
-        image = np.asarray(image)
+        image, expected_shape = working_frame(np.asarray(image), expected_shape, self.options.working_width)
         last = self._last
         if last is None or t_ns <= last.t_ns or self._image is None or self._image.shape != image.shape \
                 or self._since_detection >= self.options.track_between:
@@ -126,26 +125,6 @@ class FrameExtractor:
         return self.tracker is not None
 
     def __call__(self, image: np.ndarray, t_ns: int) -> FrameFeatures:
-        image, expected = self._working(np.asarray(image))
         if self.tracker is None:
-            return extract_features(image, t_ns, self.options, expected)
-        return self.tracker.features(image, t_ns, expected)
-
-    def _working(self, image: np.ndarray) -> tuple[np.ndarray, tuple[int, int] | None]:
-        """The frame reduced to the working width (INTER_AREA: each pixel the mean of those it covers) and the
-        shape it must then have. A frame that is not the camera's size is passed as it is, to be refused for it.
-
-        The camera pipeline then sees a 1280 x 720 camera as a 640 x 360 one: the same features at the same
-        angles, the same pixel noise, every pixel threshold meaning the same angle. Found at full size, four
-        times the keypoints each claimed twice as sharp took the real hand-held recording 300 m away
-        (docs/results.md)."""
-        expected = self.expected_shape
-        height, width = image.shape[:2]
-        if image.ndim != 2 or (expected is not None and (height, width) != tuple(expected)):
-            return image, expected
-        w, h = working_size(width, height, self.options.working_width)
-        if w == width:
-            return image, expected
-        import cv2  # on first use, as in features.py
-
-        return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA), (h, w)
+            return extract_features(image, t_ns, self.options, self.expected_shape)
+        return self.tracker.features(image, t_ns, self.expected_shape)
