@@ -155,7 +155,7 @@ class Estimator:
         self._ahead: tuple[int, np.ndarray, np.ndarray] | None = None  # the next IMU sample, while known (imu_ahead)
         self._lost_before_next_s = 0.0  # refused IMU data the next sample must account for (imu_discontinuity)
         self._gyro = np.zeros(3)
-        # The camera as the features see it: a frame wider than the working width is reduced first (FrameExtractor).
+        # The camera as the features see it: a frame wider than the working width is reduced first (working_frame).
         cam = calibration.camera.working(opts.camera.working_width) if calibration.camera is not None else None
         self.camera = CameraPipeline(cam, opts.camera) if cam is not None else None
         self._last_frame: tuple[int, bytes] | None = None  # time and digest of the last frame received

@@ -41,7 +41,7 @@ class FeatureOptions:
     sift_contrast_threshold: float = 0.02  # lower than OpenCV's 0.04: aerial texture is soft
     orb_fast_threshold: int = 20
     sift_image_scale: float = 0.5  # SIFT sees the frame resized by this (1.0: the full, doubled pyramid)
-    working_width: int = 0  # a wider frame is reduced to this before anything (FrameExtractor); 0: as it is
+    working_width: int = 0  # a wider frame is reduced to this before anything (working_frame); 0: as it is
     track_between: int = 0  # frames tracked by optical flow between two detections (0: detect every frame)
     min_tracked_fraction: float = 0.5  # detect again as soon as fewer of the last detection's points are tracked
     max_flow_error_px: float = 0.5  # forward–backward distance above which a tracked point is dropped
