@@ -34,6 +34,7 @@ import numpy as np
 from vtolpose.estimator.filter import Estimator, published_cov9
 from vtolpose.estimator.core.measurements import ImuSample, RejectionCounts, readings_finite, rows_finite
 from vtolpose.estimator.inertial.propagator import is_isotropic, noise_dt_polynomial, process_noise
+from vtolpose.estimator.inertial.imu_delta import reading_between
 from vtolpose.estimator.core.rotation import quat_product, rot_of, rotate, rotvec_quat, skew
 from vtolpose.estimator.core.covariance import BG
 from vtolpose.estimator.core.state import StateLayout
@@ -480,15 +481,12 @@ class FusionCore:
         samples = list(chain(self._recent, ((t, g, a) for t, g, a, ok in self._queue if ok)))
         # The readings at the state's time: the last sample at or before it, interpolated towards the next one
         # when the state lies between them (a measurement's time), as the filter does (Estimator.imu_ahead).
-        i = next((i for i in range(len(samples) - 1, -1, -1) if samples[i][0] <= s.t_ns), 0 if samples else None)
-        if i is None:
-            gyro, accel = np.zeros(3), np.zeros(3)
-        else:
+        gyro, accel = np.zeros(3), np.zeros(3)
+        if samples:
+            i = max(bisect_right([x[0] for x in samples], s.t_ns) - 1, 0)
             t0, gyro, accel = samples[i]
             if t0 < s.t_ns and i + 1 < len(samples) and (samples[i + 1][0] - t0) * 1e-9 <= self.est.options.max_imu_gap_s:
-                t1, g1, a1 = samples[i + 1]
-                w = (s.t_ns - t0) / (t1 - t0)
-                gyro, accel = gyro + w * (g1 - gyro), accel + w * (a1 - accel)
+                gyro, accel = reading_between(s.t_ns, samples[i], samples[i + 1])
         pred = _Prediction(s.t_ns, tuple(s.p.tolist()), tuple(s.v.tolist()), tuple(s.q.tolist()), gyro, accel,
                            self._newest_t or s.t_ns, self._signature())
         for t, g, a in samples:

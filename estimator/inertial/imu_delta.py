@@ -142,8 +142,7 @@ class ImuDownsampler:
         t_last, gyro, accel, g, a = self._last
         dt = (t_ns - t_last) * 1e-9
         if after is not None and after[0] > t_ns:
-            s = (t_ns - t_last) / (after[0] - t_last)
-            g_at, a_at = gyro + s * (after[1] - gyro), accel + s * (after[2] - accel)
+            g_at, a_at = reading_between(t_ns, (t_last, gyro, accel), after)
             self._last = (t_ns, g_at, a_at, g_at.tolist(), a_at.tolist())
             w, f = (0.5 * dt) * (gyro + g_at), (0.5 * dt) * (accel + a_at)
             half = rotvec_quat(*(0.5 * w).tolist())
@@ -151,3 +150,13 @@ class ImuDownsampler:
         self._last = (t_ns, gyro, accel, g, a)
         half = rotvec_quat(*(0.5 * dt * gyro).tolist())
         return ImuDelta(t_last, t_ns, dt, gyro * dt, np.array(rotate(*half, *(dt * accel).tolist())))
+
+
+def reading_between(t_ns: int, before: tuple[int, np.ndarray, np.ndarray],
+                    after: tuple[int, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The IMU reading (gyro, accel) at ``t_ns`` between two samples ``(time, gyro, accel)``, linearly: what
+    the filter steps from at a measurement's time (:meth:`ImuDownsampler.hold`) and the output predictor
+    starts from at the state's (``FusionCore``), so both agree."""
+    t0, gyro, accel = before
+    s = (t_ns - t0) / (after[0] - t0)
+    return gyro + s * (after[1] - gyro), accel + s * (after[2] - accel)
