@@ -94,6 +94,7 @@ def test_imu_camera_in_flight_starts_within_10_s_and_never_says_nonsense(book):
     assert any("visual-inertial start" in e.message for e in result.estimator.events)
     assert report["heading_source"] == "own frame (visual-inertial start)"
     assert report["position_reference"]["heading_aligned"] and "heading_note" in report["position_reference"]
+    assert report["nees"]["dof"] == 5  # position and tilt: the heading was turned onto the truth's
     assert report["position_rmse_m"] < 0.02 and report["attitude_rmse_deg"] < 1.0
     assert report["nees"]["mean_in_band"]
     off = sigmas_off(result, book, poses)

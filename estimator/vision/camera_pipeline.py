@@ -19,7 +19,9 @@ import numpy as np
 from vtolpose.estimator.vision.association import AssociationOptions, associate
 from vtolpose.estimator.core.calibration import CameraCalibration
 from vtolpose.estimator.vision.camera_model import CameraModel
-from vtolpose.estimator.vision.camera_update import Predictions, assign_state, iterated_update, predict, stacked_update
+from vtolpose.estimator.vision.camera_update import (
+    Predictions, assign_state, iterated_update, parallax_significance, predict, stacked_update,
+)
 from vtolpose.estimator.vision.features import FrameFeatures
 from vtolpose.estimator.core.kalman import UpdateOutcome
 from vtolpose.estimator.vision.landmarks import (
@@ -222,6 +224,11 @@ class CameraPipeline:
         opts = self.options
         known = depth_known(self.book, state, landmarks, opts.map)
         baseline = baseline_significance(state, landmarks, mounted(state, self.R_BC, self.t_BC)[1]) >= opts.map.min_baseline_chi2
+        if np.any(~known & baseline):
+            guessed = np.flatnonzero(~known & baseline)
+            parallax = parallax_significance(state, self.camera, self.R_BC, self.t_BC, landmarks[guessed], uv[guessed],
+                                             opts.pixel_sigma, self._rate_b) >= opts.map.min_baseline_chi2
+            baseline[guessed[~parallax]] = False
         outcome = None
         if np.any(known):
             outcome = stacked_update(state, pred, landmarks[known], uv[known], opts.pixel_sigma, held)

@@ -122,6 +122,47 @@ def predict(state: FilterState, camera: CameraModel, R_BC: np.ndarray, t_BC: np.
     return Predictions(uv, h_c, front, front & camera.in_image(uv), H_pose, H_y, S)
 
 
+def parallax_significance(state: FilterState, camera: CameraModel, R_BC: np.ndarray, t_BC: np.ndarray,
+                          indices: np.ndarray, measured_uv: np.ndarray, pixel_sigma: float,
+                          rate_b: np.ndarray = _NO_RATE) -> np.ndarray:
+    """Squared Mahalanobis distance of each match from where the landmark would be seen at infinity.
+
+    A point at infinity (``ρ = 0``) is seen along its anchor ray ``m(θ, φ)`` whatever the camera's
+    translation: only the attitude moves it. A match that lies within its uncertainty of that
+    prediction shows no parallax, and its depth is not observed, however far the filter believes
+    the camera has moved (a believed baseline can be the filter's own drift). The covariance is the
+    one of ``h(ρ = 0)`` over the attitude and the ray's angles with their correlation (both come from the
+    same attitude estimates), and the pixel noise; two degrees of freedom. The calibration states (time
+    offset, mounting) are taken at their estimate: matches without parallax hold them, so a test that
+    waited for their sigma to narrow would wait on itself (with the mounting estimated, the hand-held
+    walk then grew from 2.1 × 2.2 m to 7.2 × 4.4 m); a depth learnt under a wrong calibration is weighed
+    against it by the update that learns it, which frees both.
+    """
+    indices = np.asarray(indices, dtype=int)
+    if len(indices) == 0:
+        return np.zeros(0)
+    far = FilterState(state.layout)  # a view: the nominal and the covariance shared, read only
+    far.t_ns, far.p, far.v, far.q, far.b_g, far.b_a = state.t_ns, state.p, state.v, state.q, state.b_g, state.b_a
+    far.calib, far.calib_layout, far.cov = state.calib, state.calib_layout, state.cov
+    far.landmarks = state.landmarks.copy()
+    far.landmarks[indices, 5] = 0.0
+    h_c, _, dh_pose, dh_y = predict_h(far, R_BC, t_BC, indices, rate_b)
+    uv, _, J_pi = camera.project_jacobian(h_c)
+    dh_y[:, :, 5] = 0.0  # the hypothesis fixes ρ at 0: its own uncertainty is not part of it
+    H_pose, H_y = J_pi @ dh_pose[:, :, 0:6], J_pi @ dh_y
+    rows = ROBOT_POSE_COLS
+    P_pose = state.cov[np.ix_(rows, rows)]
+    lm = state.map_start + LANDMARK_DIM * indices[:, None] + np.arange(LANDMARK_DIM)  # (K, 6)
+    P_pose_y = state.cov[rows[None, :, None], lm[:, None, :]]  # (K, r, 6)
+    P_yy = state.cov[lm[:, :, None], lm[:, None, :]]  # (K, 6, 6)
+    cross = H_pose @ P_pose_y @ np.swapaxes(H_y, 1, 2)
+    S = H_pose @ P_pose @ np.swapaxes(H_pose, 1, 2) + cross + np.swapaxes(cross, 1, 2)
+    S += H_y @ P_yy @ np.swapaxes(H_y, 1, 2) + np.eye(2) * pixel_sigma**2
+    r = np.asarray(measured_uv, dtype=float) - uv
+    chi2 = np.einsum("ki,ki->k", r, np.linalg.solve(S, r[..., None])[..., 0])
+    return np.where(np.isfinite(chi2), chi2, 0.0)  # behind the camera at infinity: no verdict of parallax
+
+
 def _landmark_blocks(state: FilterState) -> tuple[np.ndarray, np.ndarray]:
     """Robot–landmark ``(M, 6 + c, 6)`` and landmark–landmark diagonal ``(M, 6, 6)`` covariance blocks."""
     r = state.map_start

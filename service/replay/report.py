@@ -95,9 +95,10 @@ def build_report(result: ReplayResult, dataset: Dataset, cfg: dict[str, Any], sc
         if align.heading_aligned:
             report["position_reference"]["heading_note"] = (
                 "a camera-only frame cannot know the world's heading: it is turned onto the truth's at that pose, "
-                "and the NEES covers what the frame can know (the pose relative to its start: position, tilt and the "
-                "heading's drift), its covariance the filter's in its own frame less the origin's variance at the start (a "
-                "gauge the shift takes off the errors; the heading's is kept, the yaw's share of the NEES cautious)")
+                "and the NEES covers what the frame can know (the pose relative to its start: position and tilt, 5 dof), its "
+                "covariance the filter's in its own frame less the origin's variance at the start (a gauge the shift takes "
+                "off the errors); the heading's gauge cannot be taken off the filter's covariance, so the heading is "
+                "left out of the NEES and its drift counts in the attitude's RMSE only")
     align = align or StartAlignment(np.eye(3), np.zeros(3), np.zeros(3), False)
     if score_from_s > 0.0:
         truth = truth_from(truth, int(truth.t_ns[0] + round(score_from_s * 1e9)))
@@ -159,6 +160,11 @@ def accuracy(result: ReplayResult, truth: TruthSeries, point_b: np.ndarray, alig
         err, c, dof = pose_errors_for_nees(scoring_times(result, cov.t_ns), align.points(cov.p), align.attitudes(cov.q),
                                            align.covariances(cov.cov), truth, point_b)
         if len(err):
+            if align.heading_aligned and dof == 6:
+                # The turn put the start's heading on the truth's: the frame's heading is a gauge the run never learns,
+                # held in the filter's covariance with the map's, so it is marginalised out (what is scored is the
+                # position and the tilt; the heading's drift still counts in the attitude's RMSE).
+                err, c, dof = err[:, :5], c[:, :5, :5], 5
             values = nees(err, c)
             summary = nees_summary(values, dof)
             out["nees_mean"] = summary["nees_mean"]
@@ -230,8 +236,9 @@ class StartAlignment:
         exact: a shift of everything is invisible to every measurement and the propagation alike, so the start's
         independent origin variance stays as it was, added to the rest (OC-EKF keeps the camera's update blind
         to it). Without this a frame's 2 mm of origin made a hover that drifted 0.9 mm look three times too
-        cautious. The heading is not taken off: the filter carries its gauge about the vehicle, entangled with
-        the map, and subtracting the start's yaw variance leaves no positive covariance; its dof stays conservative."""
+        cautious. The heading's gauge is not subtracted: the filter carries it about the vehicle, entangled with
+        the map, and subtracting the start's yaw variance leaves no positive covariance; :func:`accuracy` leaves the
+        heading out of a turned run's NEES instead."""
         if self.gauge is None:
             return cov
         out = np.array(cov, dtype=float, copy=True)
@@ -418,7 +425,8 @@ def score_lines(report: dict, fmt) -> list[str]:
         verdict = "inside" if n["mean_in_band"] else "OUTSIDE"
         lines.append(f"  NEES mean {n['nees_mean']:.2f} ({n['dof']} dof; 95% band {lo:.2f}-{hi:.2f}: {verdict}; {100 * n['fraction_in_band']:.0f}% of samples in band)")
     if "position_reference" in report:
-        turned = " and its heading turned onto the truth's" if report["position_reference"].get("heading_aligned") else ""
+        turned = (" and its heading turned onto the truth's; the NEES leaves the heading out"
+                  if report["position_reference"].get("heading_aligned") else "")
         lines.append(f"  (no absolute position: scored with the start put on the truth{turned})")
     return lines
 
