@@ -79,6 +79,32 @@ def test_the_bank_waits_at_rest_and_places_the_heading_once_the_vehicle_accelera
     assert math.sqrt(placed.cov[8, 8]) < math.radians(10.0)
 
 
+def test_the_placed_covariance_carries_what_the_heading_drags_along() -> None:
+    # Hypotheses a few degrees apart that flew a turn: each took the sideways acceleration its heading error made
+    # into its roll. The spread of the heading is then a spread of the roll too, one to one correlated; the placed
+    # state must say so, or a later fix that corrects the heading leaves the roll where it was.
+    bank = HeadingBank(HeadingBankOptions(), level_state(0.0), ImuPropagator(NOISE, G), GpsUpdater(np.zeros(3), None))
+    yaws = np.radians([-4.0, -2.0, 0.0, 2.0, 4.0])
+    roll_per_yaw = 0.2
+    members = []
+    for yaw in yaws:
+        member = level_state(yaw)
+        member.q = quat_from_euler(roll_per_yaw * yaw, 0.0, yaw)
+        member.cov[8, 8] = 1e-6
+        member.v = np.array([8.0, 0.0, 0.0]) + 0.5 * np.array([0.0, yaw, 0.0])
+        members.append(member)
+    bank.members = members
+    bank.log_weights = np.log(np.array([0.1, 0.2, 0.4, 0.2, 0.1]))
+    placed = bank.placed()
+    assert placed is not None and yaw_of(placed.q) == pytest.approx(0.0, abs=1e-12)  # the heaviest
+    spread = float(np.array([0.1, 0.2, 0.4, 0.2, 0.1]) @ yaws**2)
+    assert placed.cov[8, 8] == pytest.approx(spread + 1e-6, rel=0.02)
+    assert placed.cov[6, 8] == pytest.approx(roll_per_yaw * spread, rel=0.05)  # roll moves with the heading
+    assert placed.cov[4, 8] == pytest.approx(0.5 * spread, rel=0.05)  # and the sideways velocity
+    assert placed.cov[6, 6] >= 1e-4 + 0.9 * roll_per_yaw**2 * spread
+    assert np.all(np.linalg.eigvalsh(placed.cov) > 0.0)
+
+
 def test_velocity_from_fixes_tells_steady_flight_from_rest() -> None:
     t = (np.arange(11) * 0.1 * 1e9).astype(np.int64)
     moving = [GpsFix(int(tt), np.array([2.0 * tt * 1e-9, 0.0, 0.0]), 0.02, 0.03) for tt in t]

@@ -27,7 +27,7 @@ from vtolpose.estimator.core import covariance
 from vtolpose.estimator.core.covariance import BA, BG, TH, V, YAW
 from vtolpose.estimator.core.kalman import chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix
-from vtolpose.estimator.core.rotation import quat_mul, rotvec_quat, yaw_of
+from vtolpose.estimator.core.rotation import quat_conj, quat_log, quat_mul, rotvec_quat, yaw_of
 from vtolpose.estimator.core.state import FilterState, StateLayout, stacked
 from vtolpose.estimator.core.update_kernel import NO_HELD
 from vtolpose.estimator.gnss import gps_kernel
@@ -178,15 +178,32 @@ class HeadingBank:
         return mean, math.sqrt(var)
 
     def placed(self) -> FilterState | None:
-        """The best hypothesis once the mixture's sigma is below ``place_sigma_deg``, its heading variance the
-        mixture's about *its* heading (the others' weight still counts against it)."""
-        headings, weights, variances, _, var = self._mixture()
+        """The best hypothesis once the mixture's sigma is below ``place_sigma_deg``, with the mixture's
+        covariance about *it*: ``Σ w_i (P_i + d_i d_iᵀ)``, ``d_i`` hypothesis i's state less the chosen one's.
+
+        The others' weight still counts against its heading, and with it against everything a heading drags
+        along: a hypothesis a few degrees off has flown the same fixes with its own tilt, velocity and biases
+        (in a turn a heading error is a sideways acceleration, taken up by the tilt), so the spread is
+        correlated across them. Only the heading's share of it (the diagonal) left the tilt claimed to a
+        third of a degree while it stayed 0.7° off after the landfill's start in flight."""
+        _, weights, _, _, var = self._mixture()
         if math.sqrt(var) > math.radians(self.options.place_sigma_deg):
             return None
         k = int(np.argmax(self.log_weights))
-        offset = np.angle(np.exp(1j * (headings - headings[k])))
-        state = self.members[k].copy()
-        state.cov[YAW, YAW] = max(state.cov[YAW, YAW], float(weights @ (variances + offset**2)))
+        chosen = self.members[k]
+        state = chosen.copy()
+        n = state.robot_dim
+        cov = np.zeros((n, n))
+        for w, member in zip(weights, self.members):
+            d = np.zeros(n)
+            d[0:3] = member.p - chosen.p
+            d[V] = member.v - chosen.v
+            d[TH] = quat_log(quat_mul(member.q, quat_conj(chosen.q)))
+            if n > 9:
+                d[BG] = member.b_g - chosen.b_g
+                d[BA] = member.b_a - chosen.b_a
+            cov += w * (member.cov[:n, :n] + np.outer(d, d))
+        state.cov[:n, :n] = 0.5 * (cov + cov.T)
         return state
 
     def _mixture(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
