@@ -208,18 +208,22 @@ class CameraPipeline:
         - Depth guessed, camera well away from the anchor: an iterated EKF update. The first real
           baseline can move a guessed depth a long way; one linearisation at the guess gets the
           depth, the robot's correction and both variances wrong (it reads parallax as motion).
-        - Depth guessed, no significant baseline yet: such a match still says the camera has
-          not moved relative to the scene, so it updates position and velocity (and the
-          landmark's bearing), and, since a turn moves every bearing alike whatever the depth,
-          the attitude; its depth and both biases are held (a Schmidt update). Without a
-          baseline the depth cannot be observed, and an apparent baseline that is only position
-          noise (GPS steps while the vehicle sits on its pad) would otherwise be "explained" by a
-          bogus depth, or taken into the accelerometer bias. A held attitude let a hover's
-          gyro-bias error tilt the estimate unseen, and its gravity leak grew a velocity error
-          that the first baseline read as parallax. The gyro bias stays held: with the depth a
-          guess, a translation's flow can pass for a turn, and a bias keeps what it is given (on
-          the hand-held recording, freeing it took the path from 2.6 × 2.3 m to 14 × 9 m);
-          the attitude is corrected again by every frame.
+        - Depth guessed, no baseline or no parallax yet: such a match still says the camera has
+          not moved relative to the scene, so it updates position, velocity and the accelerometer
+          bias (on a pad it is a zero-velocity update, and a rest is what tells that bias), the
+          landmark's bearing, and, since a turn moves every bearing alike whatever the depth, the
+          attitude; its depth and the gyro bias are held (a Schmidt update). Without parallax the
+          depth cannot be observed; an apparent baseline that is only position noise (GPS steps
+          while the vehicle sits on its pad) or drift would otherwise be "explained" by a bogus
+          depth. A held attitude let a hover's gyro-bias error tilt the estimate unseen, and its
+          gravity leak grew a velocity error that the first baseline read as parallax. The gyro
+          bias stays held: with the depth a guess, a translation's flow can pass for a turn, and a
+          bias keeps what it is given (on the hand-held recording, freeing it took the path from
+          2.6 × 2.3 m to 14 × 9 m); the attitude is corrected again by every frame. The
+          accelerometer bias was held too until these matches needed parallax: then on the
+          landfill's pad they pinned the velocity, the rest's zero-velocity updates found nothing
+          left to tell the bias (its vertical sigma 0.027 m/s² at lift-off against IMU + GPS's
+          0.002), and the climb read the bias's error as a climb rate (0.1 m/s, 0.49 m high).
         """
         opts = self.options
         known = depth_known(self.book, state, landmarks, opts.map)
@@ -251,11 +255,10 @@ class CameraPipeline:
 
     @staticmethod
     def _no_baseline_held(state: FilterState, landmarks: np.ndarray) -> np.ndarray:
-        """The landmarks' depths, both biases and the calibration states, time offset and mounting (see :meth:`_update`)."""
+        """The landmarks' depths, the gyro bias and the calibration states, time offset and mounting (see :meth:`_update`)."""
         hold = np.zeros(state.dim, dtype=bool)
         if state.layout.estimates_biases:
             hold[state.layout.BG] = True
-            hold[state.layout.BA] = True
         hold[state.robot_dim : state.map_start] = True
         hold[state.map_start + 6 * landmarks + 5] = True
         return hold
