@@ -199,7 +199,7 @@ class HeadingBank:
             d[0:3] = member.p - chosen.p
             d[V] = member.v - chosen.v
             d[TH] = quat_log(quat_mul(member.q, quat_conj(chosen.q)))
-            if n > 9:
+            if state.layout.estimates_biases:
                 d[BG] = member.b_g - chosen.b_g
                 d[BA] = member.b_a - chosen.b_a
             cov += w * (member.cov[:n, :n] + np.outer(d, d))

@@ -149,39 +149,35 @@ def parallax_significance(state: FilterState, camera: CameraModel, R_BC: np.ndar
     h_c, _, dh_pose, dh_y = predict_h(far, R_BC, t_BC, indices, rate_b)
     uv, _, J_pi = camera.project_jacobian(h_c)
     dh_y[:, :, 5] = 0.0  # the hypothesis fixes ρ at 0: its own uncertainty is not part of it
-    H_pose, H_y = J_pi @ dh_pose[:, :, 0:6], J_pi @ dh_y
-    rows = ROBOT_POSE_COLS
-    P_pose = state.cov[np.ix_(rows, rows)]
-    lm = state.map_start + LANDMARK_DIM * indices[:, None] + np.arange(LANDMARK_DIM)  # (K, 6)
-    P_pose_y = state.cov[rows[None, :, None], lm[:, None, :]]  # (K, r, 6)
-    P_yy = state.cov[lm[:, :, None], lm[:, None, :]]  # (K, 6, 6)
-    cross = H_pose @ P_pose_y @ np.swapaxes(H_y, 1, 2)
-    S = H_pose @ P_pose @ np.swapaxes(H_pose, 1, 2) + cross + np.swapaxes(cross, 1, 2)
-    S += H_y @ P_yy @ np.swapaxes(H_y, 1, 2) + np.eye(2) * pixel_sigma**2
+    S = innovation_covariances(state, J_pi @ dh_pose[:, :, 0:6], J_pi @ dh_y, pixel_sigma, ROBOT_POSE_COLS, indices)
     r = np.asarray(measured_uv, dtype=float) - uv
     chi2 = np.einsum("ki,ki->k", r, np.linalg.solve(S, r[..., None])[..., 0])
     return np.where(np.isfinite(chi2), chi2, 0.0)  # behind the camera at infinity: no verdict of parallax
 
 
-def _landmark_blocks(state: FilterState) -> tuple[np.ndarray, np.ndarray]:
-    """Robot–landmark ``(M, 6 + c, 6)`` and landmark–landmark diagonal ``(M, 6, 6)`` covariance blocks."""
+def _landmark_blocks(state: FilterState, rows: np.ndarray, indices: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Robot–landmark ``(M, len(rows), 6)`` and landmark–landmark diagonal ``(M, 6, 6)`` covariance blocks, of every
+    landmark or of those ``indices``."""
     r = state.map_start
-    m = state.n_landmarks
     cov = state.cov
-    rows = robot_cols(state)
+    if indices is not None:
+        lm = r + LANDMARK_DIM * np.asarray(indices, dtype=int)[:, None] + np.arange(LANDMARK_DIM)  # (K, 6)
+        return cov[rows[None, :, None], lm[:, None, :]], cov[lm[:, :, None], lm[:, None, :]]
+    m = state.n_landmarks
     pose_rows = cov[rows, r:].reshape(len(rows), m, LANDMARK_DIM).transpose(1, 0, 2)
-    lm = cov[r:, r:].reshape(m, LANDMARK_DIM, m, LANDMARK_DIM)
-    diag = lm[np.arange(m), :, np.arange(m), :]
-    return pose_rows, diag
+    lm_block = cov[r:, r:].reshape(m, LANDMARK_DIM, m, LANDMARK_DIM)
+    return pose_rows, lm_block[np.arange(m), :, np.arange(m), :]
 
 
-def innovation_covariances(state: FilterState, H_pose: np.ndarray, H_y: np.ndarray, pixel_sigma: float) -> np.ndarray:
-    """``S_i = H_i P H_iᵀ + σ² I`` for each landmark alone (the individual-compatibility test)."""
-    if state.n_landmarks == 0:
+def innovation_covariances(state: FilterState, H_pose: np.ndarray, H_y: np.ndarray, pixel_sigma: float,
+                           rows: np.ndarray | None = None, indices: np.ndarray | None = None) -> np.ndarray:
+    """``S_i = H_i P H_iᵀ + σ² I`` for each landmark alone (the individual-compatibility test). ``H_pose`` is over the
+    robot columns ``rows`` (default :func:`robot_cols`); ``indices``: the landmarks ``H_y`` is of (default all)."""
+    if (state.n_landmarks if indices is None else len(indices)) == 0:
         return np.zeros((0, 2, 2))
-    rows = robot_cols(state)
+    rows = robot_cols(state) if rows is None else np.asarray(rows)
     P_pose = state.cov[np.ix_(rows, rows)]
-    P_pose_y, P_yy = _landmark_blocks(state)
+    P_pose_y, P_yy = _landmark_blocks(state, rows, indices)
     cross = H_pose @ P_pose_y @ np.swapaxes(H_y, 1, 2)
     S = H_pose @ P_pose @ np.swapaxes(H_pose, 1, 2) + cross + np.swapaxes(cross, 1, 2)
     S += H_y @ P_yy @ np.swapaxes(H_y, 1, 2)
