@@ -41,8 +41,8 @@ def test_swapped_kernels_run_interpreted_and_come_back_compiled():
     compiled_step, compiled_level = kernel.step, sample_kernel.level_run
     try:
         assert kernel_swap.to_interpreted() > 0
-        assert isinstance(kernel.step, kernel_swap.Interpreted) and kernel.step.dispatcher is compiled_step
-        assert isinstance(estimator_filter.level_run, kernel_swap.Interpreted)  # a name imported from a kernel module
+        assert kernel.step is compiled_step.py_func and kernel_swap.compiled_of(kernel.step) is compiled_step
+        assert estimator_filter.level_run is compiled_level.py_func  # a name imported from a kernel module
         n, v3 = 15, np.array([0.1, -0.2, 0.3])
         results = []
         for step in (kernel.step, compiled_step):
