@@ -48,3 +48,70 @@ def vibration_floor(samples: np.ndarray, rate_hz: float, band_hz: tuple[float, f
     if not np.any(inside):
         raise ValueError(f"vibration: no frequency bin in {lo:g}-{hi:g} Hz at {segment} samples per segment")
     return np.sqrt(density[inside].mean(axis=0))
+
+
+LOW_BANDS_HZ = ((0.05, 0.3), (0.3, 1.0), (1.0, 3.0))  # where the velocity error between two fixes is made
+LOW_PASS_HZ = 4.0  # both sides low-passed here alike: the bands kept, the rotor and the truth's noise gone
+
+
+def _quaternions_at(t_s: np.ndarray, truth_t_s: np.ndarray, q_wb: np.ndarray) -> np.ndarray:
+    """The truth's attitude at ``t_s``: its quaternions (w first) interpolated component-wise and normalised."""
+    q = np.array(q_wb, dtype=float)
+    flips = np.cumsum(np.r_[0, np.sum(q[1:] * q[:-1], axis=1) < 0.0]) % 2 == 1  # one hemisphere throughout
+    q[flips] *= -1.0
+    out = np.stack([np.interp(t_s, truth_t_s, q[:, i]) for i in range(4)], axis=-1)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def _rotations(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q.T
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def specific_force_residual(imu_t_s: np.ndarray, accel: np.ndarray, truth_t_s: np.ndarray, p_w: np.ndarray,
+                            q_wb: np.ndarray, R_bi: np.ndarray, gravity_w: np.ndarray,
+                            low_pass_hz: float = LOW_PASS_HZ) -> tuple[np.ndarray, float]:
+    """The accelerometer's error below a few hertz, where its own spectrum cannot tell error from motion: its
+    readings turned into the world by the truth's attitude (``q_wb``, interpolated) and the mounting ``R_bi``,
+    gravity added back, against the truth's track's acceleration (a quintic spline's), both low-passed alike
+    (``low_pass_hz``, zero phase), the difference turned into the IMU's axes. Returns the residual on the
+    truth's time grid (mean not removed: the bias) and the grid's rate.
+
+    The truth's own errors (its attitude times g, its track's noise) count here too: the figure bounds the
+    accelerometer's error from above.
+    """
+    from scipy.interpolate import make_interp_spline
+    from scipy.signal import butter, sosfiltfilt
+
+    truth_t_s, imu_t_s = np.asarray(truth_t_s, float), np.asarray(imu_t_s, float)
+    dt, imu_dt = float(np.median(np.diff(truth_t_s))), float(np.median(np.diff(imu_t_s)))
+    if not 0.0 < low_pass_hz < 0.4 / dt or len(truth_t_s) < 64:
+        raise ValueError(f"vibration: a truth every {dt * 1e3:.1f} ms ({len(truth_t_s)} samples) is too coarse or "
+                         f"too short to resolve {low_pass_hz:g} Hz")
+    inside = (imu_t_s >= truth_t_s[0]) & (imu_t_s <= truth_t_s[-1])
+    imu_t_s, accel = imu_t_s[inside], np.asarray(accel, float)[inside]
+    R_imu = _rotations(_quaternions_at(imu_t_s, truth_t_s, q_wb))
+    moving_w = np.einsum("nij,nj->ni", R_imu, accel @ R_bi.T) + gravity_w  # what the IMU says the vehicle did
+    moving_w = sosfiltfilt(butter(4, low_pass_hz, fs=1.0 / imu_dt, output="sos"), moving_w, axis=0)
+    grid = np.arange(truth_t_s[0] + dt, truth_t_s[-1] - dt, dt)
+    track_w = make_interp_spline(truth_t_s, np.asarray(p_w, float), k=5, axis=0).derivative(2)(grid)  # a quintic: a
+    # second difference (or a cubic's) would damp a 1-Hz swing by 1 % at 20 Hz, more than the error looked for
+    track_w = sosfiltfilt(butter(4, low_pass_hz, fs=1.0 / dt, output="sos"), track_w, axis=0)
+    said_w = np.stack([np.interp(grid, imu_t_s, moving_w[:, i]) for i in range(3)], axis=-1)
+    R_grid = _rotations(_quaternions_at(grid, truth_t_s, q_wb))
+    return np.einsum("nji,nj->ni", R_grid, said_w - track_w) @ R_bi, 1.0 / dt
+
+
+def band_densities(residual: np.ndarray, rate_hz: float, bands_hz: tuple[tuple[float, float], ...] = LOW_BANDS_HZ,
+                   segment_s: float = 20.0) -> np.ndarray:
+    """Per band (rows) and axis (columns), the residual's density [unit/√Hz] (Welch, ``segment_s`` segments)."""
+    freq, density = spectral_density(residual, rate_hz, int(round(segment_s * rate_hz)))
+    out = np.empty((len(bands_hz), density.shape[1]))
+    for k, (lo, hi) in enumerate(bands_hz):
+        inside = (freq >= lo) & (freq < hi)
+        if not np.any(inside):
+            raise ValueError(f"vibration: no frequency bin in {lo:g}-{hi:g} Hz with {segment_s:g}-s segments")
+        out[k] = np.sqrt(density[inside].mean(axis=0))
+    return out

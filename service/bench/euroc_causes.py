@@ -18,7 +18,9 @@ predicted for up to 100 ms. This bench scores the default model's plain replay (
 - what a linear filter can reach at all with the vehicle file's white density (:func:`steady_state_ratio`:
   each axis a double integrator driven by that noise, the fixes of the import), at the fixes and between;
 - the IMU's own vibration floor in flight (``estimator.inertial.vibration``, 10-60 Hz, from SCORE_FROM_S)
-  per axis, against the vehicle file's white densities: whether that constant is the vibration's level.
+  per axis, against the vehicle file's white densities: whether that constant is the vibration's level;
+- below 3 Hz, where the IMU's own spectrum is the vehicle's motion, the accelerometer against the truth
+  (``specific_force_residual``, flights with an attitude truth): what the white constant has to cover there.
 """
 
 from __future__ import annotations
@@ -31,7 +33,8 @@ import numpy as np
 
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator import DEFAULT_BAND_HZ, gps_error_rmse, interpolate_poses, quat_to_rot, vibration_floor
+from vtolpose.estimator import (DEFAULT_BAND_HZ, LOW_BANDS_HZ, band_densities, gps_error_rmse, interpolate_poses,
+                                 quat_to_rot, specific_force_residual, vibration_floor)
 from vtolpose.service.bench.euroc import GPS_RATE_HZ, GPS_SEED, SCORE_FROM_S, aligned_position_errors, flights_or_skip, imported_flight
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import replay
@@ -143,6 +146,24 @@ def _fmt(value: float | None, spec: str) -> str:
     return "—" if value is None else f"{value:{spec}}"
 
 
+def _low_band_line(name: str, dataset: Dataset, rows: list[Row]) -> str:
+    """The accelerometer's error below 3 Hz against the truth, from SCORE_FROM_S (the readings come in body axes)."""
+    truth, imu = dataset.truth(), dataset.imu()
+    t0 = int(truth.t_ns[0])
+    scored = truth.t_ns >= t0 + SCORE_FROM_S * 1e9
+    gravity = np.array([0.0, 0.0, dataset.calibration.imu.gravity])  # NED: down
+    residual, rate = specific_force_residual((imu.t_ns - t0) * 1e-9, imu.accel, (truth.t_ns[scored] - t0) * 1e-9,
+                                             truth.p[scored], truth.q[scored], np.eye(3), gravity)
+    edge = int(2 * rate)  # the low-pass's start and end
+    densities = band_densities(residual[edge:-edge], rate)
+    white = float(np.max(dataset.calibration.imu.noise.accel_noise_density))
+    for (lo, hi), per_axis in zip(LOW_BANDS_HZ, densities):
+        rows.append(Row(f"{name}: accelerometer error against the truth, {lo:g}-{hi:g} Hz (RMS of axes)",
+                        float(np.sqrt(np.mean(per_axis**2))), "m/s²/√Hz", f"vehicle file {white:g}"))
+    return (f"| {name} | " + " | ".join(" / ".join(f"{d:.3f}" for d in per_axis) for per_axis in densities)
+            + f" m/s²/√Hz | {' / '.join(f'{b:.3f}' for b in residual.mean(axis=0))} m/s² | {white:g} |")
+
+
 def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
     """Each EuRoC flight: the default model's ratio scored three ways, then with the GPS timing and the IMU's
     white noise moved one at a time, and under other draws of the GPS's noise (see the module docstring)."""
@@ -161,6 +182,8 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
     lo, hi = DEFAULT_BAND_HZ
     floors = [f"| flight | accelerometer {lo:g}-{hi:g} Hz, per axis | vehicle file | gyroscope {lo:g}-{hi:g} Hz, per axis | vehicle file |",
               "|---|---|---|---|---|"]
+    low = ["| flight | " + " | ".join(f"accelerometer error {a:g}-{b:g} Hz, per axis" for a, b in LOW_BANDS_HZ)
+           + " | its mean (the bias) | vehicle file |", "|---" * (len(LOW_BANDS_HZ) + 3) + "|"]
     all_seeds = " / ".join(str(x) for x in (GPS_SEED, *OTHER_GPS_SEEDS))
     seeds = [f"| flight | every sample, GPS seed {all_seeds} | mean (range) | ratio per stretch, mean over the seeds: "
              + " / ".join(stretches) + f" | {stretches[0]} per seed |", "|---|---|---|---|---|"]
@@ -200,6 +223,8 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
                           f"{np.max(noise.gyro_noise_density):.4f} |")
             rows.append(Row(f"{flight.name}: accelerometer vibration floor (RMS of axes)", float(np.sqrt(np.mean(accel**2))),
                             "m/s²/√Hz", f"{lo:g}-{hi:g} Hz; vehicle file {np.max(noise.accel_noise_density):g}"))
+            if truth.q is not None:
+                low.append(_low_band_line(flight.name, dataset, rows))
             draws = [(ratio, by_stretch)]
             for seed in OTHER_GPS_SEEDS:
                 redrawn = imported_flight(flight, Path(tmp) / f"seed{seed}", seed=seed)
@@ -215,6 +240,6 @@ def bench_euroc_causes(echo: Callable[[str], None] = print) -> list[Row]:
         at, over = steady_state_ratio(density, GPS_RATE_HZ, *fix_sigmas)
         bound.append(f"| {density:g} m/s²/√Hz | {at:.3f} | {over:.3f} |")
         rows.append(Row(f"linear filter's floor at {density:g} m/s²/√Hz, over the interval", over, "ratio"))
-    for line in scoring + [""] + seeds + [""] + moved + [""] + bound + [""] + floors:
+    for line in scoring + [""] + seeds + [""] + moved + [""] + bound + [""] + floors + [""] + low:
         echo("  " + line)
     return rows
