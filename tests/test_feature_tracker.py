@@ -40,6 +40,31 @@ def test_tracked_points_follow_the_image_and_keep_their_detections_descriptors()
     assert np.median(np.linalg.norm(moved - SHIFT, axis=1)) < 0.1
 
 
+def test_the_last_pairs_motion_guides_the_next_pairs_flow(monkeypatch):
+    """A camera that swings faster each frame: 20 px, then 40 px twice. Lucas-Kanade alone loses nearly every
+    point past the first pair; from the last pair's image motion it keeps most, where they truly went."""
+    from vtolpose.estimator.vision import feature_tracker as tracking
+
+    image = _texture(size=(480, 640))
+    direction = np.array([1.0, -0.5])
+    frames = [_shifted(image, direction * s) for s in (0.0, 20.0, 60.0, 100.0)]
+    kept = {}
+    fitted = tracking._image_motion
+    for guided in (True, False):
+        monkeypatch.setattr(tracking, "_image_motion", fitted if guided else (lambda before, after: None))
+        tracker = FeatureTracker(FeatureOptions(track_between=4, min_tracked_fraction=0.0))
+        found = [tracker.features(frame, k + 1) for k, frame in enumerate(frames)]
+        assert (tracker.detections, tracker.tracked_frames) == (1, 3)
+        kept[guided] = [len(f) for f in found]
+        if guided:
+            rows = [int(np.argmin(np.linalg.norm(found[0].descriptors - d, axis=1))) for d in found[3].descriptors]
+            moved = found[3].keypoints - found[0].keypoints[rows]
+            assert np.median(np.linalg.norm(moved - 100.0 * direction, axis=1)) < 0.1
+    assert kept[True][1] == kept[False][1] > 300  # the first pair has no guess either way
+    assert kept[False][3] < 0.1 * kept[False][1]
+    assert kept[True][3] > 0.7 * kept[True][1]
+
+
 def test_a_detection_comes_every_track_between_plus_one_frames():
     tracker = FeatureTracker(FeatureOptions(track_between=2))
     image = _texture()

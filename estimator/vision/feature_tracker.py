@@ -11,6 +11,12 @@ check drops points that slid along an edge, the window's residual those covered 
 detection's points survive. A frame out of order, a rejected frame, or a change of image size
 starts again from a detection.
 
+A camera swung at a few frames a second moves its points tens of pixels and turns them between two
+frames, past what the pyramid's coarsest level finds alone; but the motion of one frame pair is much
+like the next's. So the image motion of the last pair tracked (a similarity fitted to its kept points,
+RANSAC) is each point's first guess in the next pair, forward, and its inverse the guess of the check
+back: the flow only corrects the guess, and the check stays the same test.
+
 Computation only: the tracker holds the last image and its features, nothing else, and its
 output depends only on the frames given in order.
 """
@@ -27,6 +33,8 @@ from vtolpose.estimator.vision.frame_quality import frame_problem
 LK_WINDOW_PX = 21  # Lucas–Kanade window, each pyramid level
 LK_LEVELS = 3  # pyramid levels above the frame: flows of up to ~2^3 × the window's reach
 BORDER_PX = 2.0  # tracked points this close to the edge are dropped (their window leaves the image)
+MIN_MOTION_POINTS = 12  # kept points a pair needs for its image motion to be the next pair's guess
+MOTION_INLIER_PX = 2.0  # RANSAC: a point this far from the fitted similarity is not its evidence
 MAX_PATCH_RESIDUAL_DN = 8.0  # mean absolute grey-level difference of a point's window once aligned: a few DN is
 # sensor noise; a point covered by another scene can pass the forward-backward check, not this (17-28 DN)
 
@@ -40,14 +48,15 @@ class FeatureTracker:
         self.options = options
         self._image: np.ndarray | None = None
         self._last: FrameFeatures | None = None
+        self._motion: np.ndarray | None = None  # the last tracked pair's image motion (2 × 3 similarity)
         self._detected = 0  # points of the last detection
         self._since_detection = 0  # frames tracked since it
         self.detections = 0
         self.tracked_frames = 0
 
     def reset(self) -> None:
-        """Forget the last frame: the next one is detected."""
-        self._image, self._last = None, None
+        """Forget the last frame: the next one is detected, and tracked without a guess."""
+        self._image, self._last, self._motion = None, None, None
 
     def features(self, image: np.ndarray, t_ns: int, expected_shape: tuple[int, int] | None = None) -> FrameFeatures:
         """Features of the frame at ``t_ns``: tracked from the last frame, or detected afresh."""
@@ -63,6 +72,7 @@ class FeatureTracker:
             self.reset()
             return FrameFeatures.rejected(t_ns, image.shape, problem, digest)
         keep, points = self._track(self._image, image, last.keypoints)
+        self._motion = _image_motion(last.keypoints[keep], points[keep])
         if np.count_nonzero(keep) < self.options.min_tracked_fraction * self._detected:
             return self._detect(image, t_ns, expected_shape)
         self._image = image
@@ -95,8 +105,16 @@ class FeatureTracker:
         start = points.astype(np.float32).reshape(-1, 1, 2)
         lk = {"winSize": (LK_WINDOW_PX, LK_WINDOW_PX), "maxLevel": LK_LEVELS,
               "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
-        ahead, ok_ahead, residual = cv2.calcOpticalFlowPyrLK(before, after, start, None, **lk)
-        back, ok_back, _ = cv2.calcOpticalFlowPyrLK(after, before, ahead, None, **lk)
+        motion = self._motion
+        if motion is None:
+            ahead, ok_ahead, residual = cv2.calcOpticalFlowPyrLK(before, after, start, None, **lk)
+            back, ok_back, _ = cv2.calcOpticalFlowPyrLK(after, before, ahead, None, **lk)
+        else:
+            guess = _moved(start, motion)
+            ahead, ok_ahead, residual = cv2.calcOpticalFlowPyrLK(before, after, start, guess, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                                                 **lk)
+            back, ok_back, _ = cv2.calcOpticalFlowPyrLK(after, before, ahead, _moved(ahead, cv2.invertAffineTransform(motion)),
+                                                        flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         ahead, back = ahead.reshape(-1, 2).astype(float), back.reshape(-1, 2).astype(float)
         height, width = after.shape[:2]
         inside = ((ahead[:, 0] >= BORDER_PX) & (ahead[:, 0] <= width - 1 - BORDER_PX)
@@ -105,6 +123,26 @@ class FeatureTracker:
         keep = ok_ahead.ravel().astype(bool) & ok_back.ravel().astype(bool) & inside \
             & (round_trip < self.options.max_flow_error_px) & (residual.ravel() < MAX_PATCH_RESIDUAL_DN)
         return keep, ahead
+
+
+def _moved(points: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    """``points`` (n × 1 × 2, float32) under a 2 × 3 image motion: a first guess for the flow."""
+    flat = points.reshape(-1, 2).astype(float)
+    return (flat @ motion[:, :2].T + motion[:, 2]).astype(np.float32).reshape(-1, 1, 2)
+
+
+def _image_motion(before: np.ndarray, after: np.ndarray) -> np.ndarray | None:
+    """The similarity (rotation, scale, shift) that carries the kept points of one frame onto the next, fitted
+    robustly; None when too few points, or too few agree, to say."""
+    import cv2
+
+    if len(before) < MIN_MOTION_POINTS:
+        return None
+    motion, inliers = cv2.estimateAffinePartial2D(before.astype(np.float32), after.astype(np.float32), method=cv2.RANSAC,
+                                                  ransacReprojThreshold=MOTION_INLIER_PX)
+    if motion is None or inliers is None or int(inliers.sum()) < MIN_MOTION_POINTS:
+        return None
+    return motion
 
 
 class FrameExtractor:
