@@ -80,3 +80,37 @@ def test_a_cold_cache_gives_the_same_trajectory_at_once_and_fills_itself(tmp_pat
     warm = replay(tmp_path / "warm.txt")
     assert "kernels loaded from the cache" in warm
     assert (tmp_path / "cold.txt").read_bytes() == (tmp_path / "warm.txt").read_bytes()
+
+
+def test_the_background_compiler_holds_the_lock_it_was_handed(tmp_path, monkeypatch):
+    """The command takes the compile lock and hands it to the compiler it starts: while that compiler runs, the
+    lock is taken (whoever waits for it waits for the compiler), even after the command let go of its copy; once
+    the compiler ends, the lock is free. A second start meanwhile finds the lock taken and starts nothing."""
+    import time
+
+    from vtolpose.service.runtime import kernels
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    release, said = tmp_path / "release", tmp_path / "said"
+    compiler = ("import os, sys, time\n"
+                "from vtolpose.service.runtime.kernels import LOCK_FD_ENV, compile_lock\n"
+                "handed = LOCK_FD_ENV in os.environ\n"
+                "with compile_lock(block=False) as held:\n"
+                f"    open({str(said)!r}, 'w').write(f'handed {{handed}} held {{held}}')\n"
+                f"    while not os.path.exists({str(release)!r}):\n"
+                "        time.sleep(0.02)\n")
+    monkeypatch.setattr(kernels, "COMPILE_COMMAND", (sys.executable, "-c", compiler))
+    started = kernels._start_compiler()
+    assert started is not None
+    try:
+        with kernels.compile_lock(block=False) as free:
+            assert not free
+        assert kernels._start_compiler() is None  # one compiler at a time
+    finally:
+        release.touch()
+        started.wait(timeout=60)
+    assert started.returncode == 0
+    assert said.read_text() == "handed True held True"
+    with kernels.compile_lock(block=False) as free:
+        assert free
+    assert kernels.LOCK_FD_ENV not in os.environ

@@ -13,7 +13,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="Compile the estimator's numba kernels into their cache (beside the sources when writable, else\n"
         "~/.cache/vtolpose/numba, or NUMBA_CACHE_DIR), or load them when they are there already. A Docker image\n"
         "runs it at build time. Without it, the first replay or daemon start runs the kernels interpreted (the same\n"
-        "results, slower) and starts this command in the background; a second compiler waits for the first.\n\n"
+        "results, slower) and starts this command in the background once it has run 10 s, or as it ends; a second\n"
+        "compiler waits for the first.\n\n"
         "Examples:\n"
         "  vtolpose warmup\n"
         "  NUMBA_CACHE_DIR=/var/cache/vtolpose-numba vtolpose warmup",

@@ -5,13 +5,18 @@ loading them from the cache a fraction of a second. A benchmark, ``vtolpose warm
 for the compiler and say once that it runs. A command a user waits on (``vtolpose replay``, ``demo``, ``run``:
 the program, see :func:`compile_in_background`) does not: with a cold cache it runs the kernels as plain
 Python, the same operations in the same order and so the same numbers (tests hold the kernels to their
-interpreted runs bit for bit), while a low-priority process fills the cache; a long run switches to the
-compiled kernels as soon as they are there. Callers load the kernels before they start a clock, so no speed
-figure counts compiling or loading them.
+interpreted runs bit for bit), and a low-priority process fills the cache: started once the command has run
+``COMPILE_AFTER_S`` interpreted, or as it ends, whichever comes first. A short command so never shares the
+computer with its compiler (on two cores that share one physical core, a compiler at any priority slows the
+run by a third) and leaves it behind for the next; a long run switches to the compiled kernels as soon as they
+are there. The command hands the compiler the compile lock it took, so whoever waits for the lock waits for
+that compiler. Callers load the kernels before they start a clock, so no speed figure counts compiling or
+loading them.
 """
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import os
@@ -26,6 +31,8 @@ from typing import Callable, Iterator
 log = logging.getLogger(__name__)
 
 COMPILE_COMMAND = (sys.executable, "-m", "vtolpose", "-q", "warmup", "--nice")
+COMPILE_AFTER_S = 10.0  # interpreted this long, a run starts the background compiler; a shorter one as it ends
+LOCK_FD_ENV = "VTOLPOSE_COMPILE_LOCK_FD"  # the compile lock's descriptor, held for the compiler by who started it
 
 
 @dataclass(frozen=True)
@@ -55,6 +62,9 @@ class _Process:
         self.announced = False
         self.watcher: threading.Thread | None = None
         self.lock = threading.RLock()
+        self.start_now = threading.Event()  # the compiler is wanted at once (the run ends, or someone waits)
+        self.launched = False
+        self.compiler: subprocess.Popen | None = None
 
 
 _process = _Process()
@@ -172,9 +182,31 @@ def compile_lock_path() -> Path:
     return folder / ".vtolpose-compiling.lock"
 
 
+def _inherited_lock() -> int | None:
+    """The compile lock's descriptor the command that started this compiler handed over, if any (and open)."""
+    given = os.environ.pop(LOCK_FD_ENV, None)  # not passed on to what this process starts
+    if not given:
+        return None
+    try:
+        fd = int(given)
+        os.fstat(fd)
+    except (ValueError, OSError):
+        log.warning("%s=%r is not an open descriptor: taking the compile lock afresh", LOCK_FD_ENV, given)
+        return None
+    return fd
+
+
 @contextlib.contextmanager
 def compile_lock(block: bool = True) -> Iterator[bool]:
-    """Hold the compiler's lock (waiting for another compiler when ``block``); yields whether it is held."""
+    """Hold the compiler's lock (waiting for another compiler when ``block``); yields whether it is held. A
+    compiler started by :func:`_start_compiler` holds it already, through the descriptor it was handed."""
+    inherited = _inherited_lock()
+    if inherited is not None:
+        try:
+            yield True
+        finally:
+            os.close(inherited)  # the last descriptor of that lock: released
+        return
     path = compile_lock_path()
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
@@ -195,33 +227,66 @@ def compile_lock(block: bool = True) -> Iterator[bool]:
 
 
 def _go_interpreted() -> None:
-    """Run the kernels interpreted, start the background compiler (unless one runs) and watch for it."""
+    """Run the kernels interpreted and leave a compiler for later: started by a watcher after COMPILE_AFTER_S, or
+    when the process ends; the watcher then switches to what it cached."""
     from vtolpose.service.runtime import kernel_swap
 
     kernel_swap.to_interpreted()
     _process.interpreted = True
-    with compile_lock(block=False) as free:
-        compiler = _start_compiler() if free else None
-    log.info("compiling the estimator's kernels, once, in the background into %s; until they are ready this "
-             "process runs them interpreted (the same results, slower)", cache_place())
+    log.info("compiling the estimator's kernels, once, in the background into %s (from %g s into this run, or as it "
+             "ends); until they are ready this process runs them interpreted (the same results, slower)",
+             cache_place(), COMPILE_AFTER_S)
     _process.announced = True
-    _process.watcher = threading.Thread(target=_switch_when_compiled, args=(compiler,), name="kernel-compiler-watch",
-                                        daemon=True)
+    atexit.register(_launch_compiler)
+    _process.watcher = threading.Thread(target=_switch_when_compiled, name="kernel-compiler-watch", daemon=True)
     _process.watcher.start()
 
 
+def _launch_compiler() -> subprocess.Popen | None:
+    """Start the background compiler, once per process: None when another compiler holds the lock (or none
+    could start)."""
+    with _process.lock:
+        if not _process.launched and _process.interpreted:
+            _process.launched = True
+            _process.compiler = _start_compiler()
+        return _process.compiler
+
+
 def _start_compiler() -> subprocess.Popen | None:
-    """``vtolpose warmup --nice`` in its own session: it outlives a short command and fills the cache for the next."""
+    """``vtolpose warmup --nice`` in its own session, the compile lock taken here and handed to it: it outlives a
+    short command and fills the cache for the next, and whoever waits for the lock waits for it. None: another
+    compiler holds the lock."""
+    path = compile_lock_path()
     try:
+        import fcntl
+    except ImportError:
+        fcntl = None
+    fd = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if fcntl is not None:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return None
+        env = dict(os.environ, **({LOCK_FD_ENV: str(fd)} if fd is not None else {}))
         return subprocess.Popen(COMPILE_COMMAND, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, start_new_session=True)
+                                stderr=subprocess.DEVNULL, start_new_session=True, env=env,
+                                pass_fds=(fd,) if fd is not None else ())
     except OSError as exc:
         log.warning("could not start the background compiler (%s): the kernels stay interpreted in this run", exc)
         return None
+    finally:
+        if fd is not None:
+            os.close(fd)  # the compiler's copy keeps the lock
 
 
-def _switch_when_compiled(compiler: subprocess.Popen | None) -> None:
-    """Wait for the compiler (ours, or another process's lock), then load what it cached and switch to it."""
+def _switch_when_compiled() -> None:
+    """After COMPILE_AFTER_S interpreted (or at once if asked), start the compiler; wait for it (or for another
+    process's, through the lock), then load what it cached and switch to it."""
+    _process.start_now.wait(COMPILE_AFTER_S)
+    compiler = _launch_compiler()
     if compiler is not None:
         compiler.wait()
     else:
@@ -241,6 +306,7 @@ def _switch_when_compiled(compiler: subprocess.Popen | None) -> None:
 
 
 def _wait_for_background_compiler() -> None:
+    _process.start_now.set()
     watcher = _process.watcher
     if watcher is not None:
         watcher.join()
