@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vtolpose.estimator.core.rotation import quat_to_rot
+
 DEFAULT_BAND_HZ = (10.0, 60.0)
 SEGMENT = 1024  # samples per periodogram (5 s at 200 Hz: 0.2-Hz bins)
 
@@ -63,13 +65,6 @@ def _quaternions_at(t_s: np.ndarray, truth_t_s: np.ndarray, q_wb: np.ndarray) ->
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
-def _rotations(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q.T
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
-
-
 def specific_force_residual(imu_t_s: np.ndarray, accel: np.ndarray, truth_t_s: np.ndarray, p_w: np.ndarray,
                             q_wb: np.ndarray, R_bi: np.ndarray, gravity_w: np.ndarray,
                             low_pass_hz: float = LOW_PASS_HZ) -> tuple[np.ndarray, float]:
@@ -92,7 +87,7 @@ def specific_force_residual(imu_t_s: np.ndarray, accel: np.ndarray, truth_t_s: n
                          f"too short to resolve {low_pass_hz:g} Hz")
     inside = (imu_t_s >= truth_t_s[0]) & (imu_t_s <= truth_t_s[-1])
     imu_t_s, accel = imu_t_s[inside], np.asarray(accel, float)[inside]
-    R_imu = _rotations(_quaternions_at(imu_t_s, truth_t_s, q_wb))
+    R_imu = quat_to_rot(_quaternions_at(imu_t_s, truth_t_s, q_wb))
     moving_w = np.einsum("nij,nj->ni", R_imu, accel @ R_bi.T) + gravity_w  # what the IMU says the vehicle did
     moving_w = sosfiltfilt(butter(4, low_pass_hz, fs=1.0 / imu_dt, output="sos"), moving_w, axis=0)
     grid = np.arange(truth_t_s[0] + dt, truth_t_s[-1] - dt, dt)
@@ -100,7 +95,7 @@ def specific_force_residual(imu_t_s: np.ndarray, accel: np.ndarray, truth_t_s: n
     # second difference (or a cubic's) would damp a 1-Hz swing by 1 % at 20 Hz, more than the error looked for
     track_w = sosfiltfilt(butter(4, low_pass_hz, fs=1.0 / dt, output="sos"), track_w, axis=0)
     said_w = np.stack([np.interp(grid, imu_t_s, moving_w[:, i]) for i in range(3)], axis=-1)
-    R_grid = _rotations(_quaternions_at(grid, truth_t_s, q_wb))
+    R_grid = quat_to_rot(_quaternions_at(grid, truth_t_s, q_wb))
     return np.einsum("nji,nj->ni", R_grid, said_w - track_w) @ R_bi, 1.0 / dt
 
 
