@@ -16,7 +16,8 @@ def test_a_read_only_install_caches_its_kernels_in_the_users_cache(monkeypatch, 
     import numba.core.config
 
     monkeypatch.setattr(numba.core.config, "CACHE_DIR", numba.core.config.CACHE_DIR)
-    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "")  # recorded, so that what choose_kernel_cache sets is undone after
+    monkeypatch.delenv("NUMBA_CACHE_DIR")  # (a later process would otherwise compile into this test's folder)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.setattr(kernel_cache, "sources_writable", lambda: False)
     assert kernel_cache.choose_kernel_cache() == tmp_path / "vtolpose" / "numba"
