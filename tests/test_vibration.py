@@ -68,7 +68,8 @@ def _flight(seconds: float = 300.0, truth_hz: float = 100.0):
     imu_t = np.arange(0.0, seconds, 1.0 / RATE_HZ)
     _, a, R_imu, _ = track(imu_t)
     f_i = np.einsum("nji,nj->ni", R_imu, a - gravity) @ R_bi
-    return imu_t, f_i, truth_t, p, q, R_bi, gravity
+    as_ns = lambda t: np.round(t * 1e9).astype(np.int64)  # noqa: E731
+    return as_ns(imu_t), f_i, as_ns(truth_t), p, q, R_bi, gravity
 
 
 @pytest.mark.parametrize("truth_hz", [20.0, 200.0])
@@ -81,7 +82,7 @@ def test_the_accelerometers_error_below_a_few_hertz_comes_back_through_the_motio
     imu_t, f_i, truth_t, p, q, R_bi, gravity = _flight(truth_hz=truth_hz)
     rng = np.random.default_rng(7)
     density = np.array([0.01, 0.03, 0.06])
-    rotor = 2.0 * np.sin(2 * np.pi * 31.0 * imu_t)[:, None]
+    rotor = 2.0 * np.sin(2 * np.pi * 31.0 * imu_t * 1e-9)[:, None]
     accel = f_i + rotor + rng.standard_normal(f_i.shape) * density * np.sqrt(RATE_HZ / 2.0)
     residual, rate = specific_force_residual(imu_t, accel, truth_t, p, q, R_bi, gravity)
     assert rate == pytest.approx(truth_hz)

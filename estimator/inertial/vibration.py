@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from vtolpose.estimator.core.rotation import quat_to_rot
+from vtolpose.estimator.metrics import interpolate_poses
 
 DEFAULT_BAND_HZ = (10.0, 60.0)
 SEGMENT = 1024  # samples per periodogram (5 s at 200 Hz: 0.2-Hz bins)
@@ -56,16 +57,7 @@ LOW_BANDS_HZ = ((0.05, 0.3), (0.3, 1.0), (1.0, 3.0))  # where the velocity error
 LOW_PASS_HZ = 4.0  # both sides low-passed here alike: the bands kept, the rotor and the truth's noise gone
 
 
-def _quaternions_at(t_s: np.ndarray, truth_t_s: np.ndarray, q_wb: np.ndarray) -> np.ndarray:
-    """The truth's attitude at ``t_s``: its quaternions (w first) interpolated component-wise and normalised."""
-    q = np.array(q_wb, dtype=float)
-    flips = np.cumsum(np.r_[0, np.sum(q[1:] * q[:-1], axis=1) < 0.0]) % 2 == 1  # one hemisphere throughout
-    q[flips] *= -1.0
-    out = np.stack([np.interp(t_s, truth_t_s, q[:, i]) for i in range(4)], axis=-1)
-    return out / np.linalg.norm(out, axis=1, keepdims=True)
-
-
-def specific_force_residual(imu_t_s: np.ndarray, accel: np.ndarray, truth_t_s: np.ndarray, p_w: np.ndarray,
+def specific_force_residual(imu_t_ns: np.ndarray, accel: np.ndarray, truth_t_ns: np.ndarray, p_w: np.ndarray,
                             q_wb: np.ndarray, R_bi: np.ndarray, gravity_w: np.ndarray,
                             low_pass_hz: float = LOW_PASS_HZ) -> tuple[np.ndarray, float]:
     """The accelerometer's error below a few hertz, where its own spectrum cannot tell error from motion: its
@@ -80,22 +72,24 @@ def specific_force_residual(imu_t_s: np.ndarray, accel: np.ndarray, truth_t_s: n
     from scipy.interpolate import make_interp_spline
     from scipy.signal import butter, sosfiltfilt
 
-    truth_t_s, imu_t_s = np.asarray(truth_t_s, float), np.asarray(imu_t_s, float)
-    dt, imu_dt = float(np.median(np.diff(truth_t_s))), float(np.median(np.diff(imu_t_s)))
-    if not 0.0 < low_pass_hz < 0.4 / dt or len(truth_t_s) < 64:
-        raise ValueError(f"vibration: a truth every {dt * 1e3:.1f} ms ({len(truth_t_s)} samples) is too coarse or "
+    truth_t_ns, imu_t_ns = np.asarray(truth_t_ns, np.int64), np.asarray(imu_t_ns, np.int64)
+    truth_s, imu_s = (truth_t_ns - truth_t_ns[0]) * 1e-9, (imu_t_ns - truth_t_ns[0]) * 1e-9
+    dt, imu_dt = float(np.median(np.diff(truth_s))), float(np.median(np.diff(imu_s)))
+    if not 0.0 < low_pass_hz < 0.4 / dt or len(truth_s) < 64:
+        raise ValueError(f"vibration: a truth every {dt * 1e3:.1f} ms ({len(truth_s)} samples) is too coarse or "
                          f"too short to resolve {low_pass_hz:g} Hz")
-    inside = (imu_t_s >= truth_t_s[0]) & (imu_t_s <= truth_t_s[-1])
-    imu_t_s, accel = imu_t_s[inside], np.asarray(accel, float)[inside]
-    R_imu = quat_to_rot(_quaternions_at(imu_t_s, truth_t_s, q_wb))
+    inside = (imu_t_ns >= truth_t_ns[0]) & (imu_t_ns <= truth_t_ns[-1])
+    imu_t_ns, imu_s, accel = imu_t_ns[inside], imu_s[inside], np.asarray(accel, float)[inside]
+    R_imu = quat_to_rot(interpolate_poses(imu_t_ns, truth_t_ns, p_w, q_wb)[1])
     moving_w = np.einsum("nij,nj->ni", R_imu, accel @ R_bi.T) + gravity_w  # what the IMU says the vehicle did
     moving_w = sosfiltfilt(butter(4, low_pass_hz, fs=1.0 / imu_dt, output="sos"), moving_w, axis=0)
-    grid = np.arange(truth_t_s[0] + dt, truth_t_s[-1] - dt, dt)
-    track_w = make_interp_spline(truth_t_s, np.asarray(p_w, float), k=5, axis=0).derivative(2)(grid)  # a quintic: a
+    grid = np.arange(truth_s[0] + dt, truth_s[-1] - dt, dt)
+    track_w = make_interp_spline(truth_s, np.asarray(p_w, float), k=5, axis=0).derivative(2)(grid)  # a quintic: a
     # second difference (or a cubic's) would damp a 1-Hz swing by 1 % at 20 Hz, more than the error looked for
     track_w = sosfiltfilt(butter(4, low_pass_hz, fs=1.0 / dt, output="sos"), track_w, axis=0)
-    said_w = np.stack([np.interp(grid, imu_t_s, moving_w[:, i]) for i in range(3)], axis=-1)
-    R_grid = quat_to_rot(_quaternions_at(grid, truth_t_s, q_wb))
+    said_w = np.stack([np.interp(grid, imu_s, moving_w[:, i]) for i in range(3)], axis=-1)
+    grid_ns = truth_t_ns[0] + np.round(grid * 1e9).astype(np.int64)
+    R_grid = quat_to_rot(interpolate_poses(grid_ns, truth_t_ns, p_w, q_wb)[1])
     return np.einsum("nji,nj->ni", R_grid, said_w - track_w) @ R_bi, 1.0 / dt
 
 

@@ -149,11 +149,10 @@ def _fmt(value: float | None, spec: str) -> str:
 def _low_band_line(name: str, dataset: Dataset, rows: list[Row]) -> str:
     """The accelerometer's error below 3 Hz against the truth, from SCORE_FROM_S (the readings come in body axes)."""
     truth, imu = dataset.truth(), dataset.imu()
-    t0 = int(truth.t_ns[0])
-    scored = truth.t_ns >= t0 + SCORE_FROM_S * 1e9
+    scored = truth.t_ns >= truth.t_ns[0] + int(SCORE_FROM_S * 1e9)
     gravity = np.array([0.0, 0.0, dataset.calibration.imu.gravity])  # NED: down
-    residual, rate = specific_force_residual((imu.t_ns - t0) * 1e-9, imu.accel, (truth.t_ns[scored] - t0) * 1e-9,
-                                             truth.p[scored], truth.q[scored], np.eye(3), gravity)
+    residual, rate = specific_force_residual(imu.t_ns, imu.accel, truth.t_ns[scored], truth.p[scored], truth.q[scored],
+                                             np.eye(3), gravity)
     edge = int(2 * rate)  # the low-pass's start and end
     densities = band_densities(residual[edge:-edge], rate)
     white = float(np.max(dataset.calibration.imu.noise.accel_noise_density))

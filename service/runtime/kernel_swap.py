@@ -16,15 +16,11 @@ from numba.core.dispatcher import Dispatcher
 
 
 _swapped: dict[tuple[str, str], Dispatcher] = {}  # (module, attribute) swapped out → its dispatcher, to put back
-_compiled_of: dict[Callable, Dispatcher] = {}  # each swapped-in function → its dispatcher
 
 
 def compiled_of(function: Any) -> Dispatcher | None:
     """The dispatcher ``function`` stands in for while the kernels are interpreted; None for anything else."""
-    try:
-        return _compiled_of.get(function)
-    except TypeError:  # an unhashable attribute
-        return None
+    return next((d for d in _swapped.values() if d.py_func is function), None)
 
 
 def _vtolpose_modules() -> list[types.ModuleType]:
@@ -42,7 +38,6 @@ def to_interpreted() -> int:
         for name, value in list(vars(module).items()):
             if isinstance(value, Dispatcher):
                 _swapped[(module.__name__, name)] = value
-                _compiled_of[value.py_func] = value
                 setattr(module, name, value.py_func)
                 swapped += 1
     return swapped

@@ -196,34 +196,35 @@ def _inherited_lock() -> int | None:
     return fd
 
 
+def _take_lock(block: bool) -> tuple[bool, int | None]:
+    """The compile lock on a descriptor of this process's own: (held, descriptor; closing it releases the lock).
+    (True, None) where there are no advisory locks: compilers may overlap there, which only costs time."""
+    path = compile_lock_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:
+        return True, None
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX if block else fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return False, None
+    return True, fd
+
+
 @contextlib.contextmanager
 def compile_lock(block: bool = True) -> Iterator[bool]:
     """Hold the compiler's lock (waiting for another compiler when ``block``); yields whether it is held. A
     compiler started by :func:`_start_compiler` holds it already, through the descriptor it was handed."""
     inherited = _inherited_lock()
-    if inherited is not None:
-        try:
-            yield True
-        finally:
-            os.close(inherited)  # the last descriptor of that lock: released
-        return
-    path = compile_lock_path()
-    path.parent.mkdir(parents=True, exist_ok=True)
+    held, fd = (True, inherited) if inherited is not None else _take_lock(block)
     try:
-        import fcntl
-    except ImportError:  # no advisory locks here: compilers may overlap, which only costs time
-        yield True
-        return
-    with path.open("a") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX if block else fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            yield False
-            return
-        try:
-            yield True
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+        yield held
+    finally:
+        if fd is not None:
+            os.close(fd)  # its last descriptor: the lock is released
 
 
 def _go_interpreted() -> None:
@@ -256,20 +257,14 @@ def _start_compiler() -> subprocess.Popen | None:
     """``vtolpose warmup --nice`` in its own session, the compile lock taken here and handed to it: it outlives a
     short command and fills the cache for the next, and whoever waits for the lock waits for it. None: another
     compiler holds the lock."""
-    path = compile_lock_path()
     try:
-        import fcntl
-    except ImportError:
-        fcntl = None
-    fd = None
+        held, fd = _take_lock(block=False)
+    except OSError as exc:
+        log.warning("could not take the compile lock (%s): the kernels stay interpreted in this run", exc)
+        return None
+    if not held:
+        return None
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if fcntl is not None:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                return None
         env = dict(os.environ, **({LOCK_FD_ENV: str(fd)} if fd is not None else {}))
         return subprocess.Popen(COMPILE_COMMAND, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL, start_new_session=True, env=env,
