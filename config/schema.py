@@ -241,6 +241,7 @@ SCHEMA: dict[str, Field] = {
     "outputs.zenoh.max_window_s": Field("float", positive=True, maximum=3600.0),
     "outputs.zenoh.max_queries_per_s": Field("float", positive=True, maximum=10000.0),
     "outputs.zenoh.max_pending_queries": Field("int", minimum=1, maximum=10000),
+    "outputs.zenoh.query_process": Field("bool"),
     "outputs.zenoh.tls.root_ca_certificate": Field("str", nullable=True),
     "outputs.zenoh.tls.certificate": Field("str", nullable=True),
     "outputs.zenoh.tls.private_key": Field("str", nullable=True),

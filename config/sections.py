@@ -152,6 +152,7 @@ class ZenohSection:
     max_window_s: float
     max_queries_per_s: float
     max_pending_queries: int
+    query_process: bool
     tls: ZenohTlsSection
 
 

@@ -9,8 +9,11 @@ this process fires rounds of concurrent queries from one client session. The qui
 baseline of the same run; the loaded phases are given as ratios to it. Target: no pose lost and
 no pose later than one IMU period (8 ms at 125 Hz) more than in the quiet phase.
 
+Both ways of answering are measured in one run, each with a daemon of its own: in the query
+process (``outputs.zenoh.query_process``, the default) and on the service's own thread.
+
 Run: ``vtolpose bench --only zenoh-queries`` or ``python -m vtolpose.service.bench.zenoh_queries
-[--realtime PRIORITY]`` (about 2 minutes, mostly waiting for the history to fill). Absolute figures depend on the machine
+[--realtime PRIORITY]`` (about 3 minutes). Absolute figures depend on the machine
 and its load (the three processes share it): compare the ratios to the quiet phase.
 """
 
@@ -56,7 +59,7 @@ class Stamps:
 root, endpoint, duration = sys.argv[1], sys.argv[2], float(sys.argv[3])
 priority = None if sys.argv[4] == "none" else int(sys.argv[4])
 dataset = Dataset.open(root)
-cfg = load_config(None, {"outputs": {"zenoh": {"enabled": True, "listen": [endpoint]}},
+cfg = load_config(None, {"outputs": {"zenoh": {"enabled": True, "listen": [endpoint], "query_process": sys.argv[5] == "process"}},
                          "run": {"realtime_priority": priority}})
 runtime = build_runtime(cfg, dataset.calibration, live=priority is not None)  # live: apply the priority
 stamps = Stamps()
@@ -154,88 +157,107 @@ class QueryLoad:
         self._thread.join(30.0)
 
 
-def bench_zenoh_queries(phase_s: float = 10.0, fill_s: float = 60.0, echo: Callable[[str], None] = print,
+ANSWERED_BY = {"process": "answers in their own process", "thread": "answers on the service's thread"}
+
+
+def bench_zenoh_queries(phase_s: float = 10.0, fill_s: float = 20.0, echo: Callable[[str], None] = print,
                         realtime_priority: int | None = None) -> list[Row]:
-    """Pose lateness in the daemon and losses at a subscriber while a client floods the queryables.
+    """Pose lateness in the daemon and losses at a subscriber while a client floods the queryables, with the
+    answers made in the query process (``outputs.zenoh.query_process``, the default) and, in the same run, on
+    the service's own thread (the baseline).
 
     ``realtime_priority``: the daemon's loop under SCHED_FIFO as ``run.realtime_priority`` sets it
     on a vehicle (needs CAP_SYS_NICE), so that the machine's other load cannot delay it."""
-    port = _free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    rows: list[Row] = []
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "landfill"
-        write_flight(simulate_flight("landfill", fill_s + 6 * phase_s + 30.0, 5), root)
-        total_s = fill_s + 6 * phase_s + 20.0
-        daemon = subprocess.Popen([sys.executable, "-c", _DAEMON, str(root), endpoint, str(total_s),
-                                   str(realtime_priority) if realtime_priority is not None else "none"],
-                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                  env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        assert daemon.stdout.readline().strip() == "ready", daemon.stderr.read()
-        _wait_listening(port, daemon)
-        subscriber = subprocess.Popen([sys.executable, "-c", _SUBSCRIBER, endpoint, PREFIX], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, text=True)
-        try:
-            assert subscriber.stdout.readline().strip() == "ready"
-            session = _session(endpoint)
-            newest = [0]
-            session.declare_subscriber(f"{PREFIX}/pose", lambda s: newest.__setitem__(
-                0, json.loads(s.payload.to_string())["t_ns"]))
-            time.sleep(fill_s)  # the history fills
+        write_flight(simulate_flight("landfill", fill_s + 4 * phase_s + 30.0, 5), root)
+        for answered_by in ANSWERED_BY:
+            echo(f"  {ANSWERED_BY[answered_by]}:")
+            quiet, phases = _phases(root, answered_by, phase_s, fill_s, echo, realtime_priority)
+            rows += _rows(quiet, phases, ANSWERED_BY[answered_by])
+    return rows
 
-            def mark() -> dict:
-                got = {}
-                for proc in (daemon, subscriber):
-                    proc.stdin.write("mark\n")
-                    proc.stdin.flush()
-                    got.update(json.loads(proc.stdout.readline()))
-                return got
 
-            def phase(name: str, selector: Callable[[], str] | None, concurrency: int) -> dict:
-                mark()
-                load = QueryLoad(session, selector, concurrency) if selector else None
-                if load is not None:
-                    with load:
-                        time.sleep(phase_s)
-                else:
+def _phases(root: Path, answered_by: str, phase_s: float, fill_s: float, echo: Callable[[str], None],
+            realtime_priority: int | None) -> tuple[dict, dict[str, dict]]:
+    """One daemon: the quiet phase, then each flood in turn."""
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    total_s = fill_s + 5 * phase_s + 20.0
+    daemon = subprocess.Popen([sys.executable, "-c", _DAEMON, str(root), endpoint, str(total_s),
+                               str(realtime_priority) if realtime_priority is not None else "none", answered_by],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    assert daemon.stdout.readline().strip() == "ready", daemon.stderr.read()
+    _wait_listening(port, daemon)
+    subscriber = subprocess.Popen([sys.executable, "-c", _SUBSCRIBER, endpoint, PREFIX], stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, text=True)
+    try:
+        assert subscriber.stdout.readline().strip() == "ready"
+        session = _session(endpoint)
+        newest = [0]
+        session.declare_subscriber(f"{PREFIX}/pose", lambda s: newest.__setitem__(
+            0, json.loads(s.payload.to_string())["t_ns"]))
+        time.sleep(fill_s)  # the history fills
+
+        def mark() -> dict:
+            got = {}
+            for proc in (daemon, subscriber):
+                proc.stdin.write("mark\n")
+                proc.stdin.flush()
+                got.update(json.loads(proc.stdout.readline()))
+            return got
+
+        def phase(name: str, selector: Callable[[], str] | None, concurrency: int) -> dict:
+            mark()
+            load = QueryLoad(session, selector, concurrency) if selector else None
+            if load is not None:
+                with load:
                     time.sleep(phase_s)
-                got = mark()
-                if load is not None:
-                    got.update(answered=load.ok, refused=load.errors, unanswered=load.silent, mb=load.bytes / 1e6)
-                echo(f"  {name:<44} {json.dumps({k: round(v, 2) for k, v in got.items()})}")
-                return got
+            else:
+                time.sleep(phase_s)
+            got = mark()
+            if load is not None:
+                got.update(answered=load.ok, refused=load.errors, unanswered=load.silent, mb=load.bytes / 1e6)
+            echo(f"    {name:<42} {json.dumps({k: round(v, 2) for k, v in got.items()})}")
+            return got
 
-            def whole() -> str:
-                return f"{PREFIX}/trajectory?from=0;to={2**62}"
+        def whole() -> str:
+            return f"{PREFIX}/trajectory?from=0;to={2**62}"
 
-            def newest_10s() -> str:  # the largest window a mapper may ask for (outputs.zenoh.max_window_s)
-                return f"{PREFIX}/trajectory?from={newest[0] - 10_000_000_000};to={newest[0] - 200_000_000}"
+        def newest_10s() -> str:  # the largest window a mapper may ask for (outputs.zenoh.max_window_s)
+            return f"{PREFIX}/trajectory?from={newest[0] - 10_000_000_000};to={newest[0] - 200_000_000}"
 
-            def pose_at() -> str:
-                return f"{PREFIX}/pose/at?t_ns={newest[0] - 200_000_000}"
-            quiet = phase("quiet (baseline)", None, 0)
-            phases = {
-                "200 concurrent whole-history trajectory": phase("200 x whole history", whole, 200),
-                "600 concurrent whole-history trajectory": phase("600 x whole history", whole, 600),
-                "200 concurrent pose/at": phase("200 x pose/at", pose_at, 200),
-                "50 concurrent 10 s windows": phase("50 x newest 10 s", newest_10s, 50),
-            }
-            session.close()
-        finally:
-            daemon.terminate()
-            for proc in (daemon, subscriber):
-                proc.stdin.close()
-            for proc in (daemon, subscriber):
-                try:
-                    proc.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-    rows: list[Row] = [("quiet: latest pose (p99 / max)", quiet["late_max_ms"], "ms",
+        def pose_at() -> str:
+            return f"{PREFIX}/pose/at?t_ns={newest[0] - 200_000_000}"
+        quiet = phase("quiet (baseline)", None, 0)
+        phases = {
+            "200 concurrent whole-history trajectory": phase("200 x whole history", whole, 200),
+            "200 concurrent pose/at": phase("200 x pose/at", pose_at, 200),
+            "50 concurrent 10 s windows": phase("50 x newest 10 s", newest_10s, 50),
+        }
+        session.close()
+    finally:
+        daemon.terminate()
+        for proc in (daemon, subscriber):
+            proc.stdin.close()
+        for proc in (daemon, subscriber):
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    return quiet, phases
+
+
+def _rows(quiet: dict, phases: dict[str, dict], mode: str) -> list[Row]:
+    rows: list[Row] = [(f"{mode}, quiet: latest pose (p99 / max)", quiet["late_max_ms"], "ms",
                         f"p99 {quiet['late_p99_ms']:.2f} ms; largest gap between poses {quiet['gap_max_ms']:.1f} ms")]
     for name, got in phases.items():
-        rows.append((f"{name}: latest pose", got["late_max_ms"], "ms",
+        rows.append((f"{mode}, {name}: latest pose", got["late_max_ms"], "ms",
                      f"+{got['late_max_ms'] - quiet['late_max_ms']:.2f} ms on quiet; p99 {got['late_p99_ms']:.2f} ms; "
-                     f"largest gap {got['gap_max_ms']:.1f} ms"))
-        rows.append((f"{name}: poses lost", got["lost"], "poses", f"of {got['poses'] + got['lost']} at the subscriber"))
+                     f"largest gap {got['gap_max_ms']:.1f} ms; answered {got['answered']}"))
+        rows.append((f"{mode}, {name}: poses lost", got["lost"], "poses", f"of {got['poses'] + got['lost']} at the subscriber"))
     return rows
 
 if __name__ == "__main__":

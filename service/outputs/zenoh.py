@@ -9,10 +9,14 @@ silence. The session declares the liveliness token ``<prefix>/service/<zid>`` by
 know this session's answers and poses from anyone else's.
 
 Query work never delays a pose: Zenoh's threads only check a query's parameters and queue it
-(bounded, ``max_pending``); one niced thread answers, reading the history under the lock the
-runtime takes for a moment per pose, and writes large answers in pieces so that the event loop
-gets the interpreter between them. It works at most a quarter of the time (WORKER_DUTY): a
-flood of the largest windows fills its queue and gets "busy" replies, not more of the CPU. Poses go out at Zenoh's real-time priority, ahead of answers
+(bounded, ``max_pending``); one niced thread takes them in turn. It hands each trajectory to the
+query process (``outputs.zenoh.query_process``, :mod:`zenoh_answers`), which keeps a copy of the
+pose history and makes the answer's JSON on its own interpreter, and passes the bytes on; a
+``pose/at`` (~1 KB) it answers itself, as it does everything without that process (switched off,
+or dead), reading the history under the lock the runtime takes for a moment per pose and writing
+large answers in pieces. Either works
+at most a quarter of the time (WORKER_DUTY): a flood of the largest windows fills the queue and gets
+"busy" replies, not more of the CPU. Poses go out at Zenoh's real-time priority, ahead of answers
 in a link's queues, and each client link may ask at most ``max_queries_per_s`` per queryable
 (Zenoh's downsampling drops the excess; the client asks again).
 """
@@ -30,12 +34,12 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
-import numpy as np
 import zenoh
 
 from vtolpose.config.sections import ZenohSection
-from vtolpose.estimator import OutputPose, OutsideHistory, PoseHistory, PoseWindow
-from vtolpose.service.outputs.pose_json import Origin, PoseJson, origin_json
+from vtolpose.estimator import OutputPose, OutsideHistory, PoseHistory
+from vtolpose.service.outputs.pose_json import Origin, PoseJson
+from vtolpose.service.outputs.zenoh_answers import WORKER_DUTY, WORKER_NICE, QueryProcess, QueryProcessGone, answer_text
 from vtolpose.service.outputs.pose_json import pose_message, pose_status  # noqa: F401 - also imported from here
 from vtolpose.service.outputs.zenoh_session import ZenohSettings, service_config
 
@@ -44,9 +48,6 @@ log = logging.getLogger(__name__)
 JSON = zenoh.Encoding.APPLICATION_JSON
 _INTEGER = re.compile(r"-?[0-9]{1,19}")  # nothing else: no sign '+', spaces, '_' or exponents
 _INT64 = (-(1 << 63), (1 << 63) - 1)
-JSON_CHUNK_ROWS = 128  # rows serialised at a time when answering a trajectory (well under 1 ms each)
-WORKER_NICE = 10
-WORKER_DUTY = 0.25  # the query thread rests 3x its CPU time: at most a quarter of a core, whatever the load
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,14 +66,6 @@ class QueryLimits:
         return cls(zenoh_section.max_window_s, zenoh_section.max_queries_per_s, zenoh_section.max_pending_queries)
 
 
-def _floats(values: np.ndarray) -> list:
-    """A plain list for JSON; non-finite numbers become null (JSON has no NaN)."""
-    finite = np.isfinite(values)
-    if finite.all():
-        return values.tolist()
-    return np.where(finite, values, None).tolist()
-
-
 def parse_time_parameter(parameters: Any, name: str) -> int:
     """``name`` as integer nanoseconds; ValueError (quoting at most 24 characters of it) otherwise."""
     text = parameters.get(name)
@@ -82,26 +75,6 @@ def parse_time_parameter(parameters: Any, name: str) -> int:
         shown = repr(text) if len(text) <= 24 else f"{text[:24]!r}… ({len(text)} characters)"
         raise ValueError(f"parameter {name}={shown} is not an integer nanosecond time (digits only, optional '-')")
     return int(text)
-
-
-def _rows_json(values: np.ndarray) -> str:
-    """A JSON array of ``values``' rows, written JSON_CHUNK_ROWS at a time with the interpreter
-    handed back between pieces (``json.dumps`` keeps it for the whole of one call)."""
-    parts = []
-    for k in range(0, len(values), JSON_CHUNK_ROWS):
-        parts.append(json.dumps(_floats(values[k:k + JSON_CHUNK_ROWS]))[1:-1])
-        time.sleep(0)
-    return "[" + ",".join(p for p in parts if p) + "]"
-
-
-def trajectory_json(window: PoseWindow, origin: Origin) -> str:
-    """The ``<prefix>/trajectory`` answer, as :func:`json.dumps` of the same document would write it."""
-    head = json.dumps({"frame": "NED", "origin": origin_json(origin), "t_ns": window.t_ns.tolist()})[:-1]
-    fields = ", ".join(f'"{name}": {_rows_json(values)}' for name, values in
-                       (("p", window.p), ("q", window.q), ("v", window.v), ("w", window.w),
-                        ("cov", window.cov.reshape(-1, 36))))
-    return (f'{head}, {fields}, "fused": {json.dumps(window.fused.tolist())}, '
-            f'"kind": {json.dumps(window.kind.tolist())}}}')
 
 
 class ZenohOutput:
@@ -117,6 +90,7 @@ class ZenohOutput:
         lock: threading.Lock,
         origin: Callable[[], Origin] = lambda: None,
         limits: QueryLimits = QueryLimits(),
+        answers: QueryProcess | None = None,
     ) -> None:
         self.settings = settings
         self.prefix = prefix
@@ -124,6 +98,8 @@ class ZenohOutput:
         self.lock = lock
         self.origin = origin
         self.limits = limits
+        self.answers = answers  # the query process; None: answered here, on the query thread
+        self._had_process = answers is not None
         self.session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._seq = 0
@@ -131,7 +107,8 @@ class ZenohOutput:
         self._queries: queue.Queue = queue.Queue(maxsize=limits.max_pending)
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
-        self.stats = {"poses_published": 0, "queries": 0, "query_errors": 0, "queries_busy": 0}
+        self.stats = {"poses_published": 0, "queries": 0, "query_errors": 0, "queries_busy": 0,
+                      "answered_elsewhere": 0}
 
     def open(self) -> None:
         keys = [f"{self.prefix}/pose/at", f"{self.prefix}/trajectory"]
@@ -142,6 +119,8 @@ class ZenohOutput:
         self._pose_id = self._pose_pub.id  # the publisher's for its life: asked once, not per pose
         self._status_pub = s.declare_publisher(f"{self.prefix}/status", encoding=JSON, congestion_control=drop)
         self._stop.clear()
+        if self.answers is not None:
+            self.answers.start()
         self._worker = threading.Thread(target=self._answer_queries, name="zenoh-queries", daemon=True)
         self._worker.start()
         self._entities = [
@@ -169,9 +148,21 @@ class ZenohOutput:
             self._worker.join(timeout=5.0)
             self._worker = None
         self._refuse_waiting("the service is stopping")
+        if self.answers is not None:
+            self.answers.close()
         if self.session is not None:
             self.session.close()
             self.session = None
+
+    def link_stats(self) -> dict[str, Any]:
+        """The counters, and the query process: ``running``, ``gone`` (answered here since), or ``off``;
+        with the history frames its feed had to drop while the process did not read (its copy then started again)."""
+        answers = self.answers
+        state = "off" if not self._had_process else "running" if answers is not None and answers.alive else "gone"
+        doc: dict[str, Any] = {**self.stats, "query_process": state}
+        if answers is not None:
+            doc.update(history_frames_dropped=answers.feed.dropped, history_copy_resets=answers.feed.resets)
+        return doc
 
     # --------------------------------------------------------------------- publications
     def publish(self, pose: OutputPose) -> None:
@@ -251,18 +242,17 @@ class ZenohOutput:
             self._stop.wait((time.thread_time() - started) * (1.0 / WORKER_DUTY - 1.0))
 
     def _answer(self, query: zenoh.Query, kind: str, args: tuple[int, ...]) -> None:
-        if kind == "pose/at":
-            with self.lock:
-                pose = self.history.at(args[0])
-            text = json.dumps({
-                "t_ns": pose.t_ns, "frame": "NED", "origin": origin_json(self.origin()),
-                "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.w),
-                "cov": _floats(pose.cov.reshape(36)), "fused": pose.fused, "kind": pose.kind,
-            })
-        else:
-            with self.lock:
-                window = self.history.window(*args)
-            text = trajectory_json(window, self.origin())
+        origin = self.origin()
+        text: str | bytes | None = None
+        if self.answers is not None and kind == "trajectory":  # a pose/at answer (~1 KB) costs less than the trip
+            try:
+                text = self.answers.ask(kind, args, origin)
+                self.stats["answered_elsewhere"] += 1
+            except QueryProcessGone as exc:
+                log.error("%s: queries are answered in the service's own process from now on", exc)
+                self.answers = None
+        if text is None:
+            text = answer_text(self.history, kind, args, origin, self.lock)
         query.reply(query.key_expr, text, encoding=JSON)
 
     def _refuse_waiting(self, why: str) -> None:

@@ -124,8 +124,14 @@ def add_zenoh_output(runtime: Runtime, sections: Sections) -> None:
 
     zenoh = sections.outputs.zenoh
     prefix = zenoh_prefix(zenoh.prefix, sections.vehicle.name)
+    answers = None
+    if zenoh.query_process:  # the answers made off the service's interpreter, from a copy of the history
+        from vtolpose.service.outputs.zenoh_answers import QueryProcess
+
+        answers = QueryProcess(zenoh.history_s)
+        runtime.history_feed = answers.feed
     runtime.outputs.append(ZenohOutput(ZenohSettings.from_section(zenoh), prefix, runtime.history, runtime.history_lock,
-                                       lambda: runtime.origin(), QueryLimits.from_section(zenoh)))
+                                       lambda: runtime.origin(), QueryLimits.from_section(zenoh), answers))
 
 
 def add_interop_outputs(runtime: Runtime, outputs: OutputsSection, camera_processor: CameraProcessor | None,

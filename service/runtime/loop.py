@@ -35,6 +35,7 @@ from vtolpose.estimator import (
     ImuBatch, ImuRange, ImuSample, OutputPose, P, PoseHistory, Q, ROW, screened, SmoothedPose, V,
 )
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
+from vtolpose.service.outputs.zenoh_answers import HistoryFeed
 from vtolpose.service.runtime.camera_process import CAMERA_NICE, CameraProcesses, CameraWorkerDied
 from vtolpose.service.runtime.step_taps import StepTaps
 from vtolpose.service.runtime.status import (FailureBook, LatencyProbe, StatusTracker, pose_problem, pose_quality,
@@ -147,6 +148,7 @@ class Runtime:
         self.history = PoseHistory(opts.history_s)
         self.history_lock = threading.Lock()  # queries read the history on Zenoh's threads
         self.keep_history = True  # run() turns it off when there are no outputs to answer from it
+        self.history_feed: HistoryFeed | None = None  # a copy of the history elsewhere (the query process) gets every change
         self.outputs = list(outputs)
         self.camera_processor = camera_processor
         self.trajectory = trajectory
@@ -230,6 +232,8 @@ class Runtime:
             row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
             with self.history_lock:
                 self.history.add_predicted(pose.t_ns, row)
+            if self.history_feed is not None:
+                self.history_feed.predicted(pose.t_ns, row)
         fusion.advance()  # the delayed filter's work, after the pose has left
         if self.smoother is not None:  # then a bounded slice of the fixed-lag smoother's
             try:
@@ -288,8 +292,11 @@ class Runtime:
             rows = np.zeros((len(poses), ROW))
             rows[:, P], rows[:, Q], rows[:, V] = x[:, 0:3], x[:, 6:10], x[:, 3:6]
             rows[:, COV] = np.array([pose.pose_cov for pose in poses]).reshape(len(poses), 36)
+            times = np.array([pose.t_ns for pose in poses], dtype=np.int64)
             with self.history_lock:
-                self.history.add_smoothed(np.array([pose.t_ns for pose in poses], dtype=np.int64), rows)
+                self.history.add_smoothed(times, rows)
+            if self.history_feed is not None:
+                self.history_feed.smoothed(times, rows)
         if self.smoothed_hook is not None:
             self.smoothed_hook(poses)
 
@@ -298,6 +305,8 @@ class Runtime:
             row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
             with self.history_lock:
                 self.history.add_fused(pose.t_ns, row)
+            if self.history_feed is not None:
+                self.history_feed.fused(pose.t_ns, row)
         if self.trajectory is not None:
             try:
                 self.trajectory.write(pose)
