@@ -162,9 +162,10 @@ ANSWERED_BY = {"process": "answers in their own process", "thread": "answers on 
 
 def bench_zenoh_queries(phase_s: float = 10.0, fill_s: float = 20.0, echo: Callable[[str], None] = print,
                         realtime_priority: int | None = None) -> list[Row]:
-    """Pose lateness in the daemon and losses at a subscriber while a client floods the queryables, with the
-    answers made in the query process (``outputs.zenoh.query_process``, the default) and, in the same run, on
-    the service's own thread (the baseline).
+    """Pose lateness in the daemon and losses at a subscriber while a client floods the queryables.
+
+    Twice in one run: with the windows answered in the query process (``outputs.zenoh.query_process``, the
+    default) and on the service's own thread (the baseline).
 
     ``realtime_priority``: the daemon's loop under SCHED_FIFO as ``run.realtime_priority`` sets it
     on a vehicle (needs CAP_SYS_NICE), so that the machine's other load cannot delay it."""
