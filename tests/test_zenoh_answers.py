@@ -37,7 +37,7 @@ def operations(seed: int, n: int = 1500) -> list[tuple]:
             fused_t += 20 * MS
             ops.append(("fused", fused_t, row(rng)))
         if k % 97 == 50:
-            times = np.arange(fused_t - 400 * MS, fused_t - 100 * MS, 30 * MS, dtype=np.int64)
+            times = np.arange(fused_t - 400 * MS, fused_t - 100 * MS, 12 * MS, dtype=np.int64)  # > 4 KiB: cut by a pipe
             ops.append(("smoothed", times, np.array([row(rng) for _ in times])))
     return ops
 
@@ -124,6 +124,45 @@ def drain(fd: int, copy: HistoryCopy) -> None:
         copy.take(data)
 
 
+def test_one_row_frames_are_the_general_frames():
+    from vtolpose.service.outputs.zenoh_answers import PREDICTED, frame, frame_one
+
+    r = row(np.random.default_rng(7))
+    assert frame_one(PREDICTED, 123456789012, r) == frame(PREDICTED, 123456789012, r[None, :])
+
+
+def test_a_frame_the_pipe_takes_in_part_is_finished_before_the_next():
+    """A smoothed run larger than the pipe goes in pieces; the frames after it wait behind its rest, and the copy
+    reads the same history."""
+    import fcntl
+
+    read, write = os.pipe()
+    fcntl.fcntl(write, getattr(fcntl, "F_SETPIPE_SZ", 1031), 4096)
+    os.set_blocking(read, False)
+    feed, copy, history = HistoryFeed(write), HistoryCopy(5.0), PoseHistory(5.0)
+    rng = np.random.default_rng(8)
+    for k in range(1, 200):
+        apply(history, feed, ("fused", k * 10 * MS, row(rng)))
+        drain(read, copy)
+        feed.flush()
+    drain(read, copy)
+    assert feed.pending_bytes() == 0
+    times = np.arange(100 * MS, 1_900 * MS, 10 * MS, dtype=np.int64)  # 180 rows, ~72 KB
+    apply(history, feed, ("smoothed", times, np.array([row(rng) for _ in times])))
+    assert feed.pending_bytes() > 0 and feed._started  # the pipe took the first piece only
+    for k in range(200, 260):
+        apply(history, feed, ("predicted", k * 10 * MS, row(rng)))
+        drain(read, copy)
+    while feed.pending_bytes():
+        feed.flush()  # nothing new: what waits goes on as the pipe empties
+        drain(read, copy)
+    assert copy.resets == 0 and feed.dropped == 0
+    bounds = history.bounds()
+    assert answers(copy.history, *bounds) == answers(history, *bounds)
+    os.close(read)
+    os.close(write)
+
+
 def test_a_closed_reader_breaks_the_feed_without_an_error():
     read, write = os.pipe()
     feed = HistoryFeed(write)
@@ -201,8 +240,8 @@ def test_the_daemon_answers_from_the_query_process_and_itself_once_it_is_gone(tm
     assert output.answers is not None and runtime.history_feed is output.answers.feed
     service = threading.Thread(target=lambda: asyncio.run(serve(
         runtime, [ReplaySource(dataset, ["imu", "gps"], ReplayClock(1.0))], 8.0, handle_signals=False)), daemon=True)
+    t0 = int(dataset.imu_raw().t_ns[0])  # before the service reads the dataset on its thread
     service.start()
-    t0 = int(dataset.imu_raw().t_ns[0])
     window_ns = (t0 + 3_000_000_000, t0 + 3_500_000_000)  # final long before it is asked for
     client = None
     deadline = time.monotonic() + 10.0
