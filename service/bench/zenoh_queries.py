@@ -256,7 +256,7 @@ def _rows(quiet: dict, phases: dict[str, dict], mode: str) -> list[Row]:
                         f"p99 {quiet['late_p99_ms']:.2f} ms; largest gap between poses {quiet['gap_max_ms']:.1f} ms")]
     for name, got in phases.items():
         rows.append((f"{mode}, {name}: latest pose", got["late_max_ms"], "ms",
-                     f"+{got['late_max_ms'] - quiet['late_max_ms']:.2f} ms on quiet; p99 {got['late_p99_ms']:.2f} ms; "
+                     f"{got['late_max_ms'] - quiet['late_max_ms']:+.2f} ms on quiet; p99 {got['late_p99_ms']:.2f} ms; "
                      f"largest gap {got['gap_max_ms']:.1f} ms; answered {got['answered']}"))
         rows.append((f"{mode}, {name}: poses lost", got["lost"], "poses", f"of {got['poses'] + got['lost']} at the subscriber"))
     return rows
