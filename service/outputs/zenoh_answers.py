@@ -358,7 +358,9 @@ class QueryProcess:
         return answer[1:]
 
     def close(self) -> None:
-        """Stop the process (asked first, then killed) and the feed."""
+        """Stop the process (asked first, then killed) and the feed. The feed's pipe end is not closed here: this
+        may run on the query thread while the loop is writing to it, and a closed descriptor's number can be
+        reused; it closes with this object."""
         requests, self._requests = self._requests, None
         if requests is not None:
             try:
@@ -373,5 +375,3 @@ class QueryProcess:
                 process.kill()
                 process.join(timeout=2.0)
         self.feed.broken = True
-        if not self._feed_write.closed:
-            self._feed_write.close()
