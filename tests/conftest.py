@@ -86,6 +86,22 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
         return s.getsockname()[1]
 
 
+def pose_client_when_listening(port: int, timeout_s: float = 10.0, prefix: str = "vtolpose/vtol1"):
+    """A PoseClient connected to a service on loopback ``port`` once it listens (it opens its outputs after
+    loading its data); AssertionError if it never does within ``timeout_s``."""
+    import time
+
+    from vtolpose.service.outputs.pose_client import PoseClient
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            return PoseClient(prefix, connect=[f"tcp/127.0.0.1:{port}"], timeout_s=5.0)
+        except Exception:  # zenoh.ZError: nobody listening yet
+            time.sleep(0.1)
+    raise AssertionError("the service never listened")
+
+
 @pytest.fixture(scope="session")
 def simulated_flight() -> Callable[..., Any]:
     """``simulate_flight(scenario, duration_s, seed, options)``, flown once per session for each set of

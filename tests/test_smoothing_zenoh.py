@@ -13,10 +13,10 @@ from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.export import write_flight
 from vtolpose.estimator.metrics import interpolate_poses
-from vtolpose.service.outputs.pose_client import PoseClient, PoseUnavailable
+from vtolpose.service.outputs.pose_client import PoseUnavailable
 from vtolpose.service.runtime.replay_feed import replay_async
 
-from conftest import free_port
+from conftest import free_port, pose_client_when_listening
 
 LAG_S = 1.0
 STEPS_PER_SAMPLE = 4
@@ -43,14 +43,8 @@ def test_pose_at_switches_from_filtered_to_smoothed_once_the_lag_has_passed(flig
         dataset, cfg, sensors=["imu", "gps"], speed=1.0, handle_signals=False, hold=True, duration_s=11.0)), daemon=True)
     service.start()
     answers, newest = [], [0]
-    client = None
     deadline = time.monotonic() + 10.0
-    while client is None and time.monotonic() < deadline:  # until the service listens
-        try:
-            client = PoseClient("vtolpose/vtol1", connect=[f"tcp/127.0.0.1:{port}"], timeout_s=5.0)
-        except Exception:  # zenoh.ZError: nobody listening yet
-            time.sleep(0.1)
-    assert client is not None, "the service never listened"
+    client = pose_client_when_listening(port)
     with client:
         client.subscribe(lambda pose: newest.__setitem__(0, max(newest[0], pose.t_ns)))
         while time.monotonic() < deadline and not (answers and answers[-1][1].kind == "smoothed"):

@@ -225,11 +225,10 @@ def test_the_daemon_answers_from_the_query_process_and_itself_once_it_is_gone(tm
     from vtolpose.drivers.files.dataset import Dataset
     from vtolpose.drivers.simulator import simulate_flight
     from vtolpose.drivers.simulator.export import write_flight
-    from vtolpose.service.outputs.pose_client import PoseClient
     from vtolpose.service.runtime.daemon import build_runtime, serve
     from vtolpose.service.runtime.sources import ReplayClock, ReplaySource
 
-    from conftest import free_port
+    from conftest import free_port, pose_client_when_listening
 
     write_flight(simulate_flight("book", 8.0, 4), tmp_path / "book")
     dataset = Dataset.open(tmp_path / "book")
@@ -243,14 +242,8 @@ def test_the_daemon_answers_from_the_query_process_and_itself_once_it_is_gone(tm
     t0 = int(dataset.imu_raw().t_ns[0])  # before the service reads the dataset on its thread
     service.start()
     window_ns = (t0 + 3_000_000_000, t0 + 3_500_000_000)  # final long before it is asked for
-    client = None
     deadline = time.monotonic() + 10.0
-    while client is None and time.monotonic() < deadline:
-        try:
-            client = PoseClient("vtolpose/vtol1", connect=[f"tcp/127.0.0.1:{port}"], timeout_s=5.0)
-        except Exception:  # zenoh.ZError: not listening yet
-            time.sleep(0.1)
-    assert client is not None, "the service never listened"
+    client = pose_client_when_listening(port)
     with client:
         while time.monotonic() < deadline + 5.0:
             newest = runtime.history.bounds()

@@ -27,6 +27,7 @@ import os
 import struct
 import time
 from collections import deque
+from contextlib import nullcontext
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -83,21 +84,15 @@ def answer_text(history: PoseHistory, kind: str, args: tuple[int, ...], origin: 
     """The answer to a checked query (``kind`` pose/at or trajectory); OutsideHistory if there is none.
     ``lock``: held while reading ``history``, not while writing the text."""
     if kind == "pose/at":
-        if lock is None:
+        with lock if lock is not None else nullcontext():
             pose = history.at(args[0])
-        else:
-            with lock:
-                pose = history.at(args[0])
         return json.dumps({
             "t_ns": pose.t_ns, "frame": "NED", "origin": origin_json(origin),
             "p": _floats(pose.p), "q": _floats(pose.q), "v": _floats(pose.v), "w": _floats(pose.w),
             "cov": _floats(pose.cov.reshape(36)), "fused": pose.fused, "kind": pose.kind,
         })
-    if lock is None:
+    with lock if lock is not None else nullcontext():
         window = history.window(*args)
-    else:
-        with lock:
-            window = history.window(*args)
     return trajectory_json(window, origin)
 
 
@@ -365,8 +360,8 @@ class QueryProcess:
         if requests is not None:
             try:
                 requests.send(None)
-            except OSError:
-                pass
+            except OSError as exc:  # already gone: nothing to ask, the join below finds it ended
+                log.debug("query process gone before it was asked to stop: %s", exc)
             requests.close()
         process = self._process
         if process is not None:
