@@ -589,6 +589,12 @@ class FusionCore:
 
     # --------------------------------------------------------------------------- status
     @property
+    def next_pose_cov(self) -> np.ndarray | None:
+        """The pose covariance :meth:`output` will hand out with the next pose while the prediction stays
+        current (None if none is ready): outputs may write it now, after a pose left, not on the next one's path."""
+        return self._out_cov[1] if self._out_cov is not None else None
+
+    @property
     def newest_imu_t_ns(self) -> int | None:
         return self._newest_t
 

@@ -216,6 +216,45 @@ def test_latency_probes_time_each_outputs_publish_within_the_handling(flight):
     assert quiet.publishing is None and quiet.handling is None
 
 
+def test_outputs_are_handed_the_next_poses_covariance_after_a_pose_left(flight):
+    """After each pose, an output with ``prepare`` gets the covariance the fusion core has ready for the next pose
+    (FusionCore.next_pose_cov): the pose that follows carries that very array unless a measurement was fused in
+    between, so the Zenoh output writes its text off the pose path. A failing ``prepare`` is that output's only."""
+
+    class Preparing(PoseList):
+        name = "preparing"
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.prepared = None
+            self.hits = 0
+
+        def prepare(self, pose_cov) -> None:
+            self.prepared = pose_cov
+
+        def publish(self, pose) -> None:
+            self.hits += pose.pose_cov is self.prepared
+            super().publish(pose)
+
+    class Broken(PoseList):
+        name = "broken"
+
+        def prepare(self, pose_cov) -> None:
+            raise RuntimeError("prepare broke")
+
+    est = Estimator(flight.calibration, filter_options(load_config(), flight.calibration.imu.noise))
+    preparing, broken = Preparing(), Broken()
+    runtime = Runtime(est, RuntimeOptions(fusion=FusionOptions(delay_s=0.15)), outputs=[preparing, broken])
+    items = samples(flight, 0.0, 12.0, frames=False)
+    for s in items:
+        runtime.handle(s)
+    published, fixes = runtime.poses_published, sum(isinstance(s, GpsFix) for s in items)
+    assert published > 500 and len(preparing.poses) == len(broken.poses) == published
+    # Every pose but those after a fix (its update changes the state: the next covariance is made afresh).
+    assert published - fixes - 5 <= preparing.hits < published
+    assert runtime.failures.report()["output broken"]["failures"] == published  # each one counted, no pose lost
+
+
 def test_the_bare_sends_of_the_latency_bench_reach_their_peers():
     """The latency bench's floor (a bare datagram and a bare Zenoh put) is timed on sends that arrive: a peer in
     another process for each, on loopback; a put that nobody subscribes to would cost less than a real one."""

@@ -141,3 +141,31 @@ def test_the_attitude_is_written_scalar_first_as_the_pose_holds_it():
         q = json.loads(text)["q"]
         np.testing.assert_allclose(q, expected, rtol=0, atol=1e-15)
         assert q == pose.q.tolist()
+
+
+def test_a_covariance_written_ahead_is_used_only_by_the_pose_that_carries_that_very_array():
+    """``prepare`` writes the next pose's covariance off the pose path; the pose carrying that array gets the same
+    bytes as the reference, and any other pose (an equal copy, another covariance, a prepared one that was not
+    finite) is written from its own numbers."""
+    rng = np.random.default_rng(21)
+    encode = PoseJson()
+    for k in range(40):
+        pose = random_pose(rng, dict.fromkeys(FLAGS, True), 100, SPECIAL[k % len(SPECIAL)] if k % 4 == 3 else None)
+        encode.prepare(pose.pose_cov)
+        before = encode.prepared_used
+        assert encode(pose, k, None) == json.dumps(pose_message(pose, k, None)), k
+        assert encode.prepared_used == before + bool(np.isfinite(pose.pose_cov).all())
+    # A copy of the prepared array, or another covariance: their own numbers, never the kept text.
+    pose = random_pose(rng, dict.fromkeys(FLAGS, True), 100, None)
+    encode.prepare(pose.pose_cov)
+    used = encode.prepared_used
+    for other in (pose.pose_cov.copy(), pose.pose_cov * 2.0):
+        changed = dataclasses.replace(pose, pose_cov=other)
+        assert encode(changed, 1, None) == json.dumps(pose_message(changed, 1, None))
+    assert encode.prepared_used == used
+    # A pose whose prepared covariance is not finite is the reference's (nulls), with nothing kept for it.
+    bad = pose.pose_cov.copy()
+    bad[2, 3] = math.nan
+    changed = dataclasses.replace(pose, pose_cov=bad)
+    encode.prepare(bad)
+    assert encode(changed, 2, None) == json.dumps(pose_message(changed, 2, None)) and encode.prepared_used == used

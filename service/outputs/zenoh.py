@@ -33,6 +33,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
+import numpy as np
 import zenoh
 
 from vtolpose.config.sections import ZenohSection
@@ -170,6 +171,11 @@ class ZenohOutput:
         self._seq = seq = self._seq + 1
         self._pose_pub.put(self._pose_json(pose, seq, self.origin()), source_info=zenoh.SourceInfo(self._pose_id, seq))
         self.stats["poses_published"] += 1
+
+    def prepare(self, pose_cov: np.ndarray | None) -> None:
+        """The next pose's covariance, ready after the previous pose left: its text written now (PoseJson.prepare)."""
+        if self.session is not None:
+            self._pose_json.prepare(pose_cov)
 
     def publish_status(self, status: dict[str, Any]) -> None:
         if self.session is not None:

@@ -54,6 +54,8 @@ class PoseOutput(Protocol):
     name: str
     def open(self) -> None: ...
     def publish(self, pose: OutputPose) -> Any: ...
+    # Optional: ``prepare(pose_cov)``, after a pose left, the covariance the next one will carry
+    # (FusionCore.next_pose_cov, or None), for an output that writes its part ahead (Zenoh).
     def publish_status(self, status: dict[str, Any]) -> None: ...
     async def serve(self, stop: asyncio.Event) -> None: ...
     def close(self) -> None: ...
@@ -235,6 +237,15 @@ class Runtime:
             if self.history_feed is not None:
                 self.history_feed.predicted(pose.t_ns, row)
         fusion.advance()  # the delayed filter's work, after the pose has left
+        if pose is not None:  # and what of the next pose is known already: its covariance
+            cov = fusion.next_pose_cov
+            for out in self.outputs:
+                prepare = getattr(out, "prepare", None)
+                if prepare is not None:
+                    try:
+                        prepare(cov)
+                    except Exception as exc:  # as publish: this output only
+                        self.failures.record(f"output {out.name}", exc)
         if self.smoother is not None:  # then a bounded slice of the fixed-lag smoother's
             try:
                 smoothed = self.smoother.work()
