@@ -55,7 +55,7 @@ from vtolpose.estimator.core.rotation import quat_from_euler, yaw_of
 from vtolpose.estimator.inertial.propagator import ImuPropagator
 from vtolpose.estimator.core.state import FilterState, StateLayout
 from vtolpose.estimator.start import VELOCITY_FIT_S, StartCoordinator
-from vtolpose.estimator.modes import FilterMode, HeadingMode, ModeEvent, ModeMachine, heading_aligned
+from vtolpose.estimator.modes import FilterMode, HeadingMode, ModeEvent, ModeMachine
 from vtolpose.estimator.status import EstimatorEvent, EstimatorStatus, EventKind, HeadingPlacement
 from vtolpose.estimator.init.visual_inertial import VisualInertialInitializer, VisualInertialOptions, VisualInertialStart
 from vtolpose.estimator.smoothing.recorder import FilterRecorder
@@ -187,7 +187,7 @@ class Estimator:
 
     @property
     def heading_aligned(self) -> bool:
-        return heading_aligned(self.modes.mode, self.modes.heading)
+        return self.modes.heading_aligned
 
     @property
     def position_initialized(self) -> bool:

@@ -114,11 +114,12 @@ class IllegalTransition(RuntimeError):
 class ModeMachine:
     """The two modes and the one place that changes them."""
 
-    __slots__ = ("mode", "heading")
+    __slots__ = ("mode", "heading", "heading_aligned")
 
     def __init__(self, heading_known: bool) -> None:
         self.mode = FilterMode.WAITING
         self.heading = HeadingMode.KNOWN if heading_known else HeadingMode.UNKNOWN
+        self.heading_aligned = False  # heading_aligned(mode, heading), kept with them: asked for every sample
 
     def fire(self, event: ModeEvent) -> Transition:
         """Take the edge ``event`` leaves from the mode it concerns; raises :class:`IllegalTransition` if none."""
@@ -129,6 +130,7 @@ class ModeMachine:
             self.mode = edge.target
         else:
             self.heading = edge.target
+        self.heading_aligned = heading_aligned(self.mode, self.heading)
         return edge
 
     def can(self, event: ModeEvent) -> bool:

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from vtolpose.estimator.modes import (TRANSITIONS, FilterMode, HeadingMode, IllegalTransition, ModeEvent, ModeMachine,
-                                      mermaid)
+                                      heading_aligned, mermaid)
 
 DOCS = Path(__file__).resolve().parent.parent / "docs" / "estimator.md"
 
@@ -29,6 +29,20 @@ def test_every_edge_leads_where_the_table_says(edge):
     assert taken is edge
     now = machine.mode if isinstance(edge.target, FilterMode) else machine.heading
     assert now is edge.target
+
+
+@pytest.mark.parametrize("edge", TRANSITIONS, ids=lambda t: f"{t.source.value}-{t.event.name}")
+def test_the_heading_aligned_flag_follows_every_transition(edge):
+    """The flag kept beside the two modes (read for every IMU sample) is theirs after every edge, whatever the
+    other mode is: both values are reached."""
+    seen = set()
+    for other in (list(HeadingMode) if isinstance(edge.source, FilterMode) else list(FilterMode)):
+        machine = ModeMachine(heading_known=False)
+        machine.mode, machine.heading = (edge.source, other) if isinstance(edge.source, FilterMode) else (other, edge.source)
+        machine.fire(edge.event)
+        assert machine.heading_aligned is heading_aligned(machine.mode, machine.heading)
+        seen.add(machine.heading_aligned)
+    assert seen == {True, False} or edge.target in (FilterMode.WAITING, FilterMode.INITIALISING, HeadingMode.UNKNOWN)
 
 
 def test_events_without_an_edge_are_refused():
