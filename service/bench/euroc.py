@@ -213,20 +213,30 @@ def score_poses(traj: Trajectory, cov: CovarianceSamples, dataset: Dataset, plac
                      speed_band_rmse(t, truth.p[inside], error), worst_window(t, error, int(truth.t_ns[0])))
 
 
+def scored_gps_rmse(dataset: Dataset) -> float:
+    """The GPS fixes' own error over the scored stretch (from SCORE_FROM_S): every ratio's denominator."""
+    truth, gps = dataset.truth(), dataset.gps()
+    keep = gps.t_ns >= int(truth.t_ns[0] + SCORE_FROM_S * 1e9)
+    return float(gps_error_rmse(type(gps)(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep]), truth,
+                                dataset.calibration.gps.lever_arm_b, dataset.calibration.truth_point_b)["rmse_m"])
+
+
+def scored_position_rmse(traj: Trajectory, dataset: Dataset) -> float:
+    """Position RMSE of any trajectory (t_ns, p, q of the body) as the table scores vtolpose's: the tracked point at
+    the truth's samples from SCORE_FROM_S, after the rigid alignment (:func:`aligned_position_errors`)."""
+    error = aligned_position_errors(traj, dataset)[4]
+    return float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
+
+
 def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str,
           plain_wall_s: float | None = None) -> FlightScore:
     """The table's figures for one replay (see the module docstring); with ``result.smoothing`` (a
     ``replay_smoothed`` run) the smoothed and fixed-lag ones too."""
     status, traj, truth = result.estimator.status(), result.trajectory, dataset.truth()
-    point_b = dataset.calibration.truth_point_b
-    t_from = int(truth.t_ns[0] + SCORE_FROM_S * 1e9)
     placed = status.heading_placement.t_ns if status.heading_placement is not None else None
     known = status.heading_aligned and placed is None
     filtered = score_poses(traj, result.covariances, dataset, placed, known)
-    gps = dataset.gps()
-    keep = gps.t_ns >= t_from
-    gps_rmse = gps_error_rmse(type(gps)(gps.t_ns[keep], gps.p_ned[keep], gps.sigma_h[keep], gps.sigma_v[keep]), truth,
-                              dataset.calibration.gps.lever_arm_b, point_b)["rmse_m"]
+    gps_rmse = scored_gps_rmse(dataset)
     imu_t0 = int(dataset.imu_raw().t_ns[0])
     positioned = status.first(EventKind.POSITION_INITIALISED)
     onset = motion_onset(truth)

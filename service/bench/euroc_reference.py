@@ -9,6 +9,13 @@ it is a yardstick for speed, not for start-up. Both run on the same imported fli
 recorded in body axes, the 10-Hz GPS of ``service.bench.euroc``), one after the other in one
 process, in turn, three times, each side's best run counting (a replay is deterministic: its runs differ
 only by what the machine was doing); the figure that matters is the ratio of their real-time factors.
+
+Then accuracy, both sides scored alike (:func:`accuracy_rows`). The reference's own RMSE is taken right
+after each of its updates only; a service built on it would publish, between fixes, the fix's state
+carried forward by the IMU (:func:`causal_trajectory`), and that trajectory is scored here as
+``vtolpose bench --only euroc`` scores vtolpose's: every truth sample, after the rigid alignment. The
+reference runs with the vehicle file's IMU noise (vtolpose's) and, once more, with the recording's own
+``sensor.yaml`` (the IMU's static datasheet figures).
 """
 
 from __future__ import annotations
@@ -22,10 +29,14 @@ from typing import Any, Callable
 import numpy as np
 
 from vtolpose.config import load_config
+from vtolpose.drivers.files.calibration_yaml import CalibrationError, load_yaml_file
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.service.bench.euroc import VARIANTS, flights_or_skip, imported_flight
+from vtolpose.estimator.core.rotation import rot_to_quat
+from vtolpose.service.bench.euroc import (
+    VARIANTS, flights_or_skip, imported_flight, scored_gps_rmse, scored_position_rmse,
+)
 from vtolpose.service.bench.rows import Row
-from vtolpose.service.replay.session import replay
+from vtolpose.service.replay.session import Trajectory, replay
 from vtolpose.service.runtime.kernels import load_compiled_kernels
 
 LAG_S = 3.0
@@ -43,9 +54,12 @@ def _level_quaternion(accel_mean: np.ndarray) -> np.ndarray:
     return np.array([cr * cp, sr * cp, cr * sp, -sr * sp])
 
 
-def reference_run(gtsam: Any, dataset: Dataset) -> dict[str, float]:
+def reference_run(gtsam: Any, dataset: Dataset, causal: bool = False,
+                  white: tuple[float, float] | None = None) -> dict[str, Any]:
     """Run the reference over the dataset's IMU and GPS; its wall time, the data's span and its position RMSE
-    (the newest state after each fix, tracked point against the truth where there is one)."""
+    (the newest state after each fix, tracked point against the truth where there is one). ``causal``: also its
+    pose at every IMU sample (:func:`causal_trajectory`, made after the timed run), as ``trajectory``.
+    ``white``: the gyroscope's and accelerometer's white-noise densities in place of the vehicle file's."""
     from gtsam.symbol_shorthand import B, V, X
 
     cal = dataset.calibration
@@ -53,8 +67,10 @@ def reference_run(gtsam: Any, dataset: Dataset) -> dict[str, float]:
     noise = cal.imu.noise
     wall0, cpu0 = time.perf_counter(), time.process_time()
     params = gtsam.PreintegrationCombinedParams.MakeSharedD(cal.imu.gravity)  # NED: gravity along +z
-    params.setGyroscopeCovariance(np.diag(noise.gyro_noise_density**2))
-    params.setAccelerometerCovariance(np.diag(noise.accel_noise_density**2))
+    gyro_density, accel_density = (noise.gyro_noise_density, noise.accel_noise_density) if white is None else \
+        (np.full(3, white[0]), np.full(3, white[1]))
+    params.setGyroscopeCovariance(np.diag(gyro_density**2))
+    params.setAccelerometerCovariance(np.diag(accel_density**2))
     params.setIntegrationCovariance(np.eye(3) * 1e-8)
     params.setBiasOmegaCovariance(np.diag(noise.gyro_random_walk**2))
     params.setBiasAccCovariance(np.diag(noise.accel_random_walk**2))
@@ -86,6 +102,7 @@ def reference_run(gtsam: Any, dataset: Dataset) -> dict[str, float]:
     pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
     estimates = np.zeros((len(t_gps), 3))
     estimates[0] = pose.translation()
+    posteriors = [(int(t_gps[0]), pose, vel, bias)]  # each fix's newest state: what it would publish from
     for k in range(1, len(t_gps)):
         t_fix = t_gps[k]
         while i + 1 < len(t_imu) and t_imu[i + 1] <= t_fix:
@@ -104,6 +121,7 @@ def reference_run(gtsam: Any, dataset: Dataset) -> dict[str, float]:
         estimate = smoother.calculateEstimate()
         pose, vel, bias = estimate.atPose3(X(k)), estimate.atVector(V(k)), estimate.atConstantBias(B(k))
         estimates[k] = pose.translation() + pose.rotation().matrix() @ cal.truth_point_b
+        posteriors.append((int(t_fix), pose, vel, bias))
         pim.resetIntegrationAndSetBias(bias)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     rmse = float("nan")
@@ -111,7 +129,32 @@ def reference_run(gtsam: Any, dataset: Dataset) -> dict[str, float]:
         inside = (t_gps >= truth.t_ns[0]) & (t_gps <= truth.t_ns[-1])
         p_truth = np.column_stack([np.interp(t_gps[inside], truth.t_ns, truth.p[:, c]) for c in range(3)])
         rmse = float(np.sqrt(np.mean(np.sum((estimates[inside] - p_truth) ** 2, axis=1))))
-    return {"wall_s": wall, "cpu_s": cpu, "duration_s": (int(t_imu[-1]) - int(t_imu[0])) * 1e-9, "rmse_m": rmse}
+    out: dict[str, Any] = {"wall_s": wall, "cpu_s": cpu, "duration_s": (int(t_imu[-1]) - int(t_imu[0])) * 1e-9,
+                           "rmse_m": rmse}
+    if causal:
+        out["trajectory"] = causal_trajectory(gtsam, params, posteriors, t_imu, gyro, accel)
+    return out
+
+
+def causal_trajectory(gtsam: Any, params: Any, posteriors: list, t_imu: np.ndarray, gyro: np.ndarray,
+                      accel: np.ndarray) -> Trajectory:
+    """The reference's pose at each fix and at every IMU sample up to the next fix, from what it knew then: the fix's
+    newest state carried forward by the same preintegration its next factor is made of (``predict``). Its own RMSE
+    is taken at the fixes only, right after each update; this is the trajectory a service built on it would
+    publish, for scoring as vtolpose's is (every truth sample, the poses between fixes included)."""
+    ts, ps, vs, rots = [], [], [], []
+    ends = [t for t, *_ in posteriors[1:]] + [int(t_imu[-1]) + 1]
+    for (t_fix, pose, vel, bias), t_end in zip(posteriors, ends):
+        ts.append(t_fix), ps.append(pose.translation()), vs.append(np.asarray(vel)), rots.append(pose.rotation().matrix())
+        start, pim = gtsam.NavState(pose, vel), gtsam.PreintegratedCombinedMeasurements(params, bias)
+        i = max(int(np.searchsorted(t_imu, t_fix, side="right")) - 1, 0)  # as the run: from the sample at or before
+        while i + 1 < len(t_imu) and t_imu[i + 1] < t_end:
+            pim.integrateMeasurement(accel[i], gyro[i], (t_imu[i + 1] - t_imu[i]) * 1e-9)
+            i += 1
+            nav = pim.predict(start, bias)
+            ts.append(int(t_imu[i])), ps.append(nav.pose().translation()), vs.append(nav.velocity())
+            rots.append(nav.pose().rotation().matrix())
+    return Trajectory(np.array(ts, dtype=np.int64), np.array(ps), np.array(vs), rot_to_quat(np.array(rots)))
 
 
 def bench_euroc_reference(echo: Callable[[str], None] = print) -> list[Row]:
@@ -131,16 +174,18 @@ def bench_euroc_reference(echo: Callable[[str], None] = print) -> list[Row]:
             dataset = imported_flight(flight, Path(tmp))
             walls: dict[str, list[float]] = {variant: [] for variant in VARIANTS}
             cpus: dict[str, list[float]] = {variant: [] for variant in VARIANTS}
-            refs: list[dict[str, float]] = []
-            for _ in range(ROUNDS):  # the two sides in turn, so that a slow minute costs both
+            refs: list[dict[str, Any]] = []
+            trajectories = {}
+            for round_ in range(ROUNDS):  # the two sides in turn, so that a slow minute costs both
                 for variant in VARIANTS:
                     cpu0 = time.process_time()
                     result = replay(dataset, load_config(None, {"estimator": {"variant": variant}}), ["imu", "gps"])
                     walls[variant].append(result.wall_s)
                     cpus[variant].append(time.process_time() - cpu0)
                     duration_s = result.duration_s
+                    trajectories[variant] = result.trajectory  # the same every round: a replay is deterministic
                 if gtsam is not None:
-                    refs.append(reference_run(gtsam, dataset))
+                    refs.append(reference_run(gtsam, dataset, causal=round_ == 0))
             rates = {variant: duration_s / min(walls[variant]) for variant in VARIANTS}
             cpu_rates = {variant: duration_s / min(cpus[variant]) for variant in VARIANTS}
             for variant in VARIANTS:
@@ -160,4 +205,43 @@ def bench_euroc_reference(echo: Callable[[str], None] = print) -> list[Row]:
                 rows.append(Row(f"{flight.name} vtolpose / reference ({variant})", rates[variant] / ref_rate, "x",
                                 f"real-time factors, each side's best of {ROUNDS}, same inputs, same run; "
                                 f"{cpu_rates[variant] / ref_cpu_rate:.2f} x per CPU second", RATIO_TARGET))
+            if dataset.truth() is not None:
+                datasheet = sensor_white_noise(flight.source)
+                extra = {"the IMU's datasheet": reference_run(gtsam, dataset, causal=True, white=datasheet)} if datasheet else {}
+                rows += accuracy_rows(flight.name, dataset, trajectories, {"the vehicle file": refs[0], **extra})
+    return rows
+
+
+def sensor_white_noise(source: Path) -> tuple[float, float] | None:
+    """The gyroscope's and accelerometer's white-noise densities of the recording's own ``imu0/sensor.yaml`` (the
+    IMU's static datasheet figures, which the vehicle file raises for the rotors' vibration), None without one."""
+    path = source / "mav0" / "imu0" / "sensor.yaml"
+    if not path.is_file():
+        return None
+    try:
+        doc = load_yaml_file(path)  # EuRoC's have OpenCV's header line
+        return float(doc["gyroscope_noise_density"]), float(doc["accelerometer_noise_density"])
+    except (CalibrationError, KeyError, TypeError, ValueError):
+        return None
+
+
+def accuracy_rows(flight: str, dataset: Dataset, trajectories: dict[str, Trajectory],
+                  refs: dict[str, dict[str, Any]]) -> list[Row]:
+    """Position ÷ the GPS's own error, both sides scored alike: every truth sample from SCORE_FROM_S, after the
+    rigid alignment, as ``vtolpose bench --only euroc`` scores vtolpose; beside the reference's own figure (right
+    after each of its updates only), which is not the same measure: between fixes the pose is a prediction.
+    ``refs``: reference runs (with ``trajectory``) by the IMU noise they were given."""
+    gps_rmse = scored_gps_rmse(dataset)
+    rows: list[Row] = []
+    for noise, ref in refs.items():
+        rows += [
+            (f"{flight} GTSAM reference ({noise}'s noise): position / GPS, at its fixes", ref["rmse_m"] / gps_rmse, "ratio",
+             "its own scoring: the newest state right after each update, from the first fix, no alignment"),
+            (f"{flight} GTSAM reference ({noise}'s noise): position / GPS, every truth sample",
+             scored_position_rmse(ref["trajectory"], dataset) / gps_rmse, "ratio",
+             "scored as vtolpose: each fix's state carried forward by the IMU until the next"),
+        ]
+    for variant, trajectory in trajectories.items():
+        rows.append((f"{flight} vtolpose ({variant}): position / GPS, every truth sample",
+                     scored_position_rmse(trajectory, dataset) / gps_rmse, "ratio", "as vtolpose bench --only euroc"))
     return rows
