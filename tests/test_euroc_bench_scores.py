@@ -49,3 +49,28 @@ def test_the_worst_window_finds_the_bad_stretch():
 def test_a_span_shorter_than_the_window_has_no_worst_window():
     t = np.arange(0, int(5e9), int(0.01e9), dtype=np.int64)
     assert worst_window(t, np.zeros((len(t), 3)), 0) is None
+
+
+def test_at_the_fixes_only_the_first_pose_at_or_after_each_fix_is_scored():
+    """The smoother's own measure: an estimate that is exact at each fix's update and wrong in between scores 0 there,
+    and its error at a fix counts in full (no alignment takes it away); nothing before SCORE_FROM_S counts."""
+    from types import SimpleNamespace
+
+    from vtolpose.service.bench.euroc import SCORE_FROM_S, at_fix_position_rmse
+
+    t_truth = np.arange(0, 40_000_000_000, 5_000_000, dtype=np.int64)  # 200 Hz for 40 s
+    p_truth = np.column_stack([np.sin(t_truth * 1e-9), np.cos(t_truth * 1e-9), 0.1 * t_truth * 1e-9])
+    t_fix = np.arange(0, 40_000_000_000, 100_000_000, dtype=np.int64) + 2_500_000  # 10 Hz, between truth samples
+    point_b = np.array([0.1, 0.0, 0.0])
+    dataset = SimpleNamespace(truth=lambda: SimpleNamespace(t_ns=t_truth, p=p_truth),
+                              gps=lambda: SimpleNamespace(t_ns=t_fix), calibration=SimpleNamespace(truth_point_b=point_b))
+    t_est = np.sort(np.concatenate([t_truth, t_fix]))
+    truth_at = np.column_stack([np.interp(t_est, t_truth, p_truth[:, c]) for c in range(3)])
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(t_est), 1))
+    at_fix = np.isin(t_est, t_fix)
+    p_est = truth_at - point_b + np.where(at_fix[:, None], 0.0, 0.3)  # 0.3 m off everywhere but at the fixes
+    assert at_fix_position_rmse(SimpleNamespace(t_ns=t_est, p=p_est, q=q), dataset) == pytest.approx(0.0, abs=1e-12)
+    late = t_est >= int(SCORE_FROM_S * 1e9)
+    p_est[at_fix & late] += [0.0, 0.04, 0.0]  # a 4-cm error at every scored fix
+    p_est[at_fix & ~late] += [5.0, 0.0, 0.0]  # and a large one before the scored stretch: not counted
+    assert at_fix_position_rmse(SimpleNamespace(t_ns=t_est, p=p_est, q=q), dataset) == pytest.approx(0.04, rel=1e-9)

@@ -228,6 +228,18 @@ def scored_position_rmse(traj: Trajectory, dataset: Dataset) -> float:
     return float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
 
 
+def at_fix_position_rmse(traj: Trajectory, dataset: Dataset) -> float:
+    """Position RMSE as a smoother scores itself: the first pose at or after each fix (that fix's update) against the
+    truth at its time, no alignment, from SCORE_FROM_S; between fixes nothing is scored."""
+    truth, gps, point_b = dataset.truth(), dataset.gps(), dataset.calibration.truth_point_b
+    lo, hi = max(int(truth.t_ns[0] + SCORE_FROM_S * 1e9), int(traj.t_ns[0])), min(int(truth.t_ns[-1]), int(traj.t_ns[-1]))
+    k = np.searchsorted(traj.t_ns, gps.t_ns[(gps.t_ns >= lo) & (gps.t_ns <= hi)])
+    t = traj.t_ns[k]
+    p = traj.p[k] + quat_to_rot(traj.q[k]) @ point_b
+    p_truth = np.column_stack([np.interp(t, truth.t_ns, truth.p[:, c]) for c in range(3)])
+    return float(np.sqrt(np.mean(np.sum((p - p_truth) ** 2, axis=1))))
+
+
 def score(result: ReplayResult, dataset: Dataset, flight: str, variant: str,
           plain_wall_s: float | None = None) -> FlightScore:
     """The table's figures for one replay (see the module docstring); with ``result.smoothing`` (a

@@ -33,7 +33,7 @@ from vtolpose.drivers.files.calibration_yaml import CalibrationError, load_yaml_
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.estimator.core.rotation import rot_to_quat
 from vtolpose.service.bench.euroc import (
-    VARIANTS, flights_or_skip, imported_flight, scored_gps_rmse, scored_position_rmse,
+    VARIANTS, at_fix_position_rmse, flights_or_skip, imported_flight, scored_gps_rmse, scored_position_rmse,
 )
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.session import Trajectory, replay
@@ -227,21 +227,19 @@ def sensor_white_noise(source: Path) -> tuple[float, float] | None:
 
 def accuracy_rows(flight: str, dataset: Dataset, trajectories: dict[str, Trajectory],
                   refs: dict[str, dict[str, Any]]) -> list[Row]:
-    """Position ÷ the GPS's own error, both sides scored alike: every truth sample from SCORE_FROM_S, after the
-    rigid alignment, as ``vtolpose bench --only euroc`` scores vtolpose; beside the reference's own figure (right
-    after each of its updates only), which is not the same measure: between fixes the pose is a prediction.
-    ``refs``: reference runs (with ``trajectory``) by the IMU noise they were given."""
+    """Position ÷ the GPS's own error, both sides scored both ways: right after each fix's update only, as a
+    smoother scores itself (:func:`at_fix_position_rmse`), and at every truth sample after the rigid alignment, as
+    ``vtolpose bench --only euroc`` scores vtolpose (between fixes the pose is a prediction). ``refs``: reference
+    runs (with ``trajectory``) by the IMU noise they were given."""
     gps_rmse = scored_gps_rmse(dataset)
+    sides = {f"GTSAM reference ({noise}'s noise)": ref["trajectory"] for noise, ref in refs.items()}
+    sides.update({f"vtolpose ({variant})": trajectory for variant, trajectory in trajectories.items()})
     rows: list[Row] = []
-    for noise, ref in refs.items():
+    for name, trajectory in sides.items():
         rows += [
-            (f"{flight} GTSAM reference ({noise}'s noise): position / GPS, at its fixes", ref["rmse_m"] / gps_rmse, "ratio",
-             "its own scoring: the newest state right after each update, from the first fix, no alignment"),
-            (f"{flight} GTSAM reference ({noise}'s noise): position / GPS, every truth sample",
-             scored_position_rmse(ref["trajectory"], dataset) / gps_rmse, "ratio",
-             "scored as vtolpose: each fix's state carried forward by the IMU until the next"),
+            (f"{flight} {name}: position / GPS, at the fixes", at_fix_position_rmse(trajectory, dataset) / gps_rmse,
+             "ratio", "the first pose at or after each fix, against the truth there, no alignment"),
+            (f"{flight} {name}: position / GPS, every truth sample", scored_position_rmse(trajectory, dataset) / gps_rmse,
+             "ratio", "as vtolpose bench --only euroc: the poses between fixes too, after the rigid alignment"),
         ]
-    for variant, trajectory in trajectories.items():
-        rows.append((f"{flight} vtolpose ({variant}): position / GPS, every truth sample",
-                     scored_position_rmse(trajectory, dataset) / gps_rmse, "ratio", "as vtolpose bench --only euroc"))
     return rows
