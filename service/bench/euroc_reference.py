@@ -142,19 +142,19 @@ def causal_trajectory(gtsam: Any, params: Any, posteriors: list, t_imu: np.ndarr
     newest state carried forward by the same preintegration its next factor is made of (``predict``). Its own RMSE
     is taken at the fixes only, right after each update; this is the trajectory a service built on it would
     publish, for scoring as vtolpose's is (every truth sample, the poses between fixes included)."""
-    ts, ps, vs, rots = [], [], [], []
+    poses: list[tuple[int, Any, np.ndarray]] = []  # (time, gtsam Pose3, velocity)
     ends = [t for t, *_ in posteriors[1:]] + [int(t_imu[-1]) + 1]
     for (t_fix, pose, vel, bias), t_end in zip(posteriors, ends):
-        ts.append(t_fix), ps.append(pose.translation()), vs.append(np.asarray(vel)), rots.append(pose.rotation().matrix())
+        poses.append((t_fix, pose, np.asarray(vel)))
         start, pim = gtsam.NavState(pose, vel), gtsam.PreintegratedCombinedMeasurements(params, bias)
         i = max(int(np.searchsorted(t_imu, t_fix, side="right")) - 1, 0)  # as the run: from the sample at or before
         while i + 1 < len(t_imu) and t_imu[i + 1] < t_end:
             pim.integrateMeasurement(accel[i], gyro[i], (t_imu[i + 1] - t_imu[i]) * 1e-9)
             i += 1
             nav = pim.predict(start, bias)
-            ts.append(int(t_imu[i])), ps.append(nav.pose().translation()), vs.append(nav.velocity())
-            rots.append(nav.pose().rotation().matrix())
-    return Trajectory(np.array(ts, dtype=np.int64), np.array(ps), np.array(vs), rot_to_quat(np.array(rots)))
+            poses.append((int(t_imu[i]), nav.pose(), nav.velocity()))
+    return Trajectory(np.array([t for t, _, _ in poses], dtype=np.int64), np.array([p.translation() for _, p, _ in poses]),
+                      np.array([v for _, _, v in poses]), rot_to_quat(np.array([p.rotation().matrix() for _, p, _ in poses])))
 
 
 def bench_euroc_reference(echo: Callable[[str], None] = print) -> list[Row]:
