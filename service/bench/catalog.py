@@ -19,7 +19,7 @@ SUMMARIES: dict[str, str] = {
     'fault-table': 'Each fault kind: largest error, quality, recovery, resets, counts (the figures behind the table in docs/faults.md).',
     'sensor-lies': 'The three lies of the fault table (and the GPS lie from mid-flight), each against the clean flight.',
     'euroc': 'Every EuRoC flight under ../shared/data: import, replay both models, score (the table of docs/results.md).',
-    'euroc-reference': "Each EuRoC flight: vtolpose's IMU+GPS replay speed (both variants) and the reference's, same inputs, same run.",
+    'euroc-reference': "Each EuRoC flight: vtolpose's IMU+GPS replay speed (both variants) and the reference's, same inputs, same run; then both sides' position scored alike.",
     'euroc-causes': "Each EuRoC flight: the default model's ratio scored three ways, then with the GPS timing and the IMU's",
     'zenoh-queries': 'Pose lateness in the daemon and losses at a subscriber while a client floods the queryables.',
     'memory-paced': 'RSS and Python allocations per minute of a paced replay with both outputs, after the history fills.',

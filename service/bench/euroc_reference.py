@@ -158,7 +158,7 @@ def causal_trajectory(gtsam: Any, params: Any, posteriors: list, t_imu: np.ndarr
 
 
 def bench_euroc_reference(echo: Callable[[str], None] = print) -> list[Row]:
-    """Each EuRoC flight: vtolpose's IMU+GPS replay speed (both variants) and the reference's, same inputs, same run."""
+    """Each EuRoC flight: vtolpose's IMU+GPS replay speed (both variants) and the reference's, same inputs, same run; then both sides' position scored alike."""
     try:
         gtsam = importlib.import_module("gtsam")
     except ImportError:
