@@ -31,7 +31,7 @@ import numpy as np
 from vtolpose.config import load_config
 from vtolpose.drivers.files.calibration_yaml import CalibrationError, load_yaml_file
 from vtolpose.drivers.files.dataset import Dataset
-from vtolpose.estimator.core.rotation import rot_to_quat
+from vtolpose.estimator import rot_to_quat
 from vtolpose.service.bench.euroc import (
     VARIANTS, at_fix_position_rmse, flights_or_skip, imported_flight, scored_gps_rmse, scored_position_rmse,
 )
