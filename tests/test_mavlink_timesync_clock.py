@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 
-from vtolpose.service.outputs.mavlink_output import MavlinkOutput, SensorClock, mavutil
+from vtolpose.service.outputs.mavlink_output import STREAM_POLL_S, MavlinkOutput, SensorClock, mavutil
 
 from test_mavlink_out import endpoint, make_pose
 
@@ -85,13 +85,15 @@ async def fly(out: MavlinkOutput, peer: Px4Peer, seconds: float = 2.0) -> None:
     await task
 
 
-def check(peer: Px4Peer, out: MavlinkOutput, usable_share: float = 0.9) -> None:
+def check(peer: Px4Peer, out: MavlinkOutput, usable_share: float = 0.9, bound_ms: float = 2.0) -> None:
+    """``bound_ms``: how far the mapped stamps may land from the sample's time (PX4 splits the round trip evenly, so
+    a request that waits on one side and not the other shifts the offset by half the wait)."""
     errors = peer.mapped_error_ms()
     print(f"{len(peer.rtts_ms)} answers, round trip median {np.median(peer.rtts_ms):.2f} ms (max {max(peer.rtts_ms):.2f}), "
           f"{len(peer.offsets_ns)} under 10 ms; time_usec mapped {np.median(errors):+.2f} ms off the sample's time; "
           f"pose age {out.link_stats()['pose_age_ms']}")
     assert len(peer.offsets_ns) >= usable_share * len(peer.rtts_ms) and len(peer.offsets_ns) >= 20
-    assert abs(np.median(errors)) < 2.0  # on the sample's own time, not AGE_MS late
+    assert abs(np.median(errors)) < bound_ms  # on the sample's own time, not AGE_MS late
     stats = out.link_stats()
     assert stats["pose_age_ms"]["p50"] == pytest.approx(AGE_MS, abs=3.0)
     assert stats["delay_to_configure_ms"] == pytest.approx(AGE_MS, abs=4.0)
@@ -142,5 +144,8 @@ def test_a_serial_link_converges_within_px4s_round_trip_limit():
         os.close(master)
         os.close(slave)
     # A serial link is read every 5 ms (STREAM_POLL_S): most round trips stay under PX4's 10 ms, and the
-    # request's wait for the next read (on the way in only) biases the offset by about a millisecond.
-    check(peer, out, usable_share=0.6)
+    # request's wait for the next read (on the way in only) biases the offset by half that wait. The requests
+    # (every 40 ms) and the reads keep their phase through a run, so the median wait is anywhere in 0-5 ms
+    # from one run to the next (round trips 0.45-4.4 ms seen): the stamps land within half a read period
+    # (2.5 ms) plus a margin, still far from AGE_MS late.
+    check(peer, out, usable_share=0.6, bound_ms=STREAM_POLL_S * 1e3 / 2 + 0.5)
