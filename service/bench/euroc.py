@@ -236,7 +236,7 @@ def at_fix_position_rmse(traj: Trajectory, dataset: Dataset) -> float:
     k = np.searchsorted(traj.t_ns, gps.t_ns[(gps.t_ns >= lo) & (gps.t_ns <= hi)])
     t = traj.t_ns[k]
     p = traj.p[k] + quat_to_rot(traj.q[k]) @ point_b
-    p_truth = np.column_stack([np.interp(t, truth.t_ns, truth.p[:, c]) for c in range(3)])
+    p_truth, _ = interpolate_poses(t, truth.t_ns, truth.p)
     return float(np.sqrt(np.mean(np.sum((p - p_truth) ** 2, axis=1))))
 
 

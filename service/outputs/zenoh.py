@@ -15,9 +15,9 @@ pose history and makes the answer's JSON on its own interpreter, and passes the 
 ``pose/at`` (~1 KB) it answers itself, as it does everything without that process (switched off,
 or dead), reading the history under the lock the runtime takes for a moment per pose and writing
 large answers in pieces. Either works at most a quarter of the time (WORKER_DUTY): a flood of the
-largest windows fills the queue and gets "busy" replies, not more of the CPU. Poses go out at Zenoh's real-time priority, ahead of answers
-in a link's queues, and each client link may ask at most ``max_queries_per_s`` per queryable
-(Zenoh's downsampling drops the excess; the client asks again).
+largest windows fills the queue and gets "busy" replies, not more of the CPU. Poses go out at Zenoh's
+real-time priority, ahead of answers in a link's queues, and each client link may ask at most
+``max_queries_per_s`` per queryable (Zenoh's downsampling drops the excess; the client asks again).
 """
 
 from __future__ import annotations
