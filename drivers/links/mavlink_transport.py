@@ -165,7 +165,9 @@ class _StreamTransport:
 
     A subclass provides ``_start_open() -> bool`` (True: open now, False: still opening),
     ``_open_done() -> bool`` (raises OSError when opening failed), ``_read()``, ``_write()``, ``_close()``
-    and ``fileno()``; none of them may block.
+    and ``fileno()``; none of them may block. ``before_close``, if set, is called while the open
+    descriptor is still open, just before it is closed (a lost link, or :meth:`close`): whoever
+    watches it for readability stops watching it before its number can be handed out again.
     """
 
     stream = True
@@ -180,6 +182,7 @@ class _StreamTransport:
         self._pending = bytearray()
         self.connected = False
         self._opening_since: float | None = None
+        self.before_close: Callable[[], None] | None = None
 
     def receive(self, max_datagrams: int) -> tuple[Frames, bool]:
         """Frames from up to ``max_datagrams`` reads of at most READ_CHUNK bytes; True when more may wait."""
@@ -271,6 +274,8 @@ class _StreamTransport:
         self._quiet_close()
 
     def _quiet_close(self) -> None:
+        if self.before_close is not None:
+            self.before_close()
         try:
             self._close()
         except OSError as exc:

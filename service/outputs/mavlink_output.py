@@ -6,11 +6,14 @@ failure book: an endpoint that fails is counted and skipped, the others go on. O
 the autopilot's profile (:mod:`.mavlink_odometry`); ground stations get the generic fields. Only the
 flight controller's link (``url``) feeds the estimator (``handlers``, e.g. the autopilot's GPS).
 
-Incoming messages are read in slices of bounded work: a UDP link when the loop reports it readable,
-a serial or TCP link every ``STREAM_POLL_S``. A slice stops after ``READ_BUDGET_S``; a link whose
-slice ran out with data still waiting is left alone for ``READ_COOLDOWN_S``. So no input rate holds
-the estimator's loop longer than one slice (a fraction of an IMU period), and a flood of datagrams
-takes at most a fixed share of it; what it crowds out is dropped by the kernel, not queued here.
+Incoming messages are read in slices of bounded work, on every link as soon as the loop reports its
+descriptor readable: no request waits for a timer, so a TIMESYNC round trip splits evenly both ways
+(a serial or TCP link's descriptor is followed through reconnections; such a link is opened and its
+unsent bytes flushed every ``STREAM_SERVICE_S``). A slice stops after ``READ_BUDGET_S``; a link
+whose slice ran out with data still waiting is left alone for ``READ_COOLDOWN_S``. So no input rate
+holds the estimator's loop longer than one slice (a fraction of an IMU period), and a flood takes at
+most a fixed share of it; what it crowds out is dropped by the kernel (or, on a stream, counted as
+dropped over budget), not queued here.
 
 TIMESYNC: a request (``tc1 = 0``) is answered at once with ``tc1`` = now on the clock ``time_usec`` is
 in (:class:`SensorClock`: live, the host's monotonic clock the IMU is stamped on; a paced replay, the
@@ -55,7 +58,7 @@ COMPONENT_ID = mav.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY  # 197
 READ_BUDGET_S = 0.0005
 READ_COOLDOWN_S = 0.004
 READ_BATCH = 4  # datagrams (or stream reads) between two looks at the clock
-STREAM_POLL_S = 0.005
+STREAM_SERVICE_S = 0.005  # a serial or TCP link (re)opened and its unsent bytes flushed this often
 POSE_AGE_WINDOW = 3000  # ODOMETRY whose age the status figures cover (a minute at 50 Hz)
 AUTOPILOT_NAMES = {mav.MAV_AUTOPILOT_PX4: "px4", mav.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot"}
 
@@ -130,7 +133,8 @@ class Endpoint:
         self.transport: Any = None
         self.stats: Counter[str] = Counter()
         self.failures = FailureBook()
-        self.paused_until = 0.0  # reading rests until then after a slice ran out of budget
+        self.watched_fd: int | None = None  # the descriptor the loop reports readable for this link, if any
+        self.resting = False  # a slice ran out of budget: not read for READ_COOLDOWN_S
         self.peer_autopilot: str | None = None
         self.timesync_offset_ms: float | None = None
         self._reached = 0
@@ -267,6 +271,7 @@ class MavlinkOutput:
 
     def close(self) -> None:
         for endpoint in self.endpoints:
+            self._unwatch(endpoint)
             endpoint.close()
 
     # ------------------------------------------------------------------------------ outgoing
@@ -364,20 +369,40 @@ class MavlinkOutput:
             if e.transport is not None:
                 e.read(self._on_message)
 
+    def _watch(self, endpoint: Endpoint) -> None:
+        """Have the loop report the link's descriptor as it is now: none while the link is closed or
+        reopening, the new one after a reconnection (a UDP socket's never changes)."""
+        loop = self._loop
+        transport = endpoint.transport
+        fd = transport.fileno() if transport is not None and loop is not None else None
+        if fd == endpoint.watched_fd:
+            return
+        self._unwatch(endpoint)
+        if fd is not None:
+            loop.add_reader(fd, self._on_readable, endpoint)
+            endpoint.watched_fd = fd
+
+    def _unwatch(self, endpoint: Endpoint) -> None:
+        if endpoint.watched_fd is not None and self._loop is not None:
+            self._loop.remove_reader(endpoint.watched_fd)
+        endpoint.watched_fd = None
+
     def _on_readable(self, endpoint: Endpoint) -> None:
         try:
             exhausted = endpoint.read(self._on_message)
         except Exception as exc:
             endpoint.failures.record(f"MAVLink {endpoint.name} reading", exc)
             exhausted = True
-        if exhausted and self._loop is not None and endpoint.transport is not None:
-            fd = endpoint.transport.fileno()
-            self._loop.remove_reader(fd)
-            self._loop.call_later(READ_COOLDOWN_S, self._resume, endpoint, fd)
+        if exhausted and self._loop is not None:
+            self._unwatch(endpoint)  # rests for READ_COOLDOWN_S; the serve loop must not take it back before
+            endpoint.resting = True
+            self._loop.call_later(READ_COOLDOWN_S, self._resume, endpoint)
+        else:
+            self._watch(endpoint)  # the read may have lost the link (a stream's descriptor is then gone)
 
-    def _resume(self, endpoint: Endpoint, fd: int) -> None:
-        if endpoint.transport is not None and self._loop is not None:
-            self._loop.add_reader(fd, self._on_readable, endpoint)
+    def _resume(self, endpoint: Endpoint) -> None:
+        endpoint.resting = False
+        self._watch(endpoint)
 
     def link_stats(self) -> dict[str, Any]:
         """Totals over the endpoints, and each endpoint's own report under ``endpoints``."""
@@ -396,13 +421,14 @@ class MavlinkOutput:
         return doc
 
     async def serve(self, stop: asyncio.Event) -> None:
-        """HEARTBEAT every second; UDP read when readable, serial and TCP polled; links kept open."""
+        """HEARTBEAT every second; every link read when readable; serial and TCP links kept open."""
         loop = self._loop = asyncio.get_running_loop()
-        datagram = [e for e in self.endpoints if e.transport is not None and not e.transport.stream]
-        for endpoint in datagram:
-            loop.add_reader(endpoint.transport.fileno(), self._on_readable, endpoint)
-        streams = [e for e in self.endpoints if e.transport is not None and e.transport.stream]
-        tick = STREAM_POLL_S if streams else 0.1
+        for endpoint in self.endpoints:
+            endpoint.resting = False  # a rest begun under an earlier loop ended with it
+            if endpoint.transport is not None and endpoint.transport.stream:
+                endpoint.transport.before_close = lambda e=endpoint: self._unwatch(e)  # while its descriptor is open
+        streams = any(e.transport is not None and e.transport.stream for e in self.endpoints)
+        tick = STREAM_SERVICE_S if streams else 0.1
         next_beat = loop.time()
         try:
             while not stop.is_set():
@@ -414,14 +440,14 @@ class MavlinkOutput:
                         continue
                     try:
                         endpoint.transport.service()
-                        if endpoint.transport.stream and loop.time() >= endpoint.paused_until:
-                            if endpoint.read(self._on_message):
-                                endpoint.paused_until = loop.time() + READ_COOLDOWN_S
+                        if not endpoint.resting:
+                            self._watch(endpoint)
                     except Exception as exc:  # a socket error or a bug: counted, the link keeps serving
                         endpoint.failures.record(f"MAVLink {endpoint.name}", exc)
                 await stopped_within(stop, tick)
         finally:
-            for endpoint in datagram:
-                if endpoint.transport is not None:
-                    loop.remove_reader(endpoint.transport.fileno())
+            for endpoint in self.endpoints:
+                self._unwatch(endpoint)
+                if endpoint.transport is not None and endpoint.transport.stream:
+                    endpoint.transport.before_close = None
             self._loop = None
