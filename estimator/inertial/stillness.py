@@ -51,9 +51,13 @@ class StillnessDetector:
     def __init__(self, options: StillnessOptions) -> None:
         self.options = options
         self._previous: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        # After a run, the accumulation as the compiled kernel keeps it (sums, counts): the next run takes it as
+        # it is, and anything else unpacks it into the fields first (_unpacked).
+        self._packed: tuple[np.ndarray, np.ndarray] | None = None
         self._reset(None)
 
     def _reset(self, t_ns: int | None) -> None:
+        self._packed = None
         self._t0 = t_ns
         self._samples = 0
         self._n = 0  # block means in this chunk
@@ -75,6 +79,8 @@ class StillnessDetector:
         The live path, one sample at a time: the compiled accumulation (:meth:`add_run`) is a kernel of runs,
         which a live service does not load (tests/test_layout.py); tests/test_stillness.py holds the two to the
         same bits."""
+        if self._packed is not None:
+            self._unpack()
         if self._t0 is None:
             self._reset(t_ns)
         self._samples += 1
@@ -103,22 +109,35 @@ class StillnessDetector:
         """:meth:`add`'s accumulation for each row of a run, in one compiled call (``sample_kernel``): the
         chunks that ended, as (index of their last sample, duration, statistics) for :meth:`judge`, which
         the caller calls for each in turn with the filter's speed at that sample."""
-        sums, counts = np.zeros(18), np.zeros(6, np.int64)
-        if self._t0 is not None:
-            sums[0:3], sums[3:6], sums[6:9], sums[9:12] = self._g_sum, self._g_sq, self._a_sum, self._a_sq
-            sums[12:15], sums[15:18] = self._block_g, self._block_a
-            counts[:] = (self._t0, self._block_t0, self._samples, self._n, self._block_n, 1)
+        if self._packed is None:
+            sums, counts = np.zeros(18), np.zeros(6, np.int64)
+            if self._t0 is not None:
+                sums[0:3], sums[3:6], sums[6:9], sums[9:12] = self._g_sum, self._g_sq, self._a_sum, self._a_sq
+                sums[12:15], sums[15:18] = self._block_g, self._block_a
+                counts[:] = (self._t0, self._block_t0, self._samples, self._n, self._block_n, 1)
+        else:
+            sums, counts = self._packed
         ends, durations, stats = sample_kernel.stillness_run(t_ns, gyro, accel, sums, counts, self.options.average_s,
                                                              self.options.chunk_s)
         if counts[5]:
-            self._t0, self._block_t0, self._samples, self._n, self._block_n = (int(c) for c in counts[:5])
-            self._g_sum, self._g_sq, self._a_sum, self._a_sq = sums[0:3], sums[3:6], sums[6:9], sums[9:12]
-            values = sums[12:18].tolist()
-            self._block_g, self._block_a = tuple(values[0:3]), tuple(values[3:6])
+            self._packed = sums, counts
+        if not len(ends):
+            return []
         return list(zip(ends.tolist(), durations.tolist(), stats))
+
+    def _unpack(self) -> None:
+        """The kernel's (sums, counts) back into the fields the per-sample path and the judgement use."""
+        sums, counts = self._packed
+        self._packed = None
+        self._t0, self._block_t0, self._samples, self._n, self._block_n = (int(c) for c in counts[:5].tolist())
+        self._g_sum, self._g_sq, self._a_sum, self._a_sq = sums[0:3], sums[3:6], sums[6:9], sums[9:12]
+        values = sums[12:18].tolist()
+        self._block_g, self._block_a = tuple(values[0:3]), tuple(values[3:6])
 
     def judge(self, duration: float, stats: np.ndarray, gravity: float, speed: float) -> StillChunk | None:
         """What :meth:`add` returns at a chunk's end, for a chunk :meth:`add_run` reported."""
+        if self._packed is not None:
+            self._unpack()
         current = (self._n, self._samples, self._g_sum, self._g_sq, self._a_sum, self._a_sq)
         self._g_sum, self._g_sq, self._a_sum, self._a_sq = stats[0:3], stats[3:6], stats[6:9], stats[9:12]
         self._samples, self._n = int(stats[12]), int(stats[13])
