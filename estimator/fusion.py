@@ -107,16 +107,20 @@ class OutputPose:
 class FusedRun:
     """The fused poses of consecutive filter steps that only propagated, as arrays (a row per step): what an
     offline replay records without making an :class:`OutputPose` per step. The published covariances are
-    worked out when asked for (:meth:`cov9`, :meth:`pose_cov`: a recorder wants one now and then);
+    worked out when asked for (:meth:`cov9`, :meth:`pose_cov`: a recorder wants one now and then), and so are
+    the body rates and their variance (:meth:`omega_b`, :meth:`omega_var`: from values kept here, never changed);
     :meth:`poses` makes the poses, equal to the ones the steps one by one would have made."""
 
     t_ns: np.ndarray
     p: np.ndarray
     v: np.ndarray
     q: np.ndarray
-    omega_b: np.ndarray
+    gyro: np.ndarray  # the samples of the run the steps came from
+    gyro_rows: list[int]  # each step's last sample among them
+    b_g: np.ndarray  # the gyro bias over the steps (the state's; the filter replaces it, never changes it in place)
     robot_cov: np.ndarray  # the filter's robot covariance after each step (never changed)
-    omega_var: np.ndarray
+    white_rate_var: np.ndarray  # the gyro's white-noise rate variance, per axis
+    estimates_biases: bool  # the state's layout: the bias's variance adds to the rates'
     heading_aligned: bool
     position_initialized: bool
     reset_counter: int
@@ -135,13 +139,23 @@ class FusedRun:
         """Step ``x``'s ``OutputPose.pose_cov``."""
         return _pose_cov(published_cov9(self.robot_cov[x], self.heading_aligned, self.local_heading_floor))
 
+    def omega_b(self) -> np.ndarray:
+        """Each step's body rates (``OutputPose.omega_b``): its last gyro reading less the bias."""
+        return self.gyro[self.gyro_rows] - self.b_g
+
+    def omega_var(self) -> np.ndarray:
+        """Each step's ``OutputPose.omega_var``."""
+        if self.estimates_biases:
+            return self.white_rate_var + self.robot_cov.diagonal(axis1=1, axis2=2)[:, BG]
+        return np.tile(self.white_rate_var, (len(self.t_ns), 1))
+
     def poses(self) -> list[OutputPose]:
         cov9 = self.cov9()
         pose_cov = cov9.reshape(len(cov9), 81)[:, _POSE_FLAT].reshape(len(cov9), 6, 6)
         flags = (self.heading_aligned, self.position_initialized, self.reset_counter)
         return [OutputPose(t, p, v, q, w, c9, pc, ov, *flags, t, cap, self.local_position)
-                for t, p, v, q, w, c9, pc, ov, cap in zip(self.t_ns.tolist(), self.p, self.v, self.q, self.omega_b,
-                                                          cov9, pose_cov, self.omega_var, self.quality_cap)]
+                for t, p, v, q, w, c9, pc, ov, cap in zip(self.t_ns.tolist(), self.p, self.v, self.q, self.omega_b(),
+                                                          cov9, pose_cov, self.omega_var(), self.quality_cap)]
 
 
 def nominal_step(
@@ -430,7 +444,7 @@ class FusionCore:
             self._last_reported_t = int(t_state[-1])
             if self.on_fused_run is None and self.on_fused is None:
                 return
-            run = self._fused_run(t_state[first:], states[first:], covs[first:], gyro[ks[first:]])
+            run = self._fused_run(t_state[first:], states[first:], covs[first:], gyro, ks[first:])
             if self.on_fused_run is not None:
                 self.on_fused_run(run)
             else:
@@ -550,16 +564,15 @@ class FusionCore:
             white = self._white_rate_var = (noise, rate, noise.gyro_noise_density**2 * rate)
         return white[2]
 
-    def _fused_run(self, t_ns: np.ndarray, states: np.ndarray, covs: np.ndarray, gyro: np.ndarray) -> FusedRun:
+    def _fused_run(self, t_ns: np.ndarray, states: np.ndarray, covs: np.ndarray, gyro: np.ndarray,
+                   rows: list[int]) -> FusedRun:
         """:meth:`_fused_pose` of each of a run's steps that only propagated (end times, p, v, q rows, robot
-        covariances, each step's last gyro reading), as arrays: nothing but the propagation has changed the
-        state since the first of them."""
+        covariances, the run's gyro samples and each step's last among them), as arrays: nothing but the
+        propagation has changed the state since the first of them."""
         est = self.est
         s = est.state
-        white = self._white_rate()
-        omega_var = white + covs.diagonal(axis1=1, axis2=2)[:, BG] if s.layout.estimates_biases else np.tile(white, (len(t_ns), 1))
-        return FusedRun(t_ns, states[:, 0:3], states[:, 3:6], states[:, 6:10], gyro - s.b_g, covs, omega_var,
-                        est.heading_aligned, est.position_initialized, est.reset_counter,
+        return FusedRun(t_ns, states[:, 0:3], states[:, 3:6], states[:, 6:10], gyro, rows, s.b_g, covs,
+                        self._white_rate(), s.layout.estimates_biases, est.heading_aligned, est.position_initialized, est.reset_counter,
                         est.health.quality_caps(t_ns.tolist()), est.local_position, est.local_heading_floor())
 
     def _noise(self, q: np.ndarray, dt: float) -> np.ndarray:

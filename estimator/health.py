@@ -356,13 +356,21 @@ class HealthMonitor:
         """:meth:`quality_cap` at each of ``t_ns`` (increasing, a run's steps): worked out once where none of the
         times it compares with (a reset's hold, a sensor going stale, an innovation run capped) falls among them."""
         first, last = t_ns[0], t_ns[-1]
-        edges = [self.resets[-1].t_ns + self._hold_ns] if self.resets else []  # the cap differs from each edge on
-        edges += [s.last_used_t_ns + self.stale_ns[name] + 1 for name, s in self.sensors.items()
-                  if name in self.stale_ns and s.last_used_t_ns is not None]
-        edges += [run.since_ns + self._cap_ns for run in self.runs.values() if run.since_ns is not None]
-        if any(first < edge <= last for edge in edges):
+        if self._edge_between(first, last):
             return [self.quality_cap(t) for t in t_ns]
         return [self.quality_cap(first)] * len(t_ns)
+
+    def _edge_between(self, first: int, last: int) -> bool:
+        """Whether the cap may change after ``first`` up to ``last``: the cap differs from each edge on."""
+        if self.resets and first < self.resets[-1].t_ns + self._hold_ns <= last:
+            return True
+        stale_ns = self.stale_ns
+        for name, s in self.sensors.items():
+            limit = stale_ns.get(name)
+            if limit is not None and s.last_used_t_ns is not None and first < s.last_used_t_ns + limit + 1 <= last:
+                return True
+        cap_ns = self._cap_ns
+        return any(run.since_ns is not None and first < run.since_ns + cap_ns <= last for run in self.runs.values())
 
     def quality_cap(self, t_ns: int) -> int:
         """Ceiling on the published quality: 100 when healthy (per-call cost: a few comparisons)."""
