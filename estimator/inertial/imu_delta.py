@@ -103,21 +103,18 @@ class ImuDownsampler:
     def add_run(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> DeltaRun:
         """:meth:`add` for each row of a run of samples (strictly later, in time order), in one compiled
         call (``sample_kernel.downsample_run``): the completed deltas, each with its last sample's index."""
-        last, acc_t = self._last, np.zeros(3, np.int64)
-        acc = np.zeros(14)
-        if last is not None:
-            acc[0:3], acc[3:6] = last[3], last[4]
-            acc_t[0], acc_t[2] = last[0], 1
-        if self._t0 is not None:
-            acc_t[1] = self._t0
-            acc_t[2] |= 2
-        acc[6:10], acc[10:13], acc[13] = self._q, self._dv, self._dt
+        last, t0 = self._last, self._t0
+        # The kernel's state, carried in and out: [last gyro, last accel, q, dv, dt] and [last t, t0, which are set].
+        acc = np.array([*(last[3] if last else (0.0,) * 3), *(last[4] if last else (0.0,) * 3), *self._q, *self._dv, self._dt])
+        acc_t = np.array([last[0] if last else 0, 0 if t0 is None else t0, (last is not None) | (t0 is not None) << 1],
+                         np.int64)
         ends, times, dts, deltas = sample_kernel.downsample_run(t_ns, gyro, accel, acc, acc_t, self.min_dt)
         k = len(t_ns) - 1
-        self._last = (int(t_ns[k]), gyro[k], accel[k], acc[0:3].tolist(), acc[3:6].tolist())
-        self._t0 = int(acc_t[1]) if acc_t[2] & 2 else None
-        values = acc[6:14].tolist()
-        self._q, self._dv, self._dt = tuple(values[0:4]), tuple(values[4:7]), values[7]
+        values = acc.tolist()
+        t_last, t0, flags = acc_t.tolist()
+        self._last = (t_last, gyro[k], accel[k], values[0:3], values[3:6])
+        self._t0 = t0 if flags & 2 else None
+        self._q, self._dv, self._dt = tuple(values[6:10]), tuple(values[10:13]), values[13]
         return DeltaRun(ends.tolist(), times, dts, deltas)
 
     def flush(self) -> ImuDelta | None:
