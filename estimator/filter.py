@@ -646,8 +646,9 @@ class Estimator:
         """Fuse a fix at its own time. Returns the update outcome, or None if it was not fused."""
         counts = self.counts["gps"]
         counts.received += 1
-        p = np.asarray(fix.p_ned, dtype=float)
-        if not (np.isfinite(p).all() and math.isfinite(fix.sigma_h)) or fix.sigma_h <= 0.0:
+        north, east, down = np.asarray(fix.p_ned, dtype=float).tolist()
+        if not (math.isfinite(north) and math.isfinite(east) and math.isfinite(down) and math.isfinite(fix.sigma_h)) \
+                or fix.sigma_h <= 0.0:
             counts.reject("non_finite")
             self.health.measured("gps", fix.t_ns, used=False)  # alive, but not usable
             return None

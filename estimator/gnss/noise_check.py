@@ -160,7 +160,7 @@ class GpsNoiseCheck:
         self._claimed_h: deque[float] = deque(maxlen=m)
         self._claimed_v: deque[float] = deque(maxlen=m)
         self._pending: tuple[int, np.ndarray, float, float] | None = None  # this fix: t, innovation, claimed σh, σv
-        self._last_posterior: tuple[int, np.ndarray] | None = None  # the previous fix: t, posterior residual
+        self._last_posterior: tuple[int, list[float]] | None = None  # the previous fix: t, posterior residual
         self._resets_in_a_row = 0
         self._scatter = (0.0, 0.0, 0.0)  # the fixes' scatter (robust horizontal; horizontal, vertical), once judged
         self._said_h = math.nan  # the latest fix's own sigma_h, before the filter's floor
@@ -214,8 +214,11 @@ class GpsNoiseCheck:
         self._pending = (fix.t_ns, nu, claimed_h, claimed_v)
         self._said_h = float(fix.sigma_h)  # the claim as the receiver made it, for the operator
         last = self._last_posterior
-        if last is not None and 0 < fix.t_ns - last[0] <= self.options.max_pair_gap_s * 1e9 and np.all(np.isfinite(nu)):
-            self._take_diff(tuple((nu - last[1]).tolist()))
+        if last is not None and 0 < fix.t_ns - last[0] <= self.options.max_pair_gap_s * 1e9:
+            (north, east, down), (pn, pe, pd) = nu.tolist(), last[1]
+            if not (math.isfinite(north) and math.isfinite(east) and math.isfinite(down)):
+                return
+            self._take_diff((north - pn, east - pe, down - pd))
             self._nis.append(nis if math.isfinite(nis) else 1e300)
             self._claimed_h.append(claimed_h)
             self._claimed_v.append(claimed_v)
@@ -225,7 +228,7 @@ class GpsNoiseCheck:
         if not self.options.enabled or self._pending is None or self._pending[0] != t_ns:
             return
         self._pending = None
-        self._last_posterior = (t_ns, np.asarray(posterior_residual, dtype=float))
+        self._last_posterior = (t_ns, np.asarray(posterior_residual, dtype=float).tolist())
         if accepted:
             self._resets_in_a_row = 0
         self._judge(t_ns)
