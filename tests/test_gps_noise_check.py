@@ -62,3 +62,5 @@ def test_the_measured_scatter_is_the_one_numpy_gives_for_the_window():
         np.testing.assert_array_equal(check.robust_sigma_h(), robust)
         nan_in_window = 11 <= k <= 12 + check.options.window - 1
         assert math.isnan(robust) == nan_in_window
+        # The NIS window's lower quartile (the verdict's "out of band"), kept in order as the window slides.
+        np.testing.assert_array_equal(check._nis_sizes.percentile(0.25), np.percentile(list(check._nis), 25))

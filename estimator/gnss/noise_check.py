@@ -54,9 +54,11 @@ def median_of_sorted(values: list[float]) -> float:
     """``np.median`` of ``values`` (none negative) given sorted, with its arithmetic (the middle two summed,
     then halved; NaN if any is): on a window of a hundred floats, every fix, numpy's call costs ten times the
     sort."""
+    return math.nan if _has_nan(values) else _middle(values)
+
+
+def _middle(values: list[float]) -> float:
     n = len(values)
-    if _has_nan(values):
-        return math.nan
     if n % 2:
         return values[n // 2]
     return (values[n // 2 - 1] + values[n // 2]) / 2
@@ -65,9 +67,11 @@ def median_of_sorted(values: list[float]) -> float:
 def percentile_of_sorted(values: list[float], q: float) -> float:
     """``np.percentile(values, 100 q)`` (its default, linear interpolation between the order statistics around
     ``(n − 1) q``, with its arithmetic) of ``values`` (none negative) given sorted."""
+    return math.nan if _has_nan(values) else _interpolated(values, q)
+
+
+def _interpolated(values: list[float], q: float) -> float:
     n = len(values)
-    if _has_nan(values):
-        return math.nan
     virtual = (n - 1) * q
     below = n - 1 if virtual >= n - 1 else math.floor(virtual)
     above = n - 1 if virtual >= n - 1 else below + 1
@@ -96,9 +100,16 @@ class SortedSizes:
         else:
             del self._values[bisect_left(self._values, size)]
 
-    def in_order(self) -> list[float]:
-        """The sizes sorted (for :func:`median_of_sorted`, :func:`percentile_of_sorted`), or [NaN] if any is."""
-        return [math.nan] if self._nans else self._values
+    def __len__(self) -> int:
+        return len(self._values) + self._nans
+
+    def median(self) -> float:
+        """:func:`median_of_sorted` of the sizes (NaN if any is), without looking through them for a NaN."""
+        return math.nan if self._nans else _middle(self._values)
+
+    def percentile(self, q: float) -> float:
+        """:func:`percentile_of_sorted` of the sizes at ``q`` (NaN if any is)."""
+        return math.nan if self._nans else _interpolated(self._values, q)
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,7 +167,8 @@ class GpsNoiseCheck:
         self._horizontal, self._vertical = SortedSizes(), SortedSizes()
         m = self.options.nis_window
         self._before_start: deque[GpsFix] = deque(maxlen=max(self.options.min_pairs, m))  # heard before the start
-        self._nis: deque[float] = deque(maxlen=m)  # under the claimed noise
+        self._nis: deque[float] = deque(maxlen=m)  # under the claimed noise ...
+        self._nis_sizes = SortedSizes()  # ... and the same in order
         self._claimed_h: deque[float] = deque(maxlen=m)
         self._claimed_v: deque[float] = deque(maxlen=m)
         self._pending: tuple[int, np.ndarray, float, float] | None = None  # this fix: t, innovation, claimed σh, σv
@@ -219,7 +231,11 @@ class GpsNoiseCheck:
             if not (math.isfinite(north) and math.isfinite(east) and math.isfinite(down)):
                 return
             self._take_diff((north - pn, east - pe, down - pd))
-            self._nis.append(nis if math.isfinite(nis) else 1e300)
+            nis = nis if math.isfinite(nis) else 1e300
+            if len(self._nis) == self._nis.maxlen:
+                self._nis_sizes.remove(self._nis[0])
+            self._nis.append(nis)
+            self._nis_sizes.add(nis)
             self._claimed_h.append(claimed_h)
             self._claimed_v.append(claimed_v)
 
@@ -277,12 +293,11 @@ class GpsNoiseCheck:
         """The fixes' own noise (horizontal, vertical) from the window's differences, bounded; None: too few."""
         if len(self._diffs) < self.options.min_pairs_after_resets:
             return None
-        horizontal, vertical = self._horizontal.in_order(), self._vertical.in_order()
         # Each difference carries two fixes' errors: per axis variance 2σ². (The innovations' own size is no
         # measure of it: a jump of 20 m held for seconds would pass for noise and be followed.) Errors that are
         # correlated from fix to fix cancel in part: for them this is a lower bound.
-        h = MAD_TO_SIGMA * median_of_sorted(horizontal) / math.sqrt(2.0)
-        v = MAD_TO_SIGMA * median_of_sorted(vertical) / math.sqrt(2.0)
+        h = MAD_TO_SIGMA * self._horizontal.median() / math.sqrt(2.0)
+        v = MAD_TO_SIGMA * self._vertical.median() / math.sqrt(2.0)
         lo, hi = self.sigma_floor_m, self.options.max_sigma_m
         return min(max(h, lo), hi), min(max(v, lo), hi)
 
@@ -290,7 +305,7 @@ class GpsNoiseCheck:
         """The horizontal scatter from the lowest tenth of the differences' sizes: what decides whether a claim
         is believed. Multipath on a third of the fixes spoils half the differences and lifts their median (the
         weight's measure) above three claimed sigmas; those fixes are the gate's to refuse, not a lie."""
-        return percentile_of_sorted(self._horizontal.in_order(), 10 / 100) / (LOWER_DECILE_ABS * math.sqrt(2.0))
+        return self._horizontal.percentile(10 / 100) / (LOWER_DECILE_ABS * math.sqrt(2.0))
 
     def _take_diff(self, diff: tuple[float, float, float]) -> None:
         """A new difference into the window (the oldest leaves it once it is full), its sizes into their orders."""
@@ -320,7 +335,7 @@ class GpsNoiseCheck:
         # A reset for refused fixes is itself the NIS out of band, for gps_reset_after_s on end.
         # Most of the latest fixes refused under their claims (the lower quartile of their NIS beyond the gate):
         # a third of them off by multipath is not that.
-        nis_out = self._resets_in_a_row > 0 or percentile_of_sorted(sorted(self._nis), 25 / 100) > chi2_gate(3, opts.nis_probability)
+        nis_out = self._resets_in_a_row > 0 or self._nis_sizes.percentile(25 / 100) > chi2_gate(3, opts.nis_probability)
         if self.verdict is None:
             implausible = robust_h > max(opts.implausible_ratio * claimed_h, opts.min_sigma_m)  # no NIS needed
             if implausible or (nis_out and robust_h > max(opts.distrust_ratio * claimed_h, opts.min_sigma_m)):
