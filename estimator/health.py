@@ -162,7 +162,7 @@ def state_problem(state: FilterState) -> str | None:
         return f"covariance has a non-positive variance (index {int(np.argmin(d))})"
     s = 1.0 / np.sqrt(d)
     corr = (cov + cov.T) * 0.5 * s[:, None] * s[None, :]
-    corr[np.diag_indices_from(corr)] += 1e-9
+    corr.flat[:: len(d) + 1] += 1e-9  # the diagonal
     try:
         np.linalg.cholesky(corr)
     except np.linalg.LinAlgError:
