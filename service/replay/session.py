@@ -67,18 +67,16 @@ class CovarianceSamples:
         return cls(np.array(t, dtype=np.int64), np.array(p), np.array(q), np.array(c))
 
 
-def _rows_block(rows: list[tuple]) -> tuple:
-    t, p, v, q, unscored = zip(*rows)
-    return np.array(t, dtype=np.int64), np.array(p), np.array(v), np.array(q), np.array(unscored, bool)
-
-
 class Recorder:
     """Every fused pose, and its covariance at a lower rate (called on the runtime's loop)."""
 
     def __init__(self, cov_period_ns: int, absolute_position: bool = True) -> None:
-        # In the order they came: single poses as (t, p, v, q, unscored) rows, a run's poses as one
+        # Single poses as (t, p, v, q, unscored) rows with their place among all poses; a run's poses as one
         # (t_ns, p, v, q, unscored) block of arrays (record_run: kept as the run hands them over, not cut into rows).
-        self._parts: list[tuple] = []
+        self._rows: list[tuple] = []
+        self._row_places: list[int] = []
+        self._runs: list[tuple] = []
+        self._count = 0
         self.cov_period_ns = cov_period_ns
         # Without an absolute position source the start is the origin and the covariance is
         # meaningful from the first step; with one, only once the position is initialised.
@@ -89,7 +87,9 @@ class Recorder:
     def record(self, pose: OutputPose) -> None:
         # A pose before the position it is to have is not scored.
         unscored = self.absolute_position and not pose.position_initialized
-        self._parts.append((pose.t_ns, pose.p, pose.v, pose.q, unscored))
+        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q, unscored))
+        self._row_places.append(self._count)
+        self._count += 1
         if not unscored and pose.t_ns >= self._next_cov_t:
             self._cov.append((pose.t_ns, pose.p, pose.q, pose.pose_cov))
             self._next_cov_t = pose.t_ns + self.cov_period_ns
@@ -97,7 +97,8 @@ class Recorder:
     def record_run(self, run: FusedRun) -> None:
         """:meth:`record` for each pose of ``run``, without making them."""
         unscored = self.absolute_position and not run.position_initialized
-        self._parts.append((run.t_ns, run.p, run.v, run.q, unscored))
+        self._runs.append((run.t_ns, run.p, run.v, run.q, np.full(len(run.t_ns), unscored)))
+        self._count += len(run.t_ns)
         if unscored or run.t_ns[-1] < self._next_cov_t:
             return
         for x, t in enumerate(run.t_ns.tolist()):
@@ -106,23 +107,19 @@ class Recorder:
                 self._next_cov_t = t + self.cov_period_ns
 
     def trajectory(self) -> Trajectory:
-        blocks: list[tuple] = []  # (t, p, v, q, unscored) arrays: each run's, and each stretch of single rows'
-        rows: list[tuple] = []
-        for part in self._parts:
-            if isinstance(part[1], np.ndarray) and part[1].ndim == 2:
-                if rows:
-                    blocks.append(_rows_block(rows))
-                    rows = []
-                t, p, v, q, unscored = part
-                blocks.append((t, p, v, q, np.full(len(t), unscored)))
-            else:
-                rows.append(part)
-        if rows:
-            blocks.append(_rows_block(rows))
-        if not blocks:
-            return Trajectory(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0, bool))
-        t, p, v, q, unscored = (np.concatenate(column) for column in zip(*blocks))
-        return Trajectory(t.astype(np.int64, copy=False), p, v, q, unscored.astype(bool, copy=False))
+        """Every pose in the order recorded: the runs' blocks joined, the single rows put in their places."""
+        n = self._count
+        columns = (np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)), np.empty(n, bool))
+        if self._rows:
+            places = np.array(self._row_places)
+            for column, values in zip(columns, zip(*self._rows)):
+                column[places] = values
+        if self._runs:
+            in_runs = np.ones(n, bool)
+            in_runs[self._row_places] = False
+            for column, blocks in zip(columns, zip(*self._runs)):
+                column[in_runs] = np.concatenate(blocks)
+        return Trajectory(*columns)
 
     def covariance_samples(self) -> CovarianceSamples:
         return CovarianceSamples.from_rows(self._cov)
