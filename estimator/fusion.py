@@ -572,8 +572,9 @@ class FusionCore:
         est = self.est
         s = est.state
         return FusedRun(t_ns, states[:, 0:3], states[:, 3:6], states[:, 6:10], gyro, rows, s.b_g, covs,
-                        self._white_rate(), s.layout.estimates_biases, est.heading_aligned, est.position_initialized, est.reset_counter,
-                        est.health.quality_caps(t_ns.tolist()), est.local_position, est.local_heading_floor())
+                        self._white_rate(), s.layout.estimates_biases, est.heading_aligned, est.position_initialized,
+                        est.reset_counter, est.health.quality_caps(t_ns.tolist()), est.local_position,
+                        est.local_heading_floor())
 
     def _noise(self, q: np.ndarray, dt: float) -> np.ndarray:
         """IMU white noise over ``dt`` on [p, v, θ]; for isotropic noise, cached polynomials in dt."""

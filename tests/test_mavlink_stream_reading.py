@@ -85,7 +85,8 @@ def test_a_serial_link_is_read_when_data_comes_not_when_a_timer_fires(monkeypatc
 def test_a_tcp_link_is_watched_on_its_new_descriptor_after_a_reconnection():
     server = socket.create_server(("127.0.0.1", 0))
     server.settimeout(10.0)
-    out = MavlinkOutput([endpoint(f"tcp:127.0.0.1:{server.getsockname()[1]}")], clock=SensorClock(now=time.monotonic_ns))
+    url = f"tcp:127.0.0.1:{server.getsockname()[1]}"
+    out = MavlinkOutput([endpoint(url)], clock=SensorClock(now=time.monotonic_ns))
     out.open()
     out.clock.follow(time.monotonic_ns())
     ep = out.endpoints[0]

@@ -44,20 +44,10 @@ MAD_TO_SIGMA = 1.4826  # a normal variable's sigma from its median absolute devi
 LOWER_DECILE_ABS = 0.1257  # the 10th percentile of |x| for a standard normal x
 
 
-def _has_nan(values: list[float]) -> bool:
-    """Whether any of ``values`` (none negative: sizes, NIS) is NaN: their sum is, then only."""
-    total = sum(values)
-    return total != total
-
-
 def median_of_sorted(values: list[float]) -> float:
-    """``np.median`` of ``values`` (none negative) given sorted, with its arithmetic (the middle two summed,
-    then halved; NaN if any is): on a window of a hundred floats, every fix, numpy's call costs ten times the
-    sort."""
-    return math.nan if _has_nan(values) else _middle(values)
-
-
-def _middle(values: list[float]) -> float:
+    """``np.median`` of ``values`` (none negative, none NaN: :class:`SortedSizes` counts those apart) given
+    sorted, with its arithmetic (the middle two summed, then halved): on a window of a hundred floats, every
+    fix, numpy's call costs ten times the sort."""
     n = len(values)
     if n % 2:
         return values[n // 2]
@@ -66,11 +56,7 @@ def _middle(values: list[float]) -> float:
 
 def percentile_of_sorted(values: list[float], q: float) -> float:
     """``np.percentile(values, 100 q)`` (its default, linear interpolation between the order statistics around
-    ``(n − 1) q``, with its arithmetic) of ``values`` (none negative) given sorted."""
-    return math.nan if _has_nan(values) else _interpolated(values, q)
-
-
-def _interpolated(values: list[float], q: float) -> float:
+    ``(n − 1) q``, with its arithmetic) of ``values`` (none negative, none NaN) given sorted."""
     n = len(values)
     virtual = (n - 1) * q
     below = n - 1 if virtual >= n - 1 else math.floor(virtual)
@@ -100,16 +86,13 @@ class SortedSizes:
         else:
             del self._values[bisect_left(self._values, size)]
 
-    def __len__(self) -> int:
-        return len(self._values) + self._nans
-
     def median(self) -> float:
-        """:func:`median_of_sorted` of the sizes (NaN if any is), without looking through them for a NaN."""
-        return math.nan if self._nans else _middle(self._values)
+        """``np.median`` of the sizes (NaN if any is, as numpy's)."""
+        return math.nan if self._nans else median_of_sorted(self._values)
 
     def percentile(self, q: float) -> float:
-        """:func:`percentile_of_sorted` of the sizes at ``q`` (NaN if any is)."""
-        return math.nan if self._nans else _interpolated(self._values, q)
+        """``np.percentile`` of the sizes at ``100 q`` (NaN if any is)."""
+        return math.nan if self._nans else percentile_of_sorted(self._values, q)
 
 
 @dataclass(frozen=True, slots=True)

@@ -105,7 +105,8 @@ class ImuDownsampler:
         call (``sample_kernel.downsample_run``): the completed deltas, each with its last sample's index."""
         last, t0 = self._last, self._t0
         # The kernel's state, carried in and out: [last gyro, last accel, q, dv, dt] and [last t, t0, which are set].
-        acc = np.array([*(last[3] if last else (0.0,) * 3), *(last[4] if last else (0.0,) * 3), *self._q, *self._dv, self._dt])
+        g, a = (last[3], last[4]) if last else ((0.0,) * 3, (0.0,) * 3)
+        acc = np.array([*g, *a, *self._q, *self._dv, self._dt])
         acc_t = np.array([last[0] if last else 0, 0 if t0 is None else t0, (last is not None) | (t0 is not None) << 1],
                          np.int64)
         ends, times, dts, deltas = sample_kernel.downsample_run(t_ns, gyro, accel, acc, acc_t, self.min_dt)

@@ -52,7 +52,7 @@ class StillnessDetector:
         self.options = options
         self._previous: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         # After a run, the accumulation as the compiled kernel keeps it (sums, counts): the next run takes it as
-        # it is, and anything else unpacks it into the fields first (_unpacked).
+        # it is, and anything else unpacks it into the fields first (_unpack).
         self._packed: tuple[np.ndarray, np.ndarray] | None = None
         self._reset(None)
 
