@@ -10,10 +10,11 @@ Incoming messages are read in slices of bounded work, on every link as soon as t
 descriptor readable: no request waits for a timer, so a TIMESYNC round trip splits evenly both ways
 (a serial or TCP link's descriptor is followed through reconnections; such a link is opened and its
 unsent bytes flushed every ``STREAM_SERVICE_S``). A slice stops after ``READ_BUDGET_S``; a link
-whose slice ran out with data still waiting is left alone for ``READ_COOLDOWN_S``. So no input rate
-holds the estimator's loop longer than one slice (a fraction of an IMU period), and a flood takes at
-most a fixed share of it; what it crowds out is dropped by the kernel (or, on a stream, counted as
-dropped over budget), not queued here.
+whose slice ran out with data still waiting is left alone for ``READ_COOLDOWN_S``; the frames it had
+read and not handled are handled first in the next slice (at most ``MAX_HELD_FRAMES``, one read
+batch's), before the link is read again. So no input rate holds the estimator's loop longer than one
+slice (a fraction of an IMU period), a flood takes at most a fixed share of it, and what it crowds
+out waits in the kernel (a TCP sender is slowed) or is dropped there, not queued here.
 
 TIMESYNC: a request (``tc1 = 0``) is answered at once with ``tc1`` = now on the clock ``time_usec`` is
 in (:class:`SensorClock`: live, the host's monotonic clock the IMU is stamped on; a paced replay, the
@@ -29,7 +30,7 @@ import asyncio
 import logging
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from typing import Any, Callable, Sequence
 
 from vtolpose.config.mavlink_settings import EndpointSpec, mavlink_endpoints
@@ -58,6 +59,7 @@ COMPONENT_ID = mav.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY  # 197
 READ_BUDGET_S = 0.0005
 READ_COOLDOWN_S = 0.004
 READ_BATCH = 4  # datagrams (or stream reads) between two looks at the clock
+MAX_HELD_FRAMES = 1024  # frames of one batch kept for the next slice; more are dropped and counted
 STREAM_SERVICE_S = 0.005  # a serial or TCP link (re)opened and its unsent bytes flushed this often
 POSE_AGE_WINDOW = 3000  # ODOMETRY whose age the status figures cover (a minute at 50 Hz)
 AUTOPILOT_NAMES = {mav.MAV_AUTOPILOT_PX4: "px4", mav.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot"}
@@ -135,6 +137,7 @@ class Endpoint:
         self.failures = FailureBook()
         self.watched_fd: int | None = None  # the descriptor the loop reports readable for this link, if any
         self.resting = False  # a slice ran out of budget: not read for READ_COOLDOWN_S
+        self.held: deque[tuple[bytes, Any]] = deque()  # frames read, not yet handled (a slice's budget ran out)
         self.peer_autopilot: str | None = None
         self.timesync_offset_ms: float | None = None
         self._reached = 0
@@ -176,11 +179,21 @@ class Endpoint:
         return True
 
     def read(self, on_message: Callable[["Endpoint", Any], None], budget_s: float = READ_BUDGET_S) -> bool:
-        """Handle waiting messages for at most ``budget_s``; True when it stopped with data left."""
+        """Handle waiting messages for at most ``budget_s``: first the frames an earlier slice read and had no
+        budget left for, then what the link has. True when it stopped with some left (held, or maybe waiting)."""
         deadline = time.perf_counter() + budget_s
+        held = self.held
         while True:
-            frames, more = self.transport.receive(READ_BATCH)
-            for i, (frame, peer) in enumerate(frames):
+            if held:
+                more = True  # the link is read again once they are handled
+            else:
+                frames, more = self.transport.receive(READ_BATCH)
+                if len(frames) > MAX_HELD_FRAMES:  # only a batch of datagrams packed with frames gets here
+                    self.stats["frames_dropped_over_budget"] += len(frames) - MAX_HELD_FRAMES
+                    del frames[MAX_HELD_FRAMES:]
+                held.extend(frames)
+            while held:
+                frame, peer = held.popleft()
                 msg = self.inbound.accept(frame)
                 if msg is not None:
                     self.transport.confirm_peer(peer)
@@ -188,14 +201,13 @@ class Endpoint:
                         on_message(self, msg)
                     except Exception as exc:  # a handler's bug: counted, the link keeps reading
                         self.failures.record(f"MAVLink {self.name} handling {msg.get_type()}", exc)
-                if time.perf_counter() >= deadline and i + 1 < len(frames):
-                    self.stats["frames_dropped_over_budget"] += len(frames) - i - 1
-                    break
+                if time.perf_counter() >= deadline:
+                    if held or more:
+                        self.stats["read_budget_exhausted"] += 1
+                        return True
+                    return False
             if not more:
                 return False
-            if time.perf_counter() >= deadline:
-                self.stats["read_budget_exhausted"] += 1
-                return True
 
     def report(self) -> dict[str, Any]:
         doc: dict[str, Any] = {"url": self.spec.url, "role": self.spec.role, "rate_hz": self.spec.rate_hz}
@@ -403,6 +415,8 @@ class MavlinkOutput:
     def _resume(self, endpoint: Endpoint) -> None:
         endpoint.resting = False
         self._watch(endpoint)
+        if endpoint.held and endpoint.watched_fd is not None:  # already read: no readiness will come for them
+            self._on_readable(endpoint)
 
     def link_stats(self) -> dict[str, Any]:
         """Totals over the endpoints, and each endpoint's own report under ``endpoints``."""
