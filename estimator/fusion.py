@@ -204,6 +204,7 @@ class _Prediction:
     accel: np.ndarray
     anchor_t_ns: int
     signature: tuple
+    floats: tuple = ()  # (gyro, accel) as tuples of floats, once a step has made them
 
 
 class FusionCore:
@@ -243,6 +244,7 @@ class FusionCore:
         self._eye3 = np.eye(3)
         self._q_terms: tuple | None = None
         self._white_rate_var: tuple | None = None  # (noise, rate, the gyro's white-noise rate variance) of _omega_var
+        self._bias_floats: tuple = (None, None, (), ())  # (b_g, b_a, their floats): the state replaces, never changes them
         self._out_cov: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # see output()
 
     # ---------------------------------------------------------------------------- inputs
@@ -477,15 +479,19 @@ class FusionCore:
         if t <= pred.t_ns:
             return
         if self.est.health.gap_needs_reset((t - pred.t_ns) * 1e-9):  # as the filter does: hold, do not fly through
-            pred.t_ns, pred.gyro, pred.accel = t, gyro, accel
+            pred.t_ns, pred.gyro, pred.accel, pred.floats = t, gyro, accel, ()
             return
         s = self.est.state
+        biases = self._bias_floats
+        if biases[0] is not s.b_g or biases[1] is not s.b_a:
+            biases = self._bias_floats = (s.b_g, s.b_a, tuple(s.b_g.tolist()), tuple(s.b_a.tolist()))
+        g0, a0 = pred.floats or (tuple(pred.gyro.tolist()), tuple(pred.accel.tolist()))
+        g1, a1 = tuple(gyro.tolist()), tuple(accel.tolist())
         pred.p, pred.v, pred.q = nominal_step(
-            pred.p, pred.v, pred.q, tuple(s.b_g.tolist()), tuple(s.b_a.tolist()), tuple(pred.gyro.tolist()),
-            tuple(pred.accel.tolist()), tuple(gyro.tolist()), tuple(accel.tolist()), (t - pred.t_ns) * 1e-9,
+            pred.p, pred.v, pred.q, biases[2], biases[3], g0, a0, g1, a1, (t - pred.t_ns) * 1e-9,
             float(self.est.propagator.gravity[2]),
         )
-        pred.t_ns, pred.gyro, pred.accel = t, gyro, accel
+        pred.t_ns, pred.gyro, pred.accel, pred.floats = t, gyro, accel, (g1, a1)
 
     def _repredict(self) -> _Prediction | None:
         """Propagate the delayed state through every buffered sample newer than it."""
@@ -523,12 +529,11 @@ class FusionCore:
             self._out_cov = None
         cov9, pose_cov, omega_var = self._out_cov or self._predicted_covariance()
         s = self.est.state
-        return OutputPose(
-            t_ns=pred.t_ns, p=np.array(pred.p), v=np.array(pred.v), q=np.array(pred.q), omega_b=pred.gyro - s.b_g,
-            cov9=cov9, pose_cov=pose_cov, omega_var=omega_var, heading_aligned=self.est.heading_aligned,
-            position_initialized=self.est.position_initialized, reset_counter=self.est.reset_counter,
-            fused_t_ns=s.t_ns, quality_cap=self.est.health.quality_cap(s.t_ns),
-            local_position=self.est.local_position,
+        est = self.est
+        return OutputPose(  # in field order (positional: keyword handling is a quarter of a small call's cost)
+            pred.t_ns, np.array(pred.p), np.array(pred.v), np.array(pred.q), pred.gyro - s.b_g, cov9, pose_cov,
+            omega_var, est.heading_aligned, est.position_initialized, est.reset_counter, s.t_ns,
+            est.health.quality_cap(s.t_ns), est.local_position,
         )
 
     def _predicted_covariance(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
