@@ -8,32 +8,53 @@ import pytest
 
 from vtolpose.estimator.inertial.imu_delta import ImuDownsampler
 
+from sample_pieces import pieces
 
-@pytest.mark.parametrize("rate_hz", [100.0, 40.0])
-def test_runs_of_samples_give_the_deltas_one_sample_at_a_time_gives(rate_hz: float) -> None:
-    rng = np.random.default_rng(int(rate_hz))
+
+def imu_samples(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """600 samples at ~200 Hz with jitter (times, gyro, accel), 40 of them without any rotation."""
+    rng = np.random.default_rng(seed)
     n = 600
-    t_ns = np.cumsum(rng.integers(4_000_000, 6_000_000, n)).astype(np.int64)  # ~200 Hz with jitter
+    t_ns = np.cumsum(rng.integers(4_000_000, 6_000_000, n)).astype(np.int64)
     gyro = rng.normal(size=(n, 3)) * 2.0
     gyro[100:140] = 0.0  # no rotation at all: the small-angle branches
     accel = rng.normal(size=(n, 3)) + np.array([0.0, 0.0, -9.81])
-    one_by_one, each = ImuDownsampler(rate_hz), []
-    for k in range(n):
-        delta = one_by_one.add(int(t_ns[k]), gyro[k], accel[k])
+    return t_ns, gyro, accel
+
+
+def deltas_one_by_one(downsampler: ImuDownsampler, t_ns, gyro, accel, first: int = 0) -> list[tuple[int, object]]:
+    """Each delta the live path completes, with its last sample's index (counted from ``first``)."""
+    found = []
+    for k in range(len(t_ns)):
+        delta = downsampler.add(int(t_ns[k]), gyro[k], accel[k])
         if delta is not None:
-            each.append((k, delta))
-    runs, together, start = ImuDownsampler(rate_hz), [], 0
-    for length in rng.integers(1, 60, 100):  # runs of any length, cut anywhere in a step
-        stop = min(start + int(length), n)
-        found = runs.add_run(t_ns[start:stop], gyro[start:stop], accel[start:stop])
-        together += [(start + end, found.delta(j)) for j, end in enumerate(found.ends)]
-        start = stop
-        if start == n:
-            break
+            found.append((first + k, delta))
+    return found
+
+
+def deltas_of_a_run(downsampler: ImuDownsampler, t_ns, gyro, accel, first: int = 0) -> list[tuple[int, object]]:
+    """The same for a run of samples handed over at once (``add_run``)."""
+    found = downsampler.add_run(t_ns, gyro, accel)
+    return [(first + end, found.delta(j)) for j, end in enumerate(found.ends)]
+
+
+def assert_same_deltas(each: list, together: list) -> None:
     assert len(each) > 50 and [k for k, _ in each] == [k for k, _ in together]
     for (_, a), (_, b) in zip(each, together):
         assert (a.t0_ns, a.t1_ns, a.dt) == (b.t0_ns, b.t1_ns, b.dt)
         assert np.array_equal(a.dtheta, b.dtheta) and np.array_equal(a.dvel, b.dvel)
+
+
+@pytest.mark.parametrize("rate_hz", [100.0, 40.0])
+def test_runs_of_samples_give_the_deltas_one_sample_at_a_time_gives(rate_hz: float) -> None:
+    t_ns, gyro, accel = imu_samples(int(rate_hz))
+    one_by_one, runs = ImuDownsampler(rate_hz), ImuDownsampler(rate_hz)
+    each = deltas_one_by_one(one_by_one, t_ns, gyro, accel)
+    together = []
+    # Runs of any length, cut anywhere in a step.
+    for start, stop in pieces(len(t_ns), np.random.default_rng(int(rate_hz)).integers(1, 60, 100)):
+        together += deltas_of_a_run(runs, t_ns[start:stop], gyro[start:stop], accel[start:stop], start)
+    assert_same_deltas(each, together)
     # What is left open carries on the same way.
     a, b = one_by_one.flush(), runs.flush()
     assert (a is None) == (b is None)
@@ -43,29 +64,11 @@ def test_runs_of_samples_give_the_deltas_one_sample_at_a_time_gives(rate_hz: flo
 
 def test_runs_and_single_samples_mixed_give_the_deltas_one_sample_at_a_time_gives() -> None:
     """A run hands its open step over in the form the next single sample (or run) takes it from."""
+    t_ns, gyro, accel = imu_samples(3)
+    each = deltas_one_by_one(ImuDownsampler(40.0), t_ns, gyro, accel)
     rng = np.random.default_rng(3)
-    n = 600
-    t_ns = np.cumsum(rng.integers(4_000_000, 6_000_000, n)).astype(np.int64)
-    gyro = rng.normal(size=(n, 3)) * 2.0
-    accel = rng.normal(size=(n, 3)) + np.array([0.0, 0.0, -9.81])
-    one_by_one, each = ImuDownsampler(40.0), []
-    for k in range(n):
-        delta = one_by_one.add(int(t_ns[k]), gyro[k], accel[k])
-        if delta is not None:
-            each.append((k, delta))
-    mixed, together, start = ImuDownsampler(40.0), [], 0
-    while start < n:
-        stop = min(start + int(rng.integers(1, 30)), n)
-        if rng.random() < 0.5:
-            found = mixed.add_run(t_ns[start:stop], gyro[start:stop], accel[start:stop])
-            together += [(start + end, found.delta(j)) for j, end in enumerate(found.ends)]
-        else:
-            for k in range(start, stop):
-                delta = mixed.add(int(t_ns[k]), gyro[k], accel[k])
-                if delta is not None:
-                    together.append((k, delta))
-        start = stop
-    assert len(each) > 50 and [k for k, _ in each] == [k for k, _ in together]
-    for (_, a), (_, b) in zip(each, together):
-        assert (a.t0_ns, a.t1_ns, a.dt) == (b.t0_ns, b.t1_ns, b.dt)
-        assert np.array_equal(a.dtheta, b.dtheta) and np.array_equal(a.dvel, b.dvel)
+    mixed, together = ImuDownsampler(40.0), []
+    for start, stop in pieces(len(t_ns), rng.integers(1, 30, len(t_ns))):
+        take = deltas_of_a_run if rng.random() < 0.5 else deltas_one_by_one
+        together += take(mixed, t_ns[start:stop], gyro[start:stop], accel[start:stop], start)
+    assert_same_deltas(each, together)

@@ -13,6 +13,7 @@ import select
 import socket
 import threading
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -44,13 +45,24 @@ def timesync_round_trips(write, read, count: int, answered) -> list[float]:
     return trips
 
 
-async def serve_while(out: MavlinkOutput, peer: threading.Thread) -> None:
-    stop = asyncio.Event()
-    task = asyncio.create_task(out.serve(stop))
-    while peer.is_alive():
-        await asyncio.sleep(0.01)
-    stop.set()
-    await task
+def serve_beside(out: MavlinkOutput, peer: threading.Thread, *closing: Callable[[], None]) -> None:
+    """Serve ``out`` on an event loop while ``peer`` (started here) runs; then close it, and ``closing`` after it."""
+
+    async def serve() -> None:
+        stop = asyncio.Event()
+        task = asyncio.create_task(out.serve(stop))
+        while peer.is_alive():
+            await asyncio.sleep(0.01)
+        stop.set()
+        await task
+
+    try:
+        peer.start()
+        asyncio.run(serve())
+    finally:
+        out.close()
+        for close in closing:
+            close()
 
 
 def test_a_serial_link_is_read_when_data_comes_not_when_a_timer_fires(monkeypatch):
@@ -69,13 +81,7 @@ def test_a_serial_link_is_read_when_data_comes_not_when_a_timer_fires(monkeypatc
     trips: list[float] = []
     peer = threading.Thread(target=lambda: trips.extend(
         timesync_round_trips(lambda data: os.write(master, data), read, 40, answered)))
-    try:
-        peer.start()
-        asyncio.run(serve_while(out, peer))
-    finally:
-        out.close()
-        os.close(master)
-        os.close(slave)
+    serve_beside(out, peer, lambda: os.close(master), lambda: os.close(slave))
     print(f"round trips: median {np.median(trips):.2f} ms, max {max(trips):.2f} ms over {len(trips)}")
     assert answered == list(range(40))
     # A 5-ms poll would make the median wait 2.5 ms; read on readiness it is the loop's wake-up.
@@ -108,16 +114,10 @@ def test_a_tcp_link_is_watched_on_its_new_descriptor_after_a_reconnection():
             watched.append((ep.watched_fd, ep.transport.fileno()))
             conn.close()
 
-    thread = threading.Thread(target=peer)
-    try:
-        thread.start()
-        asyncio.run(serve_while(out, thread))
-        lost = ep.transport.counts["link_lost"]
-    finally:
-        out.close()
-        server.close()
+    transport = ep.transport
+    serve_beside(out, threading.Thread(target=peer), server.close)
     assert answered == [list(range(10)), list(range(10))]  # every request of both connections answered
-    assert lost >= 1
+    assert transport.counts["link_lost"] >= 1
     assert all(fd is not None and fd == now for fd, now in watched)  # the descriptor the link has, each time
 
 
@@ -130,37 +130,27 @@ def test_a_flooded_serial_link_rests_then_is_read_to_the_end_losing_nothing():
     beat = mav.MAVLink_heartbeat_message(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0, 0, 3)
     burst = b"".join(beat.pack(enc) for _ in range(3000))
     os.set_blocking(master, False)
-    view = memoryview(burst)
-    try:  # the terminal's buffer filled before the loop looks: its first slice finds more than its budget reads
-        while view:
-            view = view[os.write(master, view[:4096]):]
-    except BlockingIOError:
-        pass
+    unsent = [memoryview(burst)]
+
+    def write_what_fits() -> None:
+        """The burst on into the terminal until its buffer is full (a write would block) or all of it is in."""
+        while unsent[0]:
+            try:
+                unsent[0] = unsent[0][os.write(master, unsent[0][:4096]):]
+            except BlockingIOError:
+                return
+
+    write_what_fits()  # before the loop looks: its first slice finds more than its budget reads
 
     def write_all() -> None:
-        nonlocal view
-        while view:
-            _, ready, _ = select.select([], [master], [], 1.0)
-            try:
-                if ready:
-                    view = view[os.write(master, view[:4096]):]
-            except BlockingIOError:
-                continue
+        while unsent[0]:
+            select.select([], [master], [], 1.0)
+            write_what_fits()
         deadline = time.monotonic() + 10.0
-        while time.monotonic() < deadline and handled() < 3000:
+        while time.monotonic() < deadline and out.link_stats()["received"] < 3000:
             time.sleep(0.01)
 
-    def handled() -> int:
-        return out.link_stats()["received"] + out.endpoints[0].stats["frames_dropped_over_budget"]
-
-    writer = threading.Thread(target=write_all)
-    try:
-        writer.start()
-        asyncio.run(serve_while(out, writer))
-    finally:
-        out.close()
-        os.close(master)
-        os.close(slave)
+    serve_beside(out, threading.Thread(target=write_all), lambda: os.close(master), lambda: os.close(slave))
     stats = out.endpoints[0].stats
     print(f"received {out.link_stats()['received']}, dropped over budget {stats['frames_dropped_over_budget']}, "
           f"slices out of budget {stats['read_budget_exhausted']}")

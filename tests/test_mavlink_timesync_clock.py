@@ -85,15 +85,15 @@ async def fly(out: MavlinkOutput, peer: Px4Peer, seconds: float = 2.0) -> None:
     await task
 
 
-def check(peer: Px4Peer, out: MavlinkOutput, usable_share: float = 0.9, bound_ms: float = 2.0) -> None:
-    """``bound_ms``: how far the mapped stamps may land from the sample's time (PX4 splits the round trip evenly, so
-    a request that waits on one side and not the other shifts the offset by half the wait)."""
+def check(peer: Px4Peer, out: MavlinkOutput) -> None:
+    """Most round trips under PX4's 10 ms, and the mapped stamps within 2 ms of the sample's time (PX4 splits the
+    round trip evenly, so a request that waited on one side and not the other would shift them by half the wait)."""
     errors = peer.mapped_error_ms()
     print(f"{len(peer.rtts_ms)} answers, round trip median {np.median(peer.rtts_ms):.2f} ms (max {max(peer.rtts_ms):.2f}), "
           f"{len(peer.offsets_ns)} under 10 ms; time_usec mapped {np.median(errors):+.2f} ms off the sample's time; "
           f"pose age {out.link_stats()['pose_age_ms']}")
-    assert len(peer.offsets_ns) >= usable_share * len(peer.rtts_ms) and len(peer.offsets_ns) >= 20
-    assert abs(np.median(errors)) < bound_ms  # on the sample's own time, not AGE_MS late
+    assert len(peer.offsets_ns) >= 0.9 * len(peer.rtts_ms) and len(peer.offsets_ns) >= 20
+    assert abs(np.median(errors)) < 2.0  # on the sample's own time, not AGE_MS late
     stats = out.link_stats()
     assert stats["pose_age_ms"]["p50"] == pytest.approx(AGE_MS, abs=3.0)
     assert stats["delay_to_configure_ms"] == pytest.approx(AGE_MS, abs=4.0)

@@ -237,9 +237,10 @@ def accuracy_rows(flight: str, dataset: Dataset, trajectories: dict[str, Traject
     rows: list[Row] = []
     for name, trajectory in sides.items():
         rows += [
-            (f"{flight} {name}: position / GPS, at the fixes", at_fix_position_rmse(trajectory, dataset) / gps_rmse,
-             "ratio", "the first pose at or after each fix, against the truth there, no alignment"),
-            (f"{flight} {name}: position / GPS, every truth sample", scored_position_rmse(trajectory, dataset) / gps_rmse,
-             "ratio", "as vtolpose bench --only euroc: the poses between fixes too, after the rigid alignment"),
+            Row(f"{flight} {name}: position / GPS, at the fixes", at_fix_position_rmse(trajectory, dataset) / gps_rmse,
+                "ratio", "the first pose at or after each fix, against the truth there, no alignment"),
+            Row(f"{flight} {name}: position / GPS, every truth sample",
+                scored_position_rmse(trajectory, dataset) / gps_rmse,
+                "ratio", "as vtolpose bench --only euroc: the poses between fixes too, after the rigid alignment"),
         ]
     return rows
