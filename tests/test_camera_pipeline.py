@@ -319,3 +319,28 @@ def test_frames_without_a_camera_calibration_are_counted():
     est = Estimator(cal)
     assert est.process_features(extract_features(textured(9), EPOCH, FeatureOptions(max_features=20))).reason == "no_camera_calibration"
     assert est.counts["camera"].rejected == {"no_camera_calibration": 1}
+
+
+def test_select_new_features_spaces_them_as_the_pairwise_distances_say():
+    """Hundreds of features against dozens of occupied pixels: the choice is the greedy rule written out with every
+    pairwise distance (free of the border, the used features and the occupied pixels by the limit, strongest first)."""
+    rng = np.random.default_rng(7)
+    kp = np.column_stack([rng.uniform(0, 656, 400), rng.uniform(0, 494, 400)])
+    feats = features_at(1, kp, unit_rows(400, 2))
+    occupied = np.column_stack([rng.uniform(0, 656, 40), rng.uniform(0, 494, 40)])
+    occupied[3] = np.nan  # a prediction behind the camera occupies nothing
+    used = rng.choice(400, 30, replace=False)
+    chosen = select_new_features(feats, occupied, used, 25, 30.0, 12.0)
+    expected: list[int] = []
+    near = np.nanmin(np.linalg.norm(kp[:, None] - occupied[None], axis=2), axis=1)
+    for i in range(400):
+        inside = 12.0 <= kp[i, 0] <= 655 - 12.0 and 12.0 <= kp[i, 1] <= 493 - 12.0
+        if i in used or not inside or near[i] < 30.0:
+            continue
+        if expected and np.min(np.linalg.norm(kp[expected] - kp[i], axis=1)) < 30.0:
+            continue
+        expected.append(i)
+        if len(expected) == 25:
+            break
+    assert len(expected) >= 10
+    assert chosen.tolist() == expected

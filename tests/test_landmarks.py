@@ -350,3 +350,62 @@ def test_a_guessed_depth_without_a_baseline_still_shows_a_tilt_drift():
                                hold, 1).accepted
     assert np.degrees(np.linalg.norm(quat_log(quat_mul(truth.q, quat_conj(s.q)))[0:2])) < 0.15
     np.testing.assert_array_equal(s.landmarks[:, 5], 0.1)  # the depth still held
+
+
+def test_the_turn_about_down_is_numpys_cross_product_to_the_bit():
+    """The gauges' ``[0, 0, 1] × x`` makes the products and differences ``np.cross`` makes: the same bits for
+    signed zeros, infinities and NaN too, one vector or a stack."""
+    from vtolpose.estimator.vision.camera_update import _DOWN, _down_cross
+
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(200, 3))
+    x[::7, 1], x[::5, 0], x[::3, 2] = 0.0, -0.0, -0.0
+    x[::11, 2], x[::13, 0] = np.inf, np.nan
+    with np.errstate(invalid="ignore"):
+        for given in (x, x[0], x[1], x[7]):
+            expected, got = np.cross(_DOWN, given), _down_cross(given)
+            assert got.shape == expected.shape
+            np.testing.assert_array_equal(got, expected)
+            np.testing.assert_array_equal(np.signbit(got), np.signbit(expected))
+
+
+@pytest.mark.parametrize("calibration_states", [0, 1])
+def test_the_gauges_are_their_definitions_built_element_by_element(calibration_states):
+    """The heading gauge and the four unobservable directions, written into views of their vectors, equal the
+    same directions built one landmark at a time with ``np.cross`` and the angles' Jacobian, bit for bit."""
+    from vtolpose.estimator.core.covariance import YAW
+
+    s = make_state(n_landmarks=6, seed=11)
+    if calibration_states:
+        s.calib = np.zeros(1)
+        n = s.map_start + 6 * s.n_landmarks
+        A = np.random.default_rng(2).normal(size=(n, n)) * 0.02
+        s.cov = A @ A.T + 1e-4 * np.eye(n)
+    down = np.array([0.0, 0.0, 1.0])
+    gauge = heading_gauge(s)
+    expected = np.zeros(s.dim)
+    expected[s.layout.V] = np.cross(down, s.v)
+    expected[YAW] = 1.0
+    for j, y in enumerate(s.landmarks):
+        m = direction(y[3], y[4])
+        row = s.map_start + 6 * j
+        expected[row : row + 3] = np.cross(down, y[0:3] - s.p)
+        expected[row + 3 : row + 5] = np.einsum("ij,j->i", angles_jacobian(m[None])[0], np.cross(down, m[None])[0])
+    np.testing.assert_array_equal(gauge, expected)
+
+    idx = np.array([4, 0, 2])
+    N = unobservable_directions(s, idx)
+    r = 6 + s.calib.shape[0]
+    assert N.shape == (r + 6 * len(idx), 4)
+    expected = np.zeros_like(N)
+    expected[0:3, 0:3] = np.eye(3)
+    expected[0:3, 3] = np.cross(down, s.p)
+    expected[3:6, 3] = down
+    for j, i in enumerate(idx):
+        y = s.landmarks[i]
+        m = direction(y[3], y[4])
+        row = r + 6 * j
+        expected[row : row + 3, 0:3] = np.eye(3)
+        expected[row : row + 3, 3] = np.cross(down, y[0:3])
+        expected[row + 3 : row + 5, 3] = np.einsum("ij,j->i", angles_jacobian(m[None])[0], np.cross(down, m[None])[0])
+    np.testing.assert_array_equal(N, expected)

@@ -337,7 +337,7 @@ def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
     def compiled() -> list[set]:
         return [set(f.signatures) for f in (kernel.step, kernel.noise_from_terms, kernel.step_run, kernel.step_all,
                                              kernel.step_all_run,
-                                             update_kernel.small_update, update_kernel.small_inverse, gps_kernel.gps_update, gps_kernel.filter_fix,
+                                             update_kernel.small_update, update_kernel.small_inverse, update_kernel.gauge_transfer, gps_kernel.gps_update, gps_kernel.filter_fix,
                                              sample_kernel.downsample_run, sample_kernel.stillness_run,
                                              sample_kernel.screen_rows, sample_kernel.plain_run, sample_kernel.level_run)]
     from vtolpose.estimator.gnss import gps_kernel

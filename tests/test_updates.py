@@ -328,3 +328,31 @@ def test_the_filters_compiled_fix_is_the_noise_checks_update_and_residual_in_pyt
         assert list(checks[0]._diffs) == list(checks[1]._diffs)
         np.testing.assert_allclose(list(checks[0]._nis), list(checks[1]._nis), rtol=1e-12)
         assert len(checks[0]._nis) == (case not in ("non_finite", "unchecked"))
+
+
+@pytest.mark.parametrize("kernel", ["compiled", "interpreted"])
+def test_the_gauge_transfer_is_numpys_outer_products_to_the_bit(kernel):
+    """``P ← T P Tᵀ`` with ``T = I + d e_ψᵀ`` in one compiled pass (or its plain-Python body, which a cold kernel cache
+    runs) equals the three outer products it replaces, bit for bit; a covariance that is not C-ordered takes numpy's
+    path to the same numbers."""
+    from vtolpose.estimator.core import covariance, update_kernel
+
+    rng = np.random.default_rng(5)
+    n = 57
+    A = rng.normal(size=(n, n))
+    cov = A @ A.T * 1e-3
+    before, after = rng.normal(size=n), rng.normal(size=n)
+    d = after - before
+    c = cov[:, covariance.YAW].copy()
+    expected = cov + (np.outer(d, c) + np.outer(c, d) + cov[covariance.YAW, covariance.YAW] * np.outer(d, d))
+    transfer = update_kernel.gauge_transfer if kernel == "compiled" else update_kernel.gauge_transfer.py_func
+    got = cov.copy()
+    transfer(got, d, covariance.YAW)
+    np.testing.assert_array_equal(got, expected)
+    through = cov.copy()
+    covariance.transfer_gauge(through, before, after)
+    np.testing.assert_array_equal(through, expected)
+    fortran = np.asfortranarray(cov)
+    covariance.transfer_gauge(fortran, before, after)
+    np.testing.assert_array_equal(fortran, expected)
+    np.testing.assert_array_equal(got, got.T)  # a symmetric covariance stays symmetric

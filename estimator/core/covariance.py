@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vtolpose.estimator.core import update_kernel
 from vtolpose.estimator.core.state import LANDMARK_DIM, StateLayout
 
 P, V, TH, BG, BA = StateLayout.P, StateLayout.V, StateLayout.TH, StateLayout.BG, StateLayout.BA
@@ -47,7 +48,10 @@ def transfer_gauge(cov: np.ndarray, before: np.ndarray, after: np.ndarray) -> No
     turn it was blind to is carried to the turn at the new estimate. Without it the next update, blind to the
     turn at its own estimate, reads a little heading out of the mismatch (EKF-SLAM's inconsistency; this is
     the observability-constrained transition of OC-EKF, applied where the estimate moves)."""
-    d = after - before
+    d = np.subtract(after, before, dtype=float)
+    if cov.flags.c_contiguous and cov.dtype == np.float64:
+        update_kernel.gauge_transfer(cov, d, YAW)  # the same arithmetic, one compiled pass
+        return
     c = cov[:, YAW].copy()
     cov += np.outer(d, c) + np.outer(c, d) + cov[YAW, YAW] * np.outer(d, d)
 

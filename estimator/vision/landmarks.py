@@ -32,11 +32,12 @@ def direction(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
     return np.stack([-sp, cp * st, cp * ct], axis=-1)
 
 
-def direction_derivatives(theta: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``∂m/∂θ`` and ``∂m/∂φ``, each ``(..., 3)``."""
+def direction_with_derivatives(theta: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``m``, ``∂m/∂θ`` and ``∂m/∂φ``, each ``(..., 3)``, from one evaluation of the sines and cosines."""
     ct, st, cp, sp = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi)
     zero = np.zeros_like(ct)
-    return np.stack([zero, cp * ct, -cp * st], axis=-1), np.stack([-cp, -sp * st, -sp * ct], axis=-1)
+    return (np.stack([-sp, cp * st, cp * ct], axis=-1), np.stack([zero, cp * ct, -cp * st], axis=-1),
+            np.stack([-cp, -sp * st, -sp * ct], axis=-1))
 
 
 def angles(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,7 +72,7 @@ def point_jacobian(y: np.ndarray) -> np.ndarray:
     """``∂P/∂y`` of :func:`landmark_points`, ``(M, 3, 6)``: for converting a landmark to a point."""
     y = np.asarray(y, dtype=float)
     rho = y[..., 5]
-    dm_dt, dm_dp = direction_derivatives(y[..., 3], y[..., 4])
+    _, dm_dt, dm_dp = direction_with_derivatives(y[..., 3], y[..., 4])
     J = np.zeros(y.shape[:-1] + (3, 6))
     J[..., :, 0:3] = np.eye(3)
     J[..., :, 3] = dm_dt / rho[..., None]

@@ -182,9 +182,11 @@ def select_new_features(
     free &= (kp[:, 0] >= border_px) & (kp[:, 0] <= w - 1 - border_px) & (kp[:, 1] >= border_px) & (kp[:, 1] <= h - 1 - border_px)
     limit = min_distance_px**2
     occupied = occupied_uv[np.all(np.isfinite(occupied_uv), axis=1)] if len(occupied_uv) else np.zeros((0, 2))
-    if len(occupied):
-        d2 = np.min(np.sum((kp[:, None, :] - occupied[None, :, :]) ** 2, axis=2), axis=1)
-        free &= d2 >= limit
+    if len(occupied):  # the free features' squared distances to their nearest occupied pixel
+        candidates = np.flatnonzero(free)
+        du = kp[candidates, 0, None] - occupied[None, :, 0]
+        dv = kp[candidates, 1, None] - occupied[None, :, 1]
+        free[candidates] = np.min(du * du + dv * dv, axis=1) >= limit
     chosen: list[int] = []
     for i in np.flatnonzero(free):
         if chosen:
