@@ -244,5 +244,8 @@ def bench_replay_camera(scenario: str = "book", duration_s: float = 120.0) -> li
 
 
 def bench_camera() -> list[Row]:
-    """The camera's figures together: extraction on one core, then Test 3's work per frame, speed and accuracy."""
-    return bench_features() + bench_replay_camera()
+    """The camera's figures together: extraction on one core, then Test 3's work per frame, speed and accuracy,
+    then Test 3 at 10 Hz through a 640 × 480 and a 1280 × 720 camera."""
+    from vtolpose.service.bench.camera_resolutions import bench_camera_resolutions
+
+    return bench_features() + bench_replay_camera() + bench_camera_resolutions()

@@ -9,7 +9,8 @@ SUMMARIES: dict[str, str] = {
     'camera-update': 'One camera update (predict, associate, stacked EKF update) vs landmarks in the map.',
     'features': 'Feature extraction per 656 x 494 frame on one core, each detector, on rendered book and landfill frames.',
     'replay-camera': "Test 3 (imu,camera,gps, biases) on a rendered flight: the camera's work per frame on one core,",
-    'camera': "The camera's figures together: extraction on one core, then Test 3's work per frame, speed and accuracy.",
+    'camera-resolutions': 'Test 3 (imu,camera,gps, biases) on the book flight seen at 10 Hz through a 640 × 480 and a 1280 × 720',
+    'camera': "The camera's figures together: extraction on one core, then Test 3's work per frame, speed and accuracy,",
     'odometry-encoding': "µs per ODOMETRY publish to one endpoint, pymavlink's framing and the hand-built one, unsigned and signed.",
     'runtime-latency': 'IMU sample in → ODOMETRY and Zenoh pose out, p50/p99, with SIFT at 7.5 Hz in camera threads, then processes (targets: p99 ≤ 1 ms, handling p50 ≤ 0.2 ms).',
     'pose-encoding': 'json.dumps(pose_message) against PoseJson, and PoseJson with the covariance written ahead: warm, and paced at 125 Hz.',
@@ -42,5 +43,5 @@ LONG_BENCHMARKS = (
     'smoothing-latency', 'batch', 'results', 'camera-matrix', 'cold-start', 'camera-clock', 'camera-mounting',
 )
 
-# Several of the above together (camera: features, then replay-camera): only when named.
+# Several of the above together (camera: features, replay-camera, then camera-resolutions): only when named.
 GROUPS = ('camera',)

@@ -33,6 +33,7 @@ from vtolpose.service.bench.camera_clock import bench_camera_clock
 from vtolpose.service.bench.camera_mounting import bench_camera_mounting
 from vtolpose.service.bench.camera_matrix import bench_camera_matrix
 from vtolpose.service.bench.camera import bench_camera, bench_camera_update, bench_features, bench_replay_camera
+from vtolpose.service.bench.camera_resolutions import bench_camera_resolutions
 from vtolpose.service.bench.euroc import bench_euroc
 from vtolpose.service.bench.euroc_causes import bench_euroc_causes
 from vtolpose.service.bench.euroc_reference import bench_euroc_reference
@@ -115,6 +116,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "camera-update": bench_camera_update,
     "features": bench_features,
     "replay-camera": bench_replay_camera,
+    "camera-resolutions": bench_camera_resolutions,
     "camera": bench_camera,
     "odometry-encoding": bench_odometry_encoding,
     "runtime-latency": bench_runtime_latency,
