@@ -99,7 +99,7 @@ def small_update(cov: np.ndarray, c0: int, c1: int, H: np.ndarray, residual: np.
 def gauge_transfer(cov: np.ndarray, d: np.ndarray, yaw: int) -> None:
     """``P ← T P Tᵀ`` with ``T = I + d e_yawᵀ``, in place (``covariance.transfer_gauge``, after a camera update or a
     fix with a map): the same products and sums per element as numpy's three outer products, in one pass over
-    the covariance instead of six (a 60-landmark map's 375 × 375 in ~0.1 ms instead of ~1.4)."""
+    the covariance instead of six (a 50-landmark map's 315 × 315 in 0.07 ms instead of 1.4)."""
     c = cov[:, yaw].copy()
     s = cov[yaw, yaw]
     cov += (d[:, None] * c[None, :] + c[:, None] * d[None, :]) + s * (d[:, None] * d[None, :])
