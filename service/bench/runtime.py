@@ -8,7 +8,10 @@ every sample and every pose is published on Zenoh to a subscriber in another pro
 latency is from the moment a sample is handed over by its reader thread to the moment both
 outputs have returned. Targets: p99 ≤ 1 ms, and the loop's own handling of a sample ≤ 0.2 ms (p50).
 Beside them: each output's share of the handling, and what a bare UDP datagram and a bare Zenoh put
-of the same sizes cost on this machine with nothing around them (the floor of the two sends).
+of the same sizes cost on this machine with nothing around them (the floor of the two sends). Those runs'
+frames are one textured image, not of the flight, so their update only counts; a last run renders the flight
+and fuses its own frames with the service's frame processor, so that the EKF-SLAM update runs on the loop
+as in service and the IMU samples that arrive during it wait as they would.
 
 ``runtime-hour``: a one-hour landfill flight replayed through the runtime as fast as possible
 with both outputs enabled; resident memory, history and buffers are sampled along the way and
@@ -130,6 +133,7 @@ def bench_runtime_latency(duration_s: float = 15.0) -> list[Row]:
     rows = latency_run(duration_s, None, "normal")
     processes = latency_run(duration_s, None, "camera process", in_process)
     rows += processes + process_ratios(rows, processes)
+    rows += latency_run(duration_s, None, "camera process, the flight's frames fused", in_process, frames_of_flight=True)
     if set_thread_priority(20) and set_thread_priority(None):  # permitted here: measure it too
         threads = latency_run(duration_s, 20, "SCHED_FIFO 20")
         processes = latency_run(duration_s, 20, "SCHED_FIFO 20, camera process", in_process)
@@ -163,12 +167,21 @@ class _CountingProcessor(FrameProcessor):
         return lambda est: None  # the measurement hook, as process_features will use it
 
 
-def latency_run(duration_s: float, priority: int | None, label: str, overrides: dict | None = None) -> list[Row]:
+def latency_run(duration_s: float, priority: int | None, label: str, overrides: dict | None = None,
+                frames_of_flight: bool = False) -> list[Row]:
+    """One configuration's latency. ``frames_of_flight``: the flight is rendered and its own frames are fused
+    by the service's frame processor (the EKF-SLAM update on the loop, as in service), instead of one textured
+    image whose update only counts."""
     zenoh_port, mav_port = free_port(), free_port(socket.SOCK_DGRAM)
+    flight_frames: list[tuple[int, np.ndarray]] = []
     with tempfile.TemporaryDirectory() as tmp:
-        write_flight(simulate_flight("landfill", duration_s + 15.0, 1), Path(tmp) / "d")
+        write_flight(simulate_flight("landfill", duration_s + 15.0, 1), Path(tmp) / "d",
+                     camera=default_camera() if frames_of_flight else None)
         dataset = Dataset.open(Path(tmp) / "d")
         imu, gps = dataset.imu(), dataset.gps()
+        t_split = int(imu.t_ns[0]) + 15_000_000_000
+        if frames_of_flight:  # in memory before the clock starts: the bench measures the loop, not the disk
+            flight_frames = [(t, dataset.load_frame(path)) for t, path in dataset.camera_frames() if t >= t_split]
     cfg = load_config(None, {
         "vehicle": {"name": "bench"},
         "outputs": {
@@ -178,13 +191,17 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
         **(overrides or {}),
     })
     # Start the filter on the first 15 s of data (alignment), then measure over the rest in real time.
-    t_split = int(imu.t_ns[0]) + 15_000_000_000
     imu_samples = [ImuSample(int(t), g, a) for t, g, a in zip(imu.t_ns, imu.gyro, imu.accel)]
     gps_fixes = [GpsFix(int(t), p, float(h), float(v)) for t, p, h, v in zip(gps.t_ns, gps.p_ned, gps.sigma_h, gps.sigma_v)]
     image = _test_image()
     options = feature_options(cfg)  # the service's own extraction, as features.* configure it
-    extract = _CountingProcessor(options, image.shape)
-    features, extract_ms = extract.features, extract.extract_ms
+    if frames_of_flight:
+        extract = camera_processor(cfg, dataset.calibration)  # the service's own: it fuses what it extracts
+        extract_ms, reports = extract.extract_ms, extract.reports
+        features = [report.n_features for report in reports]  # filled in as frames are fused (read after the run)
+    else:
+        extract = _CountingProcessor(options, image.shape)
+        features, extract_ms, reports = extract.features, extract.extract_ms, None
 
     runtime = build_runtime(cfg, dataset.calibration, camera_processor=extract, measure_latency=True)
     runtime.options.realtime_priority = priority
@@ -202,7 +219,8 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
         t0_wall = time.perf_counter() + 1.0
         later_imu = [s for s in imu_samples if s.t_ns >= t_split]
         later_gps = [f for f in gps_fixes if f.t_ns >= t_split]
-        frames = [CameraFrame(t, image, k) for k, t in enumerate(range(t_split, int(imu.t_ns[-1]), int(1e9 / 7.5)))]
+        frames = ([CameraFrame(t, frame, k) for k, (t, frame) in enumerate(flight_frames)] if frames_of_flight else
+                  [CameraFrame(t, image, k) for k, t in enumerate(range(t_split, int(imu.t_ns[-1]), int(1e9 / 7.5)))])
         sources = [
             ThreadedSource("imu", _Paced(later_imu, t0_wall, t_split), lambda s: s, read_timeout_s=0.05),
             ThreadedSource("gps", _Paced(later_gps, t0_wall, t_split), lambda s: s, read_timeout_s=0.05),
@@ -230,6 +248,8 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
     udp_us, put_us, udp_got, put_got = bare_sends_us(datagram, document)
     n = len(runtime.latency)
     load = f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores"
+    if reports is not None:
+        features = [report.n_features for report in reports]
     extract_note = (f"{np.mean(extract_ms):.0f} ms each, {np.mean(features):.0f} features kept; "
                     f"{summary.status['events'].get('camera_frames_dropped_busy', 0)} dropped busy") if features else "no frames"
     return [
@@ -245,10 +265,22 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
         (f"[{label}] camera frames through {options.detector.upper()} in the "
          f"{'camera process' if runtime.options.camera_process else 'camera threads'}", float(len(features)), "frames",
          extract_note),
+        *([] if reports is None else [_update_row(label, list(reports))]),
         (f"[{label}] Zenoh poses received by the subscriber process", float(received), "poses",
          f"{summary.status['outputs'].get('mavlink', {}).get('odometry_sent', 0)} ODOMETRY sent, "
          f"{datagrams} datagrams received by the UDP peer"),
     ]
+
+
+def _update_row(label: str, reports: list) -> Row:
+    """The frames' EKF-SLAM updates on the loop: how many were fused and how long each held the loop."""
+    timed = [r.timing_ms["cpu"] for r in reports if r.timing_ms]
+    used = sum(1 for r in reports if r.accepted)
+    if not timed:
+        return Row(f"[{label}] camera updates on the loop", 0.0, "frames", f"{len(reports)} frames reached the filter, none updated")
+    return Row(f"[{label}] camera updates on the loop, p50", float(np.median(timed)) * 1e3, "us",
+               f"{len(timed)} frames updated ({used} accepted, map up to {max(r.n_landmarks for r in reports)} landmarks), "
+               f"p95 {np.percentile(timed, 95):.1f} ms, max {max(timed):.1f} ms: IMU samples arriving meanwhile wait")
 
 
 def _bare_send_sizes(runtime: Any) -> tuple[int, int]:
