@@ -215,6 +215,7 @@ SCHEMA: dict[str, Field] = {
     "fusion.max_imu_buffer": Field("int", minimum=1, maximum=1000000),
     "fusion.camera_workers": Field("int", minimum=1, maximum=16),
     "fusion.camera_process": Field("bool"),
+    "fusion.update_thread": Field("bool"),
     "run.calibration_file": Field("str", nullable=True),
     "run.trajectory": Field("str", nullable=True),
     "run.record_dir": Field("str", nullable=True),

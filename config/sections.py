@@ -88,6 +88,7 @@ class FusionSection:
     max_imu_buffer: int
     camera_workers: int
     camera_process: bool
+    update_thread: bool
 
 
 @dataclass(frozen=True, slots=True)

@@ -24,7 +24,7 @@ import heapq
 from bisect import bisect_right
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from operator import itemgetter
 from itertools import chain
 from typing import Any, Callable
@@ -207,6 +207,46 @@ class _Prediction:
     floats: tuple = ()  # (gyro, accel) as tuples of floats, once a step has made them
 
 
+def _step_prediction(pred: _Prediction, t: int, gyro: np.ndarray, accel: np.ndarray, b_g: tuple, b_a: tuple,
+                     gravity_down: float, gap_reset_s: float) -> None:
+    """The output predictor's step to the sample at ``t`` (biases as floats); over a gap the filter would reset
+    for, the prediction holds (as the filter does: it does not fly through a hole)."""
+    if t <= pred.t_ns:
+        return
+    if (t - pred.t_ns) * 1e-9 > gap_reset_s:
+        pred.t_ns, pred.gyro, pred.accel, pred.floats = t, gyro, accel, ()
+        return
+    g0, a0 = pred.floats or (tuple(pred.gyro.tolist()), tuple(pred.accel.tolist()))
+    g1, a1 = tuple(gyro.tolist()), tuple(accel.tolist())
+    pred.p, pred.v, pred.q = nominal_step(pred.p, pred.v, pred.q, b_g, b_a, g0, a0, g1, a1, (t - pred.t_ns) * 1e-9,
+                                          gravity_down)
+    pred.t_ns, pred.gyro, pred.accel, pred.floats = t, gyro, accel, (g1, a1)
+
+
+@dataclass(slots=True)
+class DetachedPrediction:
+    """The output predictor cut loose from the filter while the filter is busy elsewhere (a camera update on
+    another thread): it steps its own copy of the prediction with the biases, gravity and flags of the moment
+    it was made (:meth:`FusionCore.detached`), and hands out that moment's covariance, not grown meanwhile
+    (the filter is back within tens of milliseconds and the prediction is then made again from it)."""
+
+    pred: _Prediction
+    b_g: np.ndarray
+    bias_floats: tuple  # (b_g, b_a) as tuples of floats
+    gravity_down: float
+    gap_reset_s: float
+    covariance: tuple  # (cov9, pose_cov, omega_var)
+    flags: tuple  # OutputPose's fields from heading_aligned on
+
+    def step(self, t: int, gyro: np.ndarray, accel: np.ndarray) -> None:
+        _step_prediction(self.pred, t, gyro, accel, *self.bias_floats, self.gravity_down, self.gap_reset_s)
+
+    def output(self) -> OutputPose:
+        pred = self.pred
+        return OutputPose(pred.t_ns, np.array(pred.p), np.array(pred.v), np.array(pred.q), pred.gyro - self.b_g,
+                          *self.covariance, *self.flags)
+
+
 class FusionCore:
     """Feeds an :class:`Estimator` in time order on a delayed horizon; predicts the present.
 
@@ -322,8 +362,9 @@ class FusionCore:
         # The next outputs' covariance, computed now that the pose has left (off the pose path).
         self._out_cov = self._predicted_covariance() if self._pred is not None else None
 
-    def add_measurement(self, t_ns: int, apply: Apply, kind: str) -> bool:
-        """Queue ``apply(estimator)`` to run when the horizon reaches ``t_ns``. False: refused (counted)."""
+    def add_measurement(self, t_ns: int, apply: Apply, kind: str, fuse_now: bool = True) -> bool:
+        """Queue ``apply(estimator)`` to run when the horizon reaches ``t_ns``. False: refused (counted).
+        ``fuse_now``: one the horizon has passed already is fused at once; otherwise at the next :meth:`advance`."""
         counts = self.counts.setdefault(kind, RejectionCounts())
         counts.received += 1
         if self._fused_until is not None and t_ns < self._fused_until:
@@ -334,7 +375,7 @@ class FusionCore:
             return False
         heapq.heappush(self._pending, (int(t_ns), _KIND_RANK.get(kind, 2), self._seq, kind, apply))
         self._seq += 1
-        if self._newest_t is not None and t_ns <= self._newest_t - self.delay_ns:
+        if fuse_now and self._newest_t is not None and t_ns <= self._newest_t - self.delay_ns:
             self._advance(self._newest_t - self.delay_ns)  # already behind the horizon: fuse it now
             self._pred = self._repredict() if self.predict else None
             self._out_cov = None
@@ -476,22 +517,12 @@ class FusionCore:
                 and self._newest_t - pred.anchor_t_ns < _RESYNC_NS)
 
     def _step(self, pred: _Prediction, t: int, gyro: np.ndarray, accel: np.ndarray) -> None:
-        if t <= pred.t_ns:
-            return
-        if self.est.health.gap_needs_reset((t - pred.t_ns) * 1e-9):  # as the filter does: hold, do not fly through
-            pred.t_ns, pred.gyro, pred.accel, pred.floats = t, gyro, accel, ()
-            return
         s = self.est.state
         biases = self._bias_floats
         if biases[0] is not s.b_g or biases[1] is not s.b_a:
             biases = self._bias_floats = (s.b_g, s.b_a, tuple(s.b_g.tolist()), tuple(s.b_a.tolist()))
-        g0, a0 = pred.floats or (tuple(pred.gyro.tolist()), tuple(pred.accel.tolist()))
-        g1, a1 = tuple(gyro.tolist()), tuple(accel.tolist())
-        pred.p, pred.v, pred.q = nominal_step(
-            pred.p, pred.v, pred.q, biases[2], biases[3], g0, a0, g1, a1, (t - pred.t_ns) * 1e-9,
-            float(self.est.propagator.gravity[2]),
-        )
-        pred.t_ns, pred.gyro, pred.accel, pred.floats = t, gyro, accel, (g1, a1)
+        _step_prediction(pred, t, gyro, accel, biases[2], biases[3], float(self.est.propagator.gravity[2]),
+                         self.est.health.options.imu_gap_reset_s)
 
     def _repredict(self) -> _Prediction | None:
         """Propagate the delayed state through every buffered sample newer than it."""
@@ -523,18 +554,46 @@ class FusionCore:
         """
         if self.est.state is None:
             return None
+        pred = self._fresh_prediction()
+        cov9, pose_cov, omega_var = self._out_cov or self._predicted_covariance()
+        s = self.est.state
+        return OutputPose(  # in field order (positional: keyword handling is a quarter of a small call's cost)
+            pred.t_ns, np.array(pred.p), np.array(pred.v), np.array(pred.q), pred.gyro - s.b_g, cov9, pose_cov,
+            omega_var, *self._pose_flags(),
+        )
+
+    def _fresh_prediction(self) -> _Prediction:
         pred = self._pred
         if pred is None or self._measured or pred.signature != self._signature():
             pred = self._pred = self._repredict()
             self._out_cov = None
-        cov9, pose_cov, omega_var = self._out_cov or self._predicted_covariance()
-        s = self.est.state
+        return pred
+
+    def _pose_flags(self) -> tuple:
         est = self.est
-        return OutputPose(  # in field order (positional: keyword handling is a quarter of a small call's cost)
-            pred.t_ns, np.array(pred.p), np.array(pred.v), np.array(pred.q), pred.gyro - s.b_g, cov9, pose_cov,
-            omega_var, est.heading_aligned, est.position_initialized, est.reset_counter, s.t_ns,
-            est.health.quality_cap(s.t_ns), est.local_position,
-        )
+        t = est.state.t_ns
+        return (est.heading_aligned, est.position_initialized, est.reset_counter, t, est.health.quality_cap(t),
+                est.local_position)
+
+    def detached(self) -> DetachedPrediction | None:
+        """The prediction as it stands, able to go on without the filter (:class:`DetachedPrediction`): for a
+        runtime that lets the filter work on another thread meanwhile. None before the filter has started or
+        without a prediction to keep."""
+        if self.est.state is None or not self.predict:
+            return None
+        pred = self._fresh_prediction()
+        covariance = self._out_cov or self._predicted_covariance()
+        s = self.est.state
+        return DetachedPrediction(replace(pred), s.b_g, (tuple(s.b_g.tolist()), tuple(s.b_a.tolist())),
+                                  float(self.est.propagator.gravity[2]), self.est.health.options.imu_gap_reset_s,
+                                  covariance, self._pose_flags())
+
+    def camera_due(self) -> bool:
+        """Whether the next :meth:`advance` fuses a camera frame (an update of milliseconds, not microseconds)."""
+        if self._newest_t is None or not self._pending:
+            return False
+        horizon = self._newest_t - self.delay_ns
+        return any(kind == "camera" and t <= horizon for t, _, _, kind, _ in self._pending)
 
     def _predicted_covariance(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(cov9, pose_cov, omega_var) of the prediction: the delayed covariance grown to its time."""

@@ -9,9 +9,10 @@ latency is from the moment a sample is handed over by its reader thread to the m
 outputs have returned. Targets: p99 ≤ 1 ms, and the loop's own handling of a sample ≤ 0.2 ms (p50).
 Beside them: each output's share of the handling, and what a bare UDP datagram and a bare Zenoh put
 of the same sizes cost on this machine with nothing around them (the floor of the two sends). Those runs'
-frames are one textured image, not of the flight, so their update only counts; a last run renders the flight
-and fuses its own frames with the service's frame processor, so that the EKF-SLAM update runs on the loop
-as in service and the IMU samples that arrive during it wait as they would.
+frames are one textured image, not of the flight, so their update only counts. Two last runs render the flight
+and fuse its own frames with the service's frame processor: the EKF-SLAM update on the fusion thread
+(``fusion.update_thread``, the default; ``service/runtime/fusion_thread.py``), then on the loop (the baseline),
+where the IMU samples that arrive during an update wait for it.
 
 ``runtime-hour``: a one-hour landfill flight replayed through the runtime as fast as possible
 with both outputs enabled; resident memory, history and buffers are sampled along the way and
@@ -133,7 +134,14 @@ def bench_runtime_latency(duration_s: float = 15.0) -> list[Row]:
     rows = latency_run(duration_s, None, "normal")
     processes = latency_run(duration_s, None, "camera process", in_process)
     rows += processes + process_ratios(rows, processes)
-    rows += latency_run(duration_s, None, "camera process, the flight's frames fused", in_process, frames_of_flight=True)
+    # The flight's own frames fused: the update on the fusion thread (the default), then on the loop (the baseline).
+    fused = latency_run(duration_s, None, "frames fused, update thread", in_process, frames_of_flight=True)
+    on_loop = latency_run(duration_s, None, "frames fused, update on the loop",
+                          {"fusion": {"camera_process": True, "update_thread": False}}, frames_of_flight=True)
+    rows += fused + on_loop + [
+        (f"frames fused: update thread / update on the loop: {what}", figure(fused, what) / figure(on_loop, what), "x",
+         "the same bench, the same run; below 1: the thread is better")
+        for what in ("MAVLink+Zenoh out, p50", "MAVLink+Zenoh out, p99", "MAVLink+Zenoh out, max")]
     if set_thread_priority(20) and set_thread_priority(None):  # permitted here: measure it too
         threads = latency_run(duration_s, 20, "SCHED_FIFO 20")
         processes = latency_run(duration_s, 20, "SCHED_FIFO 20, camera process", in_process)
@@ -143,11 +151,13 @@ def bench_runtime_latency(duration_s: float = 15.0) -> list[Row]:
     return rows
 
 
+def figure(rows: list[Row], what: str) -> float:
+    """The value of the row whose name ends with ``what``."""
+    return next(row[1] for row in rows if row[0].endswith(what))
+
+
 def process_ratios(threads: list[Row], processes: list[Row], label: str = "") -> list[Row]:
     """Camera processes against camera threads, figure by figure, from the two runs just made."""
-    def figure(rows: list[Row], what: str) -> float:
-        return next(row[1] for row in rows if row[0].endswith(what))
-
     return [(f"{label}camera process / camera threads: {what}", figure(processes, what) / figure(threads, what), "x",
              "the same bench, the same run; below 1: the process is better")
             for what in ("MAVLink+Zenoh out, p50", "MAVLink+Zenoh out, p99", "handling on the loop, p50",
@@ -265,22 +275,24 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
         (f"[{label}] camera frames through {options.detector.upper()} in the "
          f"{'camera process' if runtime.options.camera_process else 'camera threads'}", float(len(features)), "frames",
          extract_note),
-        *([] if reports is None else [_update_row(label, list(reports))]),
+        *([] if reports is None else [_update_row(label, list(reports), runtime.options.update_thread)]),
         (f"[{label}] Zenoh poses received by the subscriber process", float(received), "poses",
          f"{summary.status['outputs'].get('mavlink', {}).get('odometry_sent', 0)} ODOMETRY sent, "
          f"{datagrams} datagrams received by the UDP peer"),
     ]
 
 
-def _update_row(label: str, reports: list) -> Row:
-    """The frames' EKF-SLAM updates on the loop: how many were fused and how long each held the loop."""
+def _update_row(label: str, reports: list, on_thread: bool) -> Row:
+    """The frames' EKF-SLAM updates: how many were fused and how long each took (CPU), on the thread or the loop."""
     timed = [r.timing_ms["cpu"] for r in reports if r.timing_ms]
     used = sum(1 for r in reports if r.accepted)
     if not timed:
-        return Row(f"[{label}] camera updates on the loop", 0.0, "frames", f"{len(reports)} frames reached the filter, none updated")
-    return Row(f"[{label}] camera updates on the loop, p50", float(np.median(timed)) * 1e3, "us",
+        return Row(f"[{label}] camera updates", 0.0, "frames", f"{len(reports)} frames reached the filter, none updated")
+    where = ("on the fusion thread: the poses go on meanwhile" if on_thread else
+             "on the loop: IMU samples arriving meanwhile wait")
+    return Row(f"[{label}] camera updates, p50", float(np.median(timed)) * 1e3, "us",
                f"{len(timed)} frames updated ({used} accepted, map up to {max(r.n_landmarks for r in reports)} landmarks), "
-               f"p95 {np.percentile(timed, 95):.1f} ms, max {max(timed):.1f} ms: IMU samples arriving meanwhile wait")
+               f"p95 {np.percentile(timed, 95):.1f} ms, max {max(timed):.1f} ms, {where}")
 
 
 def _bare_send_sizes(runtime: Any) -> tuple[int, int]:

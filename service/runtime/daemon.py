@@ -93,7 +93,7 @@ def build_runtime(
         camera_workers=1 if getattr(camera_processor, "in_order", False) else (
             replay_camera_workers(sections.replay) if lockstep else sections.fusion.camera_workers),
         camera_process=sections.replay.camera_process if lockstep else sections.fusion.camera_process,
-        lockstep=lockstep, measure_latency=measure_latency,
+        lockstep=lockstep, measure_latency=measure_latency, update_thread=sections.fusion.update_thread and not lockstep,
         realtime_priority=sections.run.realtime_priority if live else None, imu_range=imu_range(cfg),
     )
     path = trajectory_path or sections.run.trajectory

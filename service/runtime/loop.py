@@ -8,7 +8,9 @@ Timing rules (spec "Fusion order"):
   in worker processes fed through shared memory, so that it never holds the loop's interpreter;
   its result becomes a measurement queued at the frame's own timestamp, fused when the delayed
   horizon reaches it. One frame at most per worker is in flight: a frame arriving while all
-  workers are busy is dropped and counted, never queued without bound.
+  workers are busy is dropped and counted, never queued without bound. With ``update_thread``
+  (live runs) the advance that fuses a frame runs on the fusion thread (``fusion_thread``) while
+  the poses go on from a detached prediction; what arrives meanwhile waits for it, in order.
 - In lock-step mode (a replay at full speed) the loop waits for a frame's features before the
   horizon passes the frame, so a replay gives the same result however fast the machine is.
 Shutdown (SIGINT/SIGTERM, the end of a replay, a duration): sources are stopped, camera work
@@ -32,11 +34,12 @@ import numpy as np
 
 from vtolpose.estimator import (
     Apply, CameraFrame, COV, Estimator, FixedLagSmoother, FrameFeatures, FusedRun, FusionCore, FusionOptions, GpsFix,
-    ImuBatch, ImuRange, ImuSample, OutputPose, P, PoseHistory, Q, ROW, screened, SmoothedPose, V,
+    ImuBatch, ImuRange, ImuSample, OutputPose, P, PoseHistory, Q, readings_finite, ROW, screened, SmoothedPose, V,
 )
 from vtolpose.service.outputs.trajectory_file import TrajectoryFile
 from vtolpose.service.outputs.zenoh_answers import HistoryFeed
 from vtolpose.service.runtime.camera_process import CAMERA_NICE, CameraProcesses, CameraWorkerDied
+from vtolpose.service.runtime.fusion_thread import FusionThread
 from vtolpose.service.runtime.step_taps import StepTaps
 from vtolpose.service.runtime.status import (FailureBook, LatencyProbe, StatusTracker, pose_problem, pose_quality,
                                              stopped_within)
@@ -101,6 +104,7 @@ class RuntimeOptions:
     measure_latency: bool = False
     realtime_priority: int | None = None  # SCHED_FIFO priority for the loop and the device readers
     imu_range: ImuRange | None = None  # plausibility: readings beyond it are refused where they enter
+    update_thread: bool = False  # live runs with a camera: a frame's update on a thread, the poses go on (fusion_thread)
 
 
 @dataclass
@@ -175,6 +179,7 @@ class Runtime:
             taps.report_failures_to(self.failures.record)
         self._smoothing_finished = False
         self._executor: ThreadPoolExecutor | None = None
+        self._fusion_thread: FusionThread | None = None  # run() makes one for live runs with a camera (update_thread)
         self._camera_processes: CameraProcesses | None = None
         self._camera_jobs: list[tuple[int, asyncio.Future]] = []
         self._first_t: int | None = None
@@ -196,7 +201,7 @@ class Runtime:
             if self._gps_offset_ns:
                 sample = replace(sample, t_ns=sample.t_ns + self._gps_offset_ns)
             self.status.saw("gps")
-            self.fusion.add_measurement(sample.t_ns, lambda est, fix=sample: est.process_gps(fix), "gps")
+            self._add_measurement(sample.t_ns, lambda est, fix=sample: est.process_gps(fix), "gps")
         elif isinstance(sample, CameraFrame):
             self._on_camera(sample)
         else:
@@ -207,6 +212,10 @@ class Runtime:
         self.status.saw("imu")
         if self._first_t is None:
             self._first_t = sample.t_ns
+        thread = self._fusion_thread
+        if thread is not None and thread.busy:  # the filter is the thread's: the pose from the detached prediction
+            self._on_imu_while_fusing(thread, sample, entered, arrived_ns)
+            return
         imu_range = self.options.imu_range
         if imu_range is not None and imu_range.exceeded(sample.gyro, sample.accel):
             self.est.count_refused_imu("out_of_range")  # with the filter's, so reports show it beside non_finite
@@ -216,29 +225,41 @@ class Runtime:
             return
         pose = fusion.output() if self.outputs else None
         if pose is not None:
-            publishing = self.publishing
-            for out in self.outputs:
-                started = time.perf_counter_ns() if publishing is not None else 0
-                try:
-                    out.publish(pose)
-                except Exception as exc:  # a dead link degrades the service, never stops the others
-                    self.failures.record(f"output {out.name}", exc)
-                if publishing is not None:
-                    publishing[out.name].add(time.perf_counter_ns() - started)
-            self.poses_published += 1
-            if self.latency is not None:
-                left = time.perf_counter_ns()
-                self.latency.add(left - (entered if arrived_ns is None else arrived_ns))
-                self.handling.add(left - entered)
-            self.last_pose = pose
-            row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
-            with self.history_lock:
-                self.history.add_predicted(pose.t_ns, row)
-            if self.history_feed is not None:
-                self.history_feed.predicted(pose.t_ns, row)
+            self._publish(pose, entered, arrived_ns)
+        if thread is not None and fusion.camera_due():  # milliseconds of update: not on the pose path
+            thread.hand_over(fusion, self._fused_on_thread)
+            return
         fusion.advance()  # the delayed filter's work, after the pose has left
-        if pose is not None:  # and what of the next pose is known already: its covariance
-            cov = fusion.next_pose_cov
+        self._after_advance(pose is not None)
+
+    def _publish(self, pose: OutputPose, entered: int, arrived_ns: int | None) -> None:
+        """A pose to every output (each output's failure its own), into the history and its copy."""
+        publishing = self.publishing
+        for out in self.outputs:
+            started = time.perf_counter_ns() if publishing is not None else 0
+            try:
+                out.publish(pose)
+            except Exception as exc:  # a dead link degrades the service, never stops the others
+                self.failures.record(f"output {out.name}", exc)
+            if publishing is not None:
+                publishing[out.name].add(time.perf_counter_ns() - started)
+        self.poses_published += 1
+        if self.latency is not None:
+            left = time.perf_counter_ns()
+            self.latency.add(left - (entered if arrived_ns is None else arrived_ns))
+            self.handling.add(left - entered)
+        self.last_pose = pose
+        row = self.history.make_row(pose.p, pose.q, pose.v, pose.omega_b, pose.pose_cov)
+        with self.history_lock:
+            self.history.add_predicted(pose.t_ns, row)
+        if self.history_feed is not None:
+            self.history_feed.predicted(pose.t_ns, row)
+
+    def _after_advance(self, published: bool) -> None:
+        """After the delayed filter's work: what of the next pose is known already (its covariance), then a bounded
+        slice of the fixed-lag smoother's."""
+        if published:
+            cov = self.fusion.next_pose_cov
             for out in self.outputs:
                 prepare = getattr(out, "prepare", None)
                 if prepare is not None:
@@ -246,7 +267,7 @@ class Runtime:
                         prepare(cov)
                     except Exception as exc:  # as publish: this output only
                         self.failures.record(f"output {out.name}", exc)
-        if self.smoother is not None:  # then a bounded slice of the fixed-lag smoother's
+        if self.smoother is not None:
             try:
                 smoothed = self.smoother.work()
                 if smoothed:
@@ -254,6 +275,52 @@ class Runtime:
             except Exception as exc:  # the history keeps its filtered poses; the pose path is untouched
                 self.failures.record("fixed-lag smoother (stopped)", exc)
                 self.smoother = None
+
+    def _on_imu_while_fusing(self, thread: FusionThread, sample: ImuSample, entered: int, arrived_ns: int | None) -> None:
+        """A sample while a frame's update is on the fusion thread: its pose from the detached prediction now,
+        the sample itself to the fusion core once the thread is done."""
+        imu_range = self.options.imu_range
+        if imu_range is not None and imu_range.exceeded(sample.gyro, sample.accel):
+            thread.hold(lambda: self.est.count_refused_imu("out_of_range"))
+            return
+        if not thread.hold(lambda: self.fusion.add_imu(sample, fuse=False)):
+            self.status.count("imu_dropped_fusion_thread")
+            return
+        detached = thread.detached
+        if detached is None or not self.outputs or not readings_finite(sample.gyro, sample.accel):
+            return
+        detached.step(sample.t_ns, sample.gyro, sample.accel)
+        self._publish(detached.output(), entered, arrived_ns)
+
+    def _fused_on_thread(self, fused: list[tuple[Callable[[Any], None], Any]], error: BaseException | None) -> None:
+        """On the loop, once the thread's advance is done: its fused poses delivered, what was held given to the
+        fusion core in order, and the filter's next advance (on the thread again if it fuses another frame)."""
+        for deliver, item in fused:
+            deliver(item)
+        if error is not None:
+            self.failures.record("fusion thread", error)
+        for action in self._fusion_thread.take_held():
+            try:
+                action()
+            except Exception as exc:  # as handle(): counted, the rest goes on
+                self.failures.record("handling held input", exc)
+        if self.fusion.camera_due():
+            self._fusion_thread.hand_over(self.fusion, self._fused_on_thread)
+            return
+        self.fusion.advance()
+        self._after_advance(self.outputs != [])
+
+    def _add_measurement(self, t_ns: int, apply: Apply, kind: str) -> None:
+        """A measurement into the fusion queue; with a fusion thread, held while it works, and never fused on
+        the spot (the next sample's advance takes it, and a frame's update then goes to the thread)."""
+        thread = self._fusion_thread
+        if thread is None:
+            self.fusion.add_measurement(t_ns, apply, kind)
+        elif thread.busy:
+            if not thread.hold(lambda: self.fusion.add_measurement(t_ns, apply, kind, fuse_now=False)):
+                self.status.count(f"{kind}_dropped_fusion_thread")
+        else:
+            self.fusion.add_measurement(t_ns, apply, kind, fuse_now=False)
 
     @property
     def fuses_runs(self) -> bool:
@@ -362,7 +429,7 @@ class Runtime:
             features = FrameFeatures.rejected(frame.t_ns, np.shape(image), "wrong_size")
             apply = self.camera_processor.fusing(frame, features)
             if apply is not None:
-                self.fusion.add_measurement(frame.t_ns, apply, "camera")
+                self._add_measurement(frame.t_ns, apply, "camera")
             return
         job = processes.submit(image, frame.t_ns)
         if job is None:
@@ -387,7 +454,7 @@ class Runtime:
             return
         apply = future.result() if frame is None else self.camera_processor.fusing(frame, future.result())
         if apply is not None:
-            self.fusion.add_measurement(t_ns, apply, "camera")
+            self._add_measurement(t_ns, apply, "camera")
 
     async def _camera_process_idle(self) -> None:
         """Lock-step: a frame waits for an idle camera process (never dropped), so a replay gives the same result."""
@@ -444,6 +511,7 @@ class Runtime:
             "pose_problem": pose_problem(self.last_pose) if self.last_pose is not None else "no pose yet",
             **self._imu_missing(),
             **({"camera_process": self._camera_processes.report()} if self._camera_processes is not None else {}),
+            **({"fusion_thread": self._fusion_thread.report()} if self._fusion_thread is not None else {}),
             "failures": self.failures.report(),  # isolated failures of outputs, sources, the trajectory file
         }
         # Input links with their own counters (the GPS over MAVLink on a link of its own), beside the outputs'.
@@ -469,6 +537,8 @@ class Runtime:
         period = self.options.status_period_s
         while not stop.is_set():
             await stopped_within(stop, period)  # then one last status on the way out
+            if self._fusion_thread is not None:
+                await self._fusion_thread.idle()  # the status reads the filter: not while the thread changes it
             try:
                 doc = self.status_document()
             except Exception as exc:  # the status is a report: a bug in it must not stop the run
@@ -528,6 +598,15 @@ class Runtime:
         # Without outputs nobody reads the present pose (an offline replay): no output predictor,
         # and no history of poses for queries nobody can ask.
         self.fusion.predict = self.keep_history = bool(self.outputs)
+        frame_hook = None  # the frame processor's on_frame, while the fusion thread's updates call it
+        if (self.options.update_thread and self.outputs and self.camera_processor is not None
+                and not self.options.lockstep):
+            self._fusion_thread = FusionThread()
+            self._fusion_thread.open()
+            frame_hook = getattr(self.camera_processor, "on_frame", None)
+            if frame_hook is not None:  # viewers and recorders (an MCAP file) are written from the loop only
+                loop = asyncio.get_running_loop()
+                self.camera_processor.on_frame = lambda *frame: loop.call_soon_threadsafe(frame_hook, *frame)
         try:
             for out in self.outputs:
                 try:
@@ -562,6 +641,8 @@ class Runtime:
             if self._camera_jobs:
                 await asyncio.wait([f for _, f in self._camera_jobs], timeout=10.0)
                 await asyncio.sleep(0)  # their done-callbacks queue the measurements
+            if self._fusion_thread is not None:
+                await self._fusion_thread.idle()  # the filter back on the loop, what it held given to it
             self.fusion.flush()
             self.finish_smoothing()
             for task, result in zip(background, await asyncio.gather(*background, return_exceptions=True)):
@@ -579,6 +660,10 @@ class Runtime:
                         self._close_errors[out.name] = f"{getattr(exc, 'strerror', None) or exc}"
             if self._executor is not None:
                 self._executor.shutdown(wait=True, cancel_futures=True)
+            if self._fusion_thread is not None:
+                self._fusion_thread.close()
+                if frame_hook is not None:
+                    self.camera_processor.on_frame = frame_hook
             if self._camera_processes is not None:
                 self._camera_processes.close()  # the ring unlinked; its report stays for the summary
             if opencv_threads is not None:
