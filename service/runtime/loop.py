@@ -294,7 +294,7 @@ class Runtime:
 
     def _fused_on_thread(self, fused: list[tuple[Callable[[Any], None], Any]], error: BaseException | None) -> None:
         """On the loop, once the thread's advance is done: its fused poses delivered, what was held given to the
-        fusion core in order, and the filter's next advance (on the thread again if it fuses another frame)."""
+        fusion core in order, and the filter's next advance (left to the next sample if it fuses another frame)."""
         for deliver, item in fused:
             deliver(item)
         if error is not None:
@@ -305,10 +305,9 @@ class Runtime:
             except Exception as exc:  # as handle(): counted, the rest goes on
                 self.failures.record("handling held input", exc)
         if self.fusion.camera_due():
-            self._fusion_thread.hand_over(self.fusion, self._fused_on_thread)
-            return
+            return  # the next sample hands it over (meanwhile the status, which waits for the thread, may go)
         self.fusion.advance()
-        self._after_advance(self.outputs != [])
+        self._after_advance(bool(self.outputs))
 
     def _add_measurement(self, t_ns: int, apply: Apply, kind: str) -> None:
         """A measurement into the fusion queue; with a fusion thread, held while it works, and never fused on
