@@ -588,12 +588,17 @@ class FusionCore:
                                   float(self.est.propagator.gravity[2]), self.est.health.options.imu_gap_reset_s,
                                   covariance, self._pose_flags())
 
-    def camera_due(self) -> bool:
-        """Whether the next :meth:`advance` fuses a camera frame (an update of milliseconds, not microseconds)."""
-        if self._newest_t is None or not self._pending:
+    def heavy_due(self) -> bool:
+        """Whether the next :meth:`advance` does milliseconds of work, not microseconds: it fuses a camera frame, or
+        the periodic state check falls in it while the state holds a map (a factorisation of the whole covariance)."""
+        if self._newest_t is None:
             return False
         horizon = self._newest_t - self.delay_ns
-        return any(kind == "camera" and t <= horizon for t, _, _, kind, _ in self._pending)
+        if any(kind == "camera" and t <= horizon for t, _, _, kind, _ in self._pending):
+            return True
+        state = self.est.state
+        return (state is not None and state.n_landmarks > 0 and bool(self._queue) and self._queue[0][0] <= horizon
+                and self.est.health.check_would_be_due(horizon))
 
     def _predicted_covariance(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(cov9, pose_cov, omega_var) of the prediction: the delayed covariance grown to its time."""

@@ -153,3 +153,31 @@ def test_the_thread_hands_back_the_poses_and_the_failure_and_holds_a_bounded_num
     assert fused == [(print, "a pose")] and isinstance(error, RuntimeError)
     assert core.on_fused is print and not thread.busy  # the core's own callbacks back
     assert len(thread.take_held()) == MAX_HELD and thread.report() == {"advances": 1, "held_dropped": 1}
+
+
+def test_heavy_work_is_a_frame_behind_the_horizon_or_the_state_check_with_a_map(flight):
+    """What goes to the thread: an advance that fuses a frame, or one in which the once-a-second state check
+    factorises the covariance of a state with a map; an advance of IMU samples alone, or a check without a map,
+    stays on the loop."""
+    core = FusionCore(started_estimator(flight), FusionOptions(delay_s=0.15))
+    imu = [s for s in flight_samples(flight, 0.0, 12.0) if isinstance(s, ImuSample)]
+    for s in imu[:-250]:
+        core.add_imu(s)
+    est = core.est
+    assert not est.state.n_landmarks and est.health.check_would_be_due(imu[-1].t_ns)
+    est.state.landmarks = np.zeros((1, 6))  # a map (only its count is read here)
+    verdicts = []
+    for s in imu[-250:]:  # the horizon moves on, nothing is fused: the check falls due on the way
+        core.add_imu(s, fuse=False)
+        due = est.health.check_would_be_due(core.newest_imu_t_ns - core.delay_ns)
+        verdicts.append((due, core.heavy_due()))
+    assert {due for due, _ in verdicts} == {False, True} and all(due == heavy for due, heavy in verdicts)
+    est.state.landmarks = np.zeros((0, 6))
+    assert not core.heavy_due()  # no map: the check is microseconds
+    horizon = core.newest_imu_t_ns - core.delay_ns
+    core.add_measurement(horizon + 50_000_000, lambda e: None, "camera", fuse_now=False)
+    assert not core.heavy_due()  # a frame the horizon has not reached
+    core.add_measurement(horizon - 1_000_000, lambda e: None, "camera", fuse_now=False)
+    assert core.heavy_due()
+    core.advance()
+    assert not core.heavy_due()

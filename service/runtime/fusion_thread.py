@@ -1,13 +1,15 @@
 """A camera frame's update on a thread of its own, so that the IMU samples arriving meanwhile do not wait for it.
 
 A frame's EKF-SLAM update takes milliseconds (8 ms p50 on the book's 60-landmark map, up to 40 ms on the
-landfill's, docs/results.md); on the loop, every IMU sample that arrives during it would wait. When the next
-advance of the delayed horizon fuses a frame (``FusionCore.camera_due``) the runtime hands that advance to
-:class:`FusionThread`, and until it is done publishes each new sample's pose from a detached copy of the output
-predictor (``FusionCore.detached``: the biases, flags and covariance of the moment it was cut loose). What
-arrives meanwhile (IMU samples, fixes, features) is held in order and given to the fusion core once the thread
-is done, whose fused poses are delivered then too. The loop never touches the fusion core or the estimator while
-the thread works on them: one owner at a time, no lock on the filter.
+landfill's, docs/results.md); on the loop, every IMU sample that arrives during it would wait, and so would they
+behind the once-a-second state check, which factorises the whole covariance (30 ms with 45 landmarks on a
+2-core machine whose other core is busy). When the next advance of the delayed horizon does either
+(``FusionCore.heavy_due``) the runtime hands that advance to :class:`FusionThread`, and until it is done
+publishes each new sample's pose from a detached copy of the output predictor (``FusionCore.detached``: the
+biases, flags and covariance of the moment it was cut loose). What arrives meanwhile (IMU samples, fixes,
+features) is held in order and given to the fusion core once the thread is done, whose fused poses are
+delivered then too. The loop never touches the fusion core or the estimator while the thread works on them:
+one owner at a time, no lock on the filter.
 
 The thread runs Python as well; while a runtime uses one, the interpreter's switch interval is shortened
 (:data:`SWITCH_INTERVAL_S`) so that a loop woken by a sample takes the interpreter back within a fraction of a

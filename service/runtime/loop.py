@@ -9,8 +9,9 @@ Timing rules (spec "Fusion order"):
   its result becomes a measurement queued at the frame's own timestamp, fused when the delayed
   horizon reaches it. One frame at most per worker is in flight: a frame arriving while all
   workers are busy is dropped and counted, never queued without bound. With ``update_thread``
-  (live runs) the advance that fuses a frame runs on the fusion thread (``fusion_thread``) while
-  the poses go on from a detached prediction; what arrives meanwhile waits for it, in order.
+  (live runs) an advance that fuses a frame, or checks the covariance of a state with a map, runs on
+  the fusion thread (``fusion_thread``) while the poses go on from a detached prediction; what
+  arrives meanwhile waits for it, in order.
 - In lock-step mode (a replay at full speed) the loop waits for a frame's features before the
   horizon passes the frame, so a replay gives the same result however fast the machine is.
 Shutdown (SIGINT/SIGTERM, the end of a replay, a duration): sources are stopped, camera work
@@ -226,7 +227,7 @@ class Runtime:
         pose = fusion.output() if self.outputs else None
         if pose is not None:
             self._publish(pose, entered, arrived_ns)
-        if thread is not None and fusion.camera_due():  # milliseconds of update: not on the pose path
+        if thread is not None and fusion.heavy_due():  # milliseconds of work: not on the pose path
             thread.hand_over(fusion, self._fused_on_thread)
             return
         fusion.advance()  # the delayed filter's work, after the pose has left
@@ -304,7 +305,7 @@ class Runtime:
                 action()
             except Exception as exc:  # as handle(): counted, the rest goes on
                 self.failures.record("handling held input", exc)
-        if self.fusion.camera_due():
+        if self.fusion.heavy_due():
             return  # the next sample hands it over (meanwhile the status, which waits for the thread, may go)
         self.fusion.advance()
         self._after_advance(bool(self.outputs))
