@@ -517,12 +517,16 @@ class FusionCore:
                 and self._newest_t - pred.anchor_t_ns < _RESYNC_NS)
 
     def _step(self, pred: _Prediction, t: int, gyro: np.ndarray, accel: np.ndarray) -> None:
+        _step_prediction(pred, t, gyro, accel, *self._biases(), float(self.est.propagator.gravity[2]),
+                         self.est.health.options.imu_gap_reset_s)
+
+    def _biases(self) -> tuple:
+        """The state's (b_g, b_a) as tuples of floats, made again only when the state replaced them."""
         s = self.est.state
         biases = self._bias_floats
         if biases[0] is not s.b_g or biases[1] is not s.b_a:
             biases = self._bias_floats = (s.b_g, s.b_a, tuple(s.b_g.tolist()), tuple(s.b_a.tolist()))
-        _step_prediction(pred, t, gyro, accel, biases[2], biases[3], float(self.est.propagator.gravity[2]),
-                         self.est.health.options.imu_gap_reset_s)
+        return biases[2], biases[3]
 
     def _repredict(self) -> _Prediction | None:
         """Propagate the delayed state through every buffered sample newer than it."""
@@ -584,7 +588,7 @@ class FusionCore:
         pred = self._fresh_prediction()
         covariance = self._out_cov or self._predicted_covariance()
         s = self.est.state
-        return DetachedPrediction(replace(pred), s.b_g, (tuple(s.b_g.tolist()), tuple(s.b_a.tolist())),
+        return DetachedPrediction(replace(pred), s.b_g, self._biases(),
                                   float(self.est.propagator.gravity[2]), self.est.health.options.imu_gap_reset_s,
                                   covariance, self._pose_flags())
 

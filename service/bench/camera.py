@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.frames_csv import load_grey
 from vtolpose.drivers.simulator import simulate_flight
@@ -25,9 +24,8 @@ from vtolpose.estimator import (
     CameraOptions, CameraPipeline, extract_features, FeatureOptions, FeatureTracker, FilterState, FrameExtractor,
     FrameFeatures, MapOptions, predict, quat_from_euler, StateLayout,
 )
-from vtolpose.service.replay.report import build_report
-from vtolpose.service.replay.session import replay
 from vtolpose.service.runtime.threads import limit_blas_threads
+from vtolpose.service.bench.camera_resolutions import bench_camera_resolutions, replay_test3
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.runtime.kernels import load_compiled_kernels
 
@@ -208,14 +206,8 @@ def bench_replay_camera(scenario: str = "book", duration_s: float = 120.0) -> li
             for label, features in (("sift full pyramid", {"detector": "sift", "sift_image_scale": 1.0}),
                                     ("sift", {"detector": "sift"}), ("orb", {"detector": "orb"}),
                                     (TRACKED, {"detector": "sift", "track_between": TRACK_BETWEEN})):
-                cfg = load_config(None, {"estimator": {"variant": "biases"}, "features": features})
-                cpu0 = time.process_time()
-                result = replay(dataset, cfg, ["imu", "camera", "gps"])
-                cpu_s = time.process_time() - cpu0
-                report = build_report(result, dataset, cfg)
-                scores[label] = (report["position_rmse_m"], report.get("attitude_rmse_deg", float("nan")))
+                result, cpu_s, scores[label], update_ms = replay_test3(dataset, features)
                 work = _camera_work_ms(result, decode_ms)
-                update_ms = np.array([f.timing_ms["cpu"] for f in result.frames if f.timing_ms])
                 detector = features["detector"]
                 target = CAMERA_WORK_TARGET if label in ("sift", "orb") else None
                 rows.append(Row(f"camera work per frame, {label}", float(np.median(work)), "ms p50", (
@@ -246,6 +238,4 @@ def bench_replay_camera(scenario: str = "book", duration_s: float = 120.0) -> li
 def bench_camera() -> list[Row]:
     """The camera's figures together: extraction on one core, then Test 3's work per frame, speed and accuracy,
     then Test 3 at 10 Hz through a 640 × 480 and a 1280 × 720 camera."""
-    from vtolpose.service.bench.camera_resolutions import bench_camera_resolutions
-
     return bench_features() + bench_replay_camera() + bench_camera_resolutions()

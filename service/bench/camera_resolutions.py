@@ -14,14 +14,15 @@ from __future__ import annotations
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.simulator import simulate_flight
 from vtolpose.drivers.simulator.cameras import matrix_camera
 from vtolpose.drivers.simulator.export import write_flight
+from vtolpose.config import load_config
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.replay.report import build_report
 from vtolpose.service.replay.session import replay
@@ -32,6 +33,18 @@ DURATION_S = 30.0
 SIZES = {(640, 480): ">= 10", (1280, 720): ">= 3"}  # Test 3, x real time, SIFT
 TRACK_BETWEEN = 4  # as the camera bench's tracked variant: SIFT on one frame in five
 ACCURACY_TARGET = "<= 1.1"  # the tracked variant's RMSE ÷ SIFT on every frame's
+
+
+def replay_test3(dataset: Dataset, features: dict) -> tuple[Any, float, tuple[float, float], np.ndarray]:
+    """Test 3 (imu,camera,gps, biases) of ``dataset`` with these ``features.*``: the replay, its CPU seconds, its
+    (position m, attitude deg) RMSE and each frame's update time on the fusion loop (CPU ms)."""
+    cfg = load_config(None, {"estimator": {"variant": "biases"}, "features": features})
+    cpu0 = time.process_time()
+    result = replay(dataset, cfg, ["imu", "camera", "gps"])
+    cpu_s = time.process_time() - cpu0
+    report = build_report(result, dataset, cfg)
+    update_ms = np.array([f.timing_ms["cpu"] for f in result.frames if f.timing_ms])
+    return result, cpu_s, (report["position_rmse_m"], report.get("attitude_rmse_deg", float("nan"))), update_ms
 
 
 def bench_camera_resolutions(duration_s: float = DURATION_S) -> list[Row]:
@@ -51,13 +64,7 @@ def bench_camera_resolutions(duration_s: float = DURATION_S) -> list[Row]:
             scores = {}
             for label, features, label_target in (("sift", {"detector": "sift"}, target),
                                                   ("sift + flow", {"detector": "sift", "track_between": TRACK_BETWEEN}, None)):
-                cfg = load_config(None, {"estimator": {"variant": "biases"}, "features": features})
-                cpu0 = time.process_time()
-                result = replay(dataset, cfg, ["imu", "camera", "gps"])
-                cpu_s = time.process_time() - cpu0
-                report = build_report(result, dataset, cfg)
-                scores[label] = (report["position_rmse_m"], report.get("attitude_rmse_deg", float("nan")))
-                update_ms = [f.timing_ms["cpu"] for f in result.frames if f.timing_ms]
+                result, cpu_s, scores[label], update_ms = replay_test3(dataset, features)
                 rows.append(Row(f"Test 3 {size}, {label}", result.duration_s / result.wall_s, "x real time",
                                 f"{result.wall_s:.1f} s wall, {result.duration_s / cpu_s:.1f} x on the process's CPU time; "
                                 f"per frame p50: extraction {np.median(result.extract_cpu_ms):.1f} ms (one core), "

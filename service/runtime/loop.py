@@ -214,12 +214,16 @@ class Runtime:
         if self._first_t is None:
             self._first_t = sample.t_ns
         thread = self._fusion_thread
-        if thread is not None and thread.busy:  # the filter is the thread's: the pose from the detached prediction
-            self._on_imu_while_fusing(thread, sample, entered, arrived_ns)
-            return
+        busy = thread is not None and thread.busy  # the filter is the thread's: it hears of this sample later
         imu_range = self.options.imu_range
         if imu_range is not None and imu_range.exceeded(sample.gyro, sample.accel):
-            self.est.count_refused_imu("out_of_range")  # with the filter's, so reports show it beside non_finite
+            if busy:
+                thread.hold(lambda: self.est.count_refused_imu("out_of_range"))
+            else:
+                self.est.count_refused_imu("out_of_range")  # with the filter's, so reports show it beside non_finite
+            return
+        if busy:  # the pose from the detached prediction
+            self._on_imu_while_fusing(thread, sample, entered, arrived_ns)
             return
         fusion = self.fusion
         if not fusion.add_imu(sample, fuse=False):
@@ -280,10 +284,6 @@ class Runtime:
     def _on_imu_while_fusing(self, thread: FusionThread, sample: ImuSample, entered: int, arrived_ns: int | None) -> None:
         """A sample while a frame's update is on the fusion thread: its pose from the detached prediction now,
         the sample itself to the fusion core once the thread is done."""
-        imu_range = self.options.imu_range
-        if imu_range is not None and imu_range.exceeded(sample.gyro, sample.accel):
-            thread.hold(lambda: self.est.count_refused_imu("out_of_range"))
-            return
         if not thread.hold(lambda: self.fusion.add_imu(sample, fuse=False)):
             self.status.count("imu_dropped_fusion_thread")
             return
