@@ -22,7 +22,6 @@ vibration above), and the bias' uncertainty comes from the scatter of those mean
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -86,6 +85,62 @@ def block_means(t_ns: np.ndarray, values: np.ndarray, average_s: float) -> np.nd
     return values[:n].reshape(-1, per_block, values.shape[1]).mean(axis=1)
 
 
+class SampleWindow:
+    """The samples of a sliding time window kept in one array each (times, gyro, accel rows), oldest first:
+    the window is judged at every sample, and views of it cost nothing where stacking a queue of rows
+    costs its length each time."""
+
+    def __init__(self, capacity: int = 256) -> None:
+        self._t = np.empty(capacity, np.int64)
+        self._rows = np.empty((capacity, 6))  # gyro, accel
+        self._start = self._end = 0
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def append(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
+        if self._end == len(self._t):
+            n = len(self)
+            if 2 * n > len(self._t):  # more than half full: twice the room, else the window moved to the front
+                t, rows = np.empty(2 * len(self._t), np.int64), np.empty((2 * len(self._t), 6))
+            else:
+                t, rows = self._t, self._rows
+            t[:n], rows[:n] = self._t[self._start:self._end], self._rows[self._start:self._end]
+            self._t, self._rows, self._start, self._end = t, rows, 0, n
+        self._t[self._end] = t_ns
+        self._rows[self._end, :3] = gyro
+        self._rows[self._end, 3:] = accel
+        self._end += 1
+
+    def drop_older(self, span_ns: int) -> None:
+        """Forget the oldest samples while the window spans more than ``span_ns``."""
+        t, last = self._t, int(self._t[self._end - 1])
+        while last - int(t[self._start]) > span_ns:
+            self._start += 1
+
+    def first_t(self) -> int:
+        return int(self._t[self._start])
+
+    def last_t(self) -> int:
+        return int(self._t[self._end - 1])
+
+    def last_gyro(self) -> np.ndarray:
+        return self._rows[self._end - 1, :3]
+
+    @property
+    def times(self) -> np.ndarray:
+        return self._t[self._start:self._end]
+
+    @property
+    def gyro(self) -> np.ndarray:
+        """A copy (C-ordered), as the window's rows stacked."""
+        return self._rows[self._start:self._end, :3].copy()
+
+    @property
+    def accel(self) -> np.ndarray:
+        return self._rows[self._start:self._end, 3:].copy()
+
+
 class StaticInitializer:
     """Feed IMU samples; returns an :class:`InitialAttitude` once it can."""
 
@@ -93,9 +148,7 @@ class StaticInitializer:
         self.options = options
         self.nominal_gravity = nominal_gravity
         self.heading_rad = heading_rad
-        self._t: deque[int] = deque()
-        self._gyro: deque[np.ndarray] = deque()
-        self._accel: deque[np.ndarray] = deque()
+        self._window = SampleWindow()
         self._first_t: int | None = None
         self._turned = np.eye(3)  # the body's rotation from the first sample to the last, by the raw gyro
         self._turned_s = 0.0  # over how long
@@ -108,12 +161,12 @@ class StaticInitializer:
             self._first_t = t_ns
         self.keep(t_ns, gyro, accel)
         window_ns = int(opts.static_window_s * 1e9)
-        full = self._t[-1] - self._t[0] >= 0.95 * window_ns and len(self._t) >= 10
+        window = self._window
+        full = window.last_t() - window.first_t() >= 0.95 * window_ns and len(window) >= 10
         if not full:
             return None
-        g = np.array(self._gyro)
-        a = np.array(self._accel)
-        g_means, a_means = block_means(np.array(self._t), g, opts.average_s), block_means(np.array(self._t), a, opts.average_s)
+        g, a, t = window.gyro, window.accel, window.times
+        g_means, a_means = block_means(t, g, opts.average_s), block_means(t, a, opts.average_s)
         static = bool(np.all(g_means.std(axis=0) < opts.gyro_std_max) and np.all(a_means.std(axis=0) < opts.accel_std_max))
         timed_out = t_ns - self._first_t >= int(opts.max_wait_s * 1e9)
         if not (static or timed_out):
@@ -123,34 +176,31 @@ class StaticInitializer:
     def keep(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
         """Only hold the sample in the window (no judgement): for :meth:`latest` later."""
         window_ns = int(self.options.static_window_s * 1e9)
-        if self._t:
-            dt = (t_ns - self._t[-1]) * 1e-9
-            self._turned = self._turned @ so3_exp(np.asarray(self._gyro[-1], dtype=float) * dt)
+        window = self._window
+        if len(window):
+            dt = (t_ns - window.last_t()) * 1e-9
+            self._turned = self._turned @ so3_exp(window.last_gyro() * dt)
             self._turned_s += dt
-        self._t.append(t_ns)
-        self._gyro.append(gyro)
-        self._accel.append(accel)
-        while self._t[-1] - self._t[0] > window_ns:
-            self._t.popleft()
-            self._gyro.popleft()
-            self._accel.popleft()
+        window.append(t_ns, gyro, accel)
+        window.drop_older(window_ns)
 
     def latest(self) -> InitialAttitude | None:
         """A moving start from the window as it is now (None while it holds fewer than ten samples)."""
-        if len(self._t) < 10:
+        window = self._window
+        if len(window) < 10:
             return None
-        g = np.array(self._gyro)
-        return self._solve(self._t[-1], g, np.array(self._accel), block_means(np.array(self._t), g, self.options.average_s),
-                           False)
+        g = window.gyro
+        return self._solve(window.last_t(), g, window.accel, block_means(window.times, g, self.options.average_s), False)
 
     def as_moving(self, init: InitialAttitude) -> InitialAttitude:
         """``init`` judged again as a moving start (the GPS says the "still" window was steady motion)."""
-        g, a = np.array(self._gyro), np.array(self._accel)
-        return self._solve(init.t_ns, g, a, block_means(np.array(self._t), g, self.options.average_s), False)
+        window = self._window
+        g = window.gyro
+        return self._solve(init.t_ns, g, window.accel, block_means(window.times, g, self.options.average_s), False)
 
     def _solve(self, t_ns: int, g: np.ndarray, a: np.ndarray, g_means: np.ndarray, static: bool) -> InitialAttitude:
         opts = self.options
-        t = np.array(self._t)
+        t = self._window.times.copy()
         span = (t[-1] - t[0]) * 1e-9
         if static:
             f_mean = a.mean(axis=0)
@@ -179,10 +229,10 @@ class StaticInitializer:
         """The stated heading carried to the last sample held and the sigma of its drift since the first, as for a
         moving start (no bias known; the tilt from the plain mean, which moves a heading carried through a turn
         about down only to second order): the heading a visual start at that sample takes as its gauge."""
-        if not self._accel:
+        if not len(self._window):
             return self.heading_rad, 0.0
         opts = self.options
-        roll, pitch = roll_pitch_from_specific_force(np.mean(np.array(self._accel), axis=0))
+        roll, pitch = roll_pitch_from_specific_force(np.mean(self._window.accel, axis=0))
         return self._heading_now(roll, pitch, np.zeros(3), opts.sigma_gyro_bias, math.radians(opts.sigma_attitude_moving_deg))
 
     def _heading_now(self, roll: float, pitch: float, gyro_bias: np.ndarray, sigma_bg: float,
