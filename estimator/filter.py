@@ -149,6 +149,7 @@ class Estimator:
         self.health = HealthMonitor(opts.health, opts.gps_reset_after_s)
         self._gap = GapWidener(opts.health, opts.max_imu_gap_s)
         self._downsampler = ImuDownsampler(opts.max_filter_rate_hz)
+        self._fuses_runs = False  # it has taken runs of samples: their kernels are loaded (process_imu_run)
         self._horizontal_accel = np.zeros(2)  # horizontal acceleration, averaged (see _propagate)
         self._accel_at_rest = np.zeros(2)  # what it read at the last still chunk
         self._last_imu_t: int | None = None
@@ -280,6 +281,7 @@ class Estimator:
         n = len(t_arr)
         if not self.takes_runs or n == 0 or not plain_run(t_arr, gyro, accel, self._last_imu_t, self.options.max_imu_gap_s):
             return False
+        self._fuses_runs = True
         t_ns = t_arr.tolist()
         counts = self.counts["imu"]
         counts.received += n
@@ -533,9 +535,37 @@ class Estimator:
         sample, with the reading interpolated towards the next sample if known (else held)."""
         if self._last_imu_t is not None and (t_ns - self._last_imu_t) * 1e-9 > self.options.max_imu_gap_s:
             self._in_gap(t_ns)
+        if self._fuses_runs:  # the same deltas and steps, each in one compiled call (kernels a live service never loads)
+            times, dts, deltas = self._downsampler.to_time(t_ns, self._next_sample(t_ns))
+            if len(dts) and not self._propagate_steps(times, dts, deltas):
+                for j in range(len(dts)):
+                    self._propagate(ImuDelta(int(times[j, 0]), int(times[j, 1]), float(dts[j]), deltas[j, 0:3], deltas[j, 3:6]))
+            return
         for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns, self._next_sample(t_ns))):
             if delta is not None:
                 self._propagate(delta)
+
+    def _propagate_steps(self, times: np.ndarray, dts: np.ndarray, deltas: np.ndarray) -> bool:
+        """:meth:`_propagate` of each delta (rows of (t0, t1), dt, [Δθ, Δv]) in one compiled call, the heading
+        hypotheses' in one of their own; False, with nothing done, where only :meth:`_propagate` applies
+        (a recorder watching the steps, a map, noise that is not isotropic)."""
+        if self.recorder is not None:
+            return False
+        state = self.state
+        unaligned = not (self.heading_aligned or self.local_position)  # as _propagate
+        computed = self.propagator.propagate_steps(state, deltas, dts, self._horizontal_accel, self.options.init.average_s,
+                                                   self.options.unaligned_accel_noise if unaligned else None,
+                                                   self._accel_at_rest)
+        if computed is None:
+            return False
+        bank = self._bank if not self.heading_aligned else None
+        if bank is not None and not bank.propagate_run(deltas, dts, int(times[-1, 1])):
+            return False
+        states, covs, means = computed
+        row = states[-1]
+        state.p, state.v, state.q, state.cov, state.t_ns = row[0:3], row[3:6], row[6:10], covs[-1], int(times[-1, 1])
+        self._horizontal_accel = means[-1]
+        return True
 
     # ---------------------------------------------------------------------------- start-up
     def _begin(self, state: FilterState, gravity: float, message: str) -> None:

@@ -72,3 +72,42 @@ def test_runs_and_single_samples_mixed_give_the_deltas_one_sample_at_a_time_give
         take = deltas_of_a_run if rng.random() < 0.5 else deltas_one_by_one
         together += take(mixed, t_ns[start:stop], gyro[start:stop], accel[start:stop], start)
     assert_same_deltas(each, together)
+
+
+def deltas_to_time(downsampler: ImuDownsampler, t_ns: int, after, compiled: bool) -> list[tuple]:
+    """The deltas that bring the state to a measurement at ``t_ns``: ``flush`` then ``hold``, or ``to_time``."""
+    if compiled:
+        times, dts, deltas = downsampler.to_time(t_ns, after)
+        return [(*map(int, times[j]), float(dts[j]), deltas[j, 0:3].tolist(), deltas[j, 3:6].tolist())
+                for j in range(len(dts))]
+    made = (downsampler.flush(), downsampler.hold(t_ns, after))
+    return [(d.t0_ns, d.t1_ns, d.dt, d.dtheta.tolist(), d.dvel.tolist()) for d in made if d is not None]
+
+
+@pytest.mark.parametrize("interpolated", [True, False])
+def test_the_compiled_step_to_a_measurements_time_is_flush_then_hold(interpolated: bool) -> None:
+    """``to_time`` (one compiled call) gives the deltas ``flush`` and ``hold`` give, bit for bit, with the
+    reading interpolated towards the next sample or held, and leaves the state the next samples (one by one
+    or in runs) carry on from: measurements between samples, two at one time, one at a sample's time."""
+    t_ns, gyro, accel = imu_samples(5)
+    rng = np.random.default_rng(5)
+    python, compiled = ImuDownsampler(40.0), ImuDownsampler(40.0)
+    made = {False: [], True: []}
+    checked = 0
+    for start, stop in pieces(len(t_ns), rng.integers(1, 25, len(t_ns))):
+        for downsampler, is_compiled in ((python, False), (compiled, True)):
+            take = deltas_of_a_run if is_compiled and rng.random() < 0.7 else deltas_one_by_one
+            made[is_compiled] += [(k, d.t0_ns, d.t1_ns, d.dt, d.dtheta.tolist(), d.dvel.tolist())
+                                  for k, d in take(downsampler, t_ns[start:stop], gyro[start:stop], accel[start:stop], start)]
+        if stop >= len(t_ns):
+            break
+        last = int(t_ns[stop - 1])
+        between = last + int((int(t_ns[stop]) - last) * rng.uniform(0.1, 0.9))
+        after = (int(t_ns[stop]), gyro[stop], accel[stop]) if interpolated else None
+        for t in (between, between, last) if rng.random() < 0.3 else (between,):  # twice at one time; at the sample's own
+            a = deltas_to_time(python, t, after, False)
+            b = deltas_to_time(compiled, t, after, True)
+            assert a == b
+            checked += len(a)
+    assert checked > 40 and len(made[False]) > 50
+    assert made[False] == made[True]

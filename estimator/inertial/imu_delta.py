@@ -47,6 +47,9 @@ class DeltaRun:
                         self.deltas[j, 3:6])
 
 
+_NO_READING = np.zeros(6)  # to_time without a next sample
+
+
 def _log(q: tuple) -> np.ndarray:
     w, x, y, z = q
     n = math.sqrt(x * x + y * y + z * z)
@@ -55,12 +58,20 @@ def _log(q: tuple) -> np.ndarray:
 
 
 class ImuDownsampler:
-    """Turns IMU samples into deltas of at least ``0.9 / max_rate_hz`` seconds."""
+    """Turns IMU samples into deltas of at least ``0.9 / max_rate_hz`` seconds.
+
+    Its state is kept in one of two forms: plain floats and tuples for the per-sample path (:meth:`add`,
+    :meth:`flush`, :meth:`hold`), or the two arrays the compiled calls of runs carry in and out
+    (:meth:`add_run`, :meth:`to_time`), so that a replay's runs and fixes pass them from call to call as
+    they are; each path converts the other's form once when it takes over (the same numbers)."""
 
     def __init__(self, max_rate_hz: float) -> None:
         self.min_dt = 0.9 / max_rate_hz
         # The newest sample: time, readings, and the readings as plain floats (the per-sample path's).
         self._last: tuple[int, np.ndarray, np.ndarray, list[float], list[float]] | None = None
+        # The compiled calls' form, while they have the state: [last gyro, last accel, q, dv, dt] and
+        # [last t, t0, flags (bit 0: a last sample, bit 1: a step started)]; None while the floats have it.
+        self._packed: tuple[np.ndarray, np.ndarray] | None = None
         self._reset()
 
     def _reset(self) -> None:
@@ -68,6 +79,28 @@ class ImuDownsampler:
         self._q = (1.0, 0.0, 0.0, 0.0)  # accumulated rotation since the step's start
         self._dv = (0.0, 0.0, 0.0)
         self._dt = 0.0
+
+    def _pack(self) -> tuple[np.ndarray, np.ndarray]:
+        """The state in the compiled calls' form (made from the floats if they have it)."""
+        if self._packed is None:
+            last, t0 = self._last, self._t0
+            g, a = (last[3], last[4]) if last else ((0.0,) * 3, (0.0,) * 3)
+            self._packed = (np.array([*g, *a, *self._q, *self._dv, self._dt]),
+                            np.array([last[0] if last else 0, 0 if t0 is None else t0,
+                                      (last is not None) | (t0 is not None) << 1], np.int64))
+        return self._packed
+
+    def _unpack(self) -> None:
+        """The state back in floats, for the per-sample path (the last readings as arrays of the same values)."""
+        if self._packed is None:
+            return
+        acc, acc_t = self._packed
+        values = acc.tolist()
+        t_last, t0, flags = acc_t.tolist()
+        self._last = (t_last, acc[0:3].copy(), acc[3:6].copy(), values[0:3], values[3:6]) if flags & 1 else None
+        self._t0 = t0 if flags & 2 else None
+        self._q, self._dv, self._dt = tuple(values[6:10]), tuple(values[10:13]), values[13]
+        self._packed = None
 
     def add(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> ImuDelta | None:
         """Add a sample (strictly later than the previous); return a delta when one is complete.
@@ -77,6 +110,7 @@ class ImuDownsampler:
         (~5 MB, tests/test_layout.py), and a compiled call per sample costs more than this. Its rotations
         are ``rotation``'s primitives, the ones the kernel calls; tests/test_imu_delta.py holds the two to
         the same bits."""
+        self._unpack()
         last = self._last
         # Scalar arithmetic on plain floats: this runs for every IMU sample.
         g, a = gyro.tolist(), accel.tolist()
@@ -103,23 +137,24 @@ class ImuDownsampler:
     def add_run(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> DeltaRun:
         """:meth:`add` for each row of a run of samples (strictly later, in time order), in one compiled
         call (``sample_kernel.downsample_run``): the completed deltas, each with its last sample's index."""
-        last, t0 = self._last, self._t0
-        # The kernel's state, carried in and out: [last gyro, last accel, q, dv, dt] and [last t, t0, which are set].
-        g, a = (last[3], last[4]) if last else ((0.0,) * 3, (0.0,) * 3)
-        acc = np.array([*g, *a, *self._q, *self._dv, self._dt])
-        acc_t = np.array([last[0] if last else 0, 0 if t0 is None else t0, (last is not None) | (t0 is not None) << 1],
-                         np.int64)
+        acc, acc_t = self._pack()
         ends, times, dts, deltas = sample_kernel.downsample_run(t_ns, gyro, accel, acc, acc_t, self.min_dt)
-        k = len(t_ns) - 1
-        values = acc.tolist()
-        t_last, t0, flags = acc_t.tolist()
-        self._last = (t_last, gyro[k], accel[k], values[0:3], values[3:6])
-        self._t0 = t0 if flags & 2 else None
-        self._q, self._dv, self._dt = tuple(values[6:10]), tuple(values[10:13]), values[13]
         return DeltaRun(ends.tolist(), times, dts, deltas)
+
+    def to_time(self, t_ns: int, after: tuple[int, np.ndarray, np.ndarray] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`flush` then :meth:`hold` (``t_ns``, ``after``) in one compiled call (``sample_kernel.to_time``),
+        for a process that fuses runs of samples (its kernels loaded): the deltas made, none, one or two, as
+        rows of (t0, t1), dt and [Δθ, Δv]; the same numbers and the same state after as the two calls."""
+        acc, acc_t = self._pack()
+        reading = _NO_READING if after is None else np.concatenate((after[1], after[2]))
+        times, dts, deltas, _ = sample_kernel.to_time(acc, acc_t, t_ns, 0 if after is None else after[0], reading,
+                                                      after is not None)
+        return times, dts, deltas
 
     def flush(self) -> ImuDelta | None:
         """The partial delta accumulated so far (e.g. up to a measurement's time), if any."""
+        self._unpack()
         if self._t0 is None or self._dt <= 0.0:
             return None
         delta = ImuDelta(self._t0, self._last[0], self._dt, _log(self._q), np.array(self._dv))
@@ -135,6 +170,7 @@ class ImuDownsampler:
         rest of the step, which starts from that reading, together make the full step's trapezoid (the
         integral of the linear reading). Without it the last reading is held, and each measurement costs
         the step ½·Δω·(t_ns − t_last) of rotation (a lag under angular acceleration)."""
+        self._unpack()
         if self._last is None or t_ns <= self._last[0] or self._t0 is not None:
             return None
         t_last, gyro, accel, g, a = self._last

@@ -85,6 +85,58 @@ def downsample_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, acc: np.n
 
 
 @numba.njit(cache=True, nogil=True)
+def to_time(acc: np.ndarray, acc_t: np.ndarray, t_ns: int, after_t: int, after: np.ndarray,
+            has_after: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """:meth:`ImuDownsampler.flush` then :meth:`ImuDownsampler.hold` to ``t_ns`` (``after``: the next sample's
+    gyro and accel, at ``after_t``, if ``has_after``), the accumulator carried in and out as in
+    :func:`downsample_run`. Returns (t0, t1), dt and [Δθ, Δv] of the deltas made (none, one or two) and what
+    the hold did: 0 nothing, 1 held the last reading, 2 interpolated it (the reading at ``t_ns`` is then the
+    accumulator's last sample)."""
+    times = np.empty((2, 2), np.int64)
+    dts = np.empty(2)
+    deltas = np.empty((2, 6))
+    m = 0
+    if acc_t[2] & 2 and acc[13] > 0.0:  # flush: the partial step, then a fresh start
+        w, x, y, z = acc[6], acc[7], acc[8], acc[9]
+        norm = math.sqrt(x * x + y * y + z * z)
+        scale = 2.0 * math.atan2(norm, w) / norm if norm > 1e-12 else 2.0
+        times[0, 0], times[0, 1] = acc_t[1], acc_t[0]
+        dts[0] = acc[13]
+        deltas[0, 0], deltas[0, 1], deltas[0, 2] = scale * x, scale * y, scale * z
+        deltas[0, 3], deltas[0, 4], deltas[0, 5] = acc[10], acc[11], acc[12]
+        m = 1
+        acc[6], acc[7], acc[8], acc[9] = 1.0, 0.0, 0.0, 0.0
+        acc[10], acc[11], acc[12], acc[13] = 0.0, 0.0, 0.0, 0.0
+        acc_t[2] &= ~2
+    t_last = acc_t[0]
+    if not acc_t[2] & 1 or t_ns <= t_last or acc_t[2] & 2:
+        return times[:m], dts[:m], deltas[:m], 0
+    dt = (t_ns - t_last) * 1e-9
+    gx, gy, gz, ax, ay, az = acc[0], acc[1], acc[2], acc[3], acc[4], acc[5]
+    times[m, 0], times[m, 1] = t_last, t_ns
+    dts[m] = dt
+    acc_t[0] = t_ns
+    if has_after and after_t > t_ns:
+        # reading_between: the reading at t_ns on the line to the next sample; the trapezoid up to it.
+        s = (t_ns - t_last) / (after_t - t_last)
+        bx, by, bz = gx + s * (after[0] - gx), gy + s * (after[1] - gy), gz + s * (after[2] - gz)
+        cx, cy, cz = ax + s * (after[3] - ax), ay + s * (after[4] - ay), az + s * (after[5] - az)
+        h = 0.5 * dt
+        wx, wy, wz = h * (gx + bx), h * (gy + by), h * (gz + bz)
+        fx, fy, fz = h * (ax + cx), h * (ay + cy), h * (az + cz)
+        hw, hx, hy, hz = rotvec_quat(0.5 * wx, 0.5 * wy, 0.5 * wz)
+        deltas[m, 0], deltas[m, 1], deltas[m, 2] = wx, wy, wz
+        deltas[m, 3], deltas[m, 4], deltas[m, 5] = rotate(hw, hx, hy, hz, fx, fy, fz)
+        acc[0], acc[1], acc[2], acc[3], acc[4], acc[5] = bx, by, bz, cx, cy, cz
+        return times[:m + 1], dts[:m + 1], deltas[:m + 1], 2
+    h = 0.5 * dt
+    hw, hx, hy, hz = rotvec_quat(h * gx, h * gy, h * gz)
+    deltas[m, 0], deltas[m, 1], deltas[m, 2] = gx * dt, gy * dt, gz * dt
+    deltas[m, 3], deltas[m, 4], deltas[m, 5] = rotate(hw, hx, hy, hz, dt * ax, dt * ay, dt * az)
+    return times[:m + 1], dts[:m + 1], deltas[:m + 1], 1
+
+
+@numba.njit(cache=True, nogil=True)
 def stillness_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, sums: np.ndarray, counts: np.ndarray,
                   average_s: float, chunk_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:meth:`StillnessDetector.add`'s accumulation for every sample of a run, its state carried in and out.
@@ -193,6 +245,7 @@ def warm_up(runs: bool = True) -> None:
     screen_rows(rows, rows, 2700.0, 76800.0)
     if runs:
         downsample_run(t, rows, rows, np.zeros(14), np.zeros(3, np.int64), 0.009)
+        to_time(np.zeros(14), np.array([1, 0, 1], np.int64), 3, 5, np.zeros(6), True)
         stillness_run(t, rows, rows, np.zeros(18), np.zeros(6, np.int64), 0.1, 1.0)
         level_run(t, rows, np.zeros(3), np.zeros(2, np.int64), 0.5)
         plain_run(t, rows, rows, -1, 0.1)
