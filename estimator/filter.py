@@ -296,11 +296,14 @@ class Estimator:
         # the state may have moved before it (a measurement's partial step), as sample by sample.
         order = sorted(step_at.keys() | chunks.keys() | levels.keys() | {0})
         i = 0
+        head = False  # the first sample's pose waits to go first among the compiled steps that follow it
         while i < len(order):
             k = order[i]
             j = step_at.get(k)
             if j is not None:
-                taken = self._compiled_steps(order, i, step_at, chunks, levels, steps, t_ns, gyro, after_step, after_steps)
+                taken = self._compiled_steps(order, i, step_at, chunks, levels, steps, t_ns, gyro, after_step, after_steps,
+                                             head)
+                head = False
                 if taken:
                     i += taken
                     continue
@@ -312,7 +315,10 @@ class Estimator:
                     self._check_state()
             self._level_and_rest(levels.get(k), chunks.get(k))
             if j is not None or k == 0:
-                after_step(k)
+                if j is None and after_steps is not None and i < len(order) and order[i] in step_at:
+                    head = True  # a step follows: the pose goes with its stretch (or on its own if that declines)
+                else:
+                    after_step(k)
         self._last_imu_t = t_ns[-1]
         self._gyro = gyro[n - 1]
         return True
@@ -329,7 +335,7 @@ class Estimator:
 
     def _compiled_steps(self, order: list[int], i: int, step_at: dict[int, int], chunks: dict, levels: dict,
                         steps: DeltaRun, t_ns: list[int], gyro: np.ndarray, after_step: Callable[[int], None],
-                        after_steps: AfterSteps | None = None) -> int:
+                        after_steps: AfterSteps | None = None, head: bool = False) -> int:
         """The steps from ``order[i]`` on that need nothing but propagation (no rest chunk, levelling or periodic
         check before the last), in one compiled call (``propagator.propagate_steps``), then each step's
         bookkeeping, the last sample's levelling or rest chunk if it has one, and ``after_step`` in turn,
@@ -337,11 +343,16 @@ class Estimator:
         and covariance at once, and the steps that only propagated (all, or all but a last one with measures or
         the check) are handed to it in one call in place of their ``after_step`` (their samples, end times,
         p, v, q rows and covariances: nothing else changed the state meanwhile), before the last one's measures.
+        ``head``: the run's first sample (no step of its own) is owed its ``after_step``, due before these steps;
+        its pose, the state as it is now, goes first in their ``after_steps`` call (or ``after_step(0)`` before
+        anything changes, where no steps go to ``after_steps``).
         While the heading is unknown the steps have its extra noise, and the heading hypotheses take the same
         steps in one compiled call of their own. Returns how many were taken: none while a
         recorder watches the steps, or where the propagator has no compiled sequence (a map, non-isotropic
-        noise)."""
+        noise), the head's ``after_step`` made first."""
         if self.recorder is not None:
+            if head:
+                after_step(0)
             return 0
         end = i
         measured = False  # the last step has measures or the check
@@ -360,23 +371,33 @@ class Estimator:
                                                    self.options.init.average_s,
                                                    self.options.unaligned_accel_noise if unaligned else None,
                                                    self._accel_at_rest)
-        if computed is None:
-            return 0
         bank = self._bank if not self.heading_aligned else None
-        if bank is not None and not bank.propagate_run(steps.deltas[j0:j1], steps.dts[j0:j1], int(steps.times[j1 - 1, 1])):
+        if computed is None or (bank is not None and not bank.propagate_run(steps.deltas[j0:j1], steps.dts[j0:j1],
+                                                                            int(steps.times[j1 - 1, 1]))):
+            if head:
+                after_step(0)
             return 0
         states, covs, means = computed
         m = end - i
         ends = steps.times[j0:j1, 1]
         if after_steps is not None:
+            clean = m - 1 if measured else m
+            if head and clean:  # the first sample's pose: the state before these steps, as a row of theirs
+                ks = [0, *order[i:i + clean]]
+                ends_clean = np.concatenate(((state.t_ns,), ends[:clean]))
+                states_clean = np.concatenate(((np.concatenate((state.p, state.v, state.q)),), states[:clean]))
+                covs_clean = np.concatenate((state.cov[np.newaxis], covs[:clean]))
+            else:
+                if head:
+                    after_step(0)
+                ks, ends_clean, states_clean, covs_clean = order[i:i + clean], ends[:clean], states[:clean], covs[:clean]
             # The state as the stretch's steps leave it, then their poses at once: all but a last step with measures.
             k, row = order[end - 1], states[m - 1]
             self._last_imu_t, self._gyro, self._horizontal_accel = t_ns[k], gyro[k], means[m - 1]
             # A copy: the state's covariance is changed in place by the next update, the steps' are kept as they are.
             state.p, state.v, state.q, state.cov, state.t_ns = row[0:3], row[3:6], row[6:10], covs[m - 1].copy(), int(ends[m - 1])
-            clean = m - 1 if measured else m
             if clean:
-                after_steps(order[i:i + clean], ends[:clean], states[:clean], covs[:clean])
+                after_steps(ks, ends_clean, states_clean, covs_clean)
             if measured:
                 if self.health.check_due(t_ns[k]):
                     self._check_state()
