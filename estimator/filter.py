@@ -370,7 +370,7 @@ class Estimator:
         computed = self.propagator.propagate_steps(state, steps.deltas[j0:j1], steps.dts[j0:j1], self._horizontal_accel,
                                                    self.options.init.average_s,
                                                    self.options.unaligned_accel_noise if unaligned else None,
-                                                   self._accel_at_rest)
+                                                   self._accel_at_rest, head and after_steps is not None)
         bank = self._bank if not self.heading_aligned else None
         if computed is None or (bank is not None and not bank.propagate_run(steps.deltas[j0:j1], steps.dts[j0:j1],
                                                                             int(steps.times[j1 - 1, 1]))):
@@ -382,20 +382,22 @@ class Estimator:
         ends = steps.times[j0:j1, 1]
         if after_steps is not None:
             clean = m - 1 if measured else m
-            if head and clean:  # the first sample's pose: the state before these steps, as a row of theirs
+            if head and clean:  # the first sample's pose: the state before these steps, their first row
                 ks = [0, *order[i:i + clean]]
-                ends_clean = np.concatenate(((state.t_ns,), ends[:clean]))
-                states_clean = np.concatenate(((np.concatenate((state.p, state.v, state.q)),), states[:clean]))
-                covs_clean = np.concatenate((state.cov[np.newaxis], covs[:clean]))
+                ends_clean = np.empty(clean + 1, np.int64)
+                ends_clean[0], ends_clean[1:] = state.t_ns, ends[:clean]
             else:
                 if head:
                     after_step(0)
-                ks, ends_clean, states_clean, covs_clean = order[i:i + clean], ends[:clean], states[:clean], covs[:clean]
+                ks, ends_clean = order[i:i + clean], ends[:clean]
+            o = 1 if head else 0  # the first row is the state before the steps
+            states_clean, covs_clean = states[:clean + o], covs[:clean + o]
             # The state as the stretch's steps leave it, then their poses at once: all but a last step with measures.
-            k, row = order[end - 1], states[m - 1]
-            self._last_imu_t, self._gyro, self._horizontal_accel = t_ns[k], gyro[k], means[m - 1]
+            k, row = order[end - 1], states[m - 1 + o]
+            self._last_imu_t, self._gyro, self._horizontal_accel = t_ns[k], gyro[k], means[m - 1 + o]
             # A copy: the state's covariance is changed in place by the next update, the steps' are kept as they are.
-            state.p, state.v, state.q, state.cov, state.t_ns = row[0:3], row[3:6], row[6:10], covs[m - 1].copy(), int(ends[m - 1])
+            state.p, state.v, state.q, state.cov, state.t_ns = (row[0:3], row[3:6], row[6:10], covs[m - 1 + o].copy(),
+                                                                int(ends[m - 1]))
             if clean:
                 after_steps(ks, ends_clean, states_clean, covs_clean)
             if measured:

@@ -21,7 +21,7 @@ replay through the runtime equals the offline replay.
 from __future__ import annotations
 
 import heapq
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right
 import math
 from collections import deque
 from dataclasses import dataclass, replace
@@ -45,6 +45,13 @@ _RESYNC_NS = 1_000_000_000  # re-anchor the prediction at least this often (nume
 MIN_RUN = 4
 _ROBOT9 = StateLayout("thesis")  # p, v, θ: the blocks the predictor's covariance covers
 _POSE_FLAT = (np.r_[0:3, 6:9][:, None] * 9 + np.r_[0:3, 6:9][None, :]).ravel()  # [δp, δθ] entries of a flat 9 × 9
+
+
+def _sliceable(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> bool:
+    """Whether slices of a batch's rows are what stacking them gives (C-ordered float rows of 3, int64 times):
+    the compiled runs take them as they are, without compiling for another layout."""
+    return (t_ns.dtype == np.int64 and gyro.dtype == accel.dtype == np.float64 and gyro.ndim == accel.ndim == 2
+            and gyro.shape[1] == accel.shape[1] == 3 and gyro.flags.c_contiguous and accel.flags.c_contiguous)
 
 
 def _pose_cov(cov9: np.ndarray) -> np.ndarray:
@@ -270,6 +277,9 @@ class FusionCore:
         self.predict = opts.predict  # the runtime turns it off when it has no outputs
         self.counts: dict[str, RejectionCounts] = {"imu": RejectionCounts()}
         self._queue: deque[tuple[int, np.ndarray, np.ndarray, bool]] = deque()  # not yet fused
+        # The arrays of batches added whole (times, gyro, accel) while samples of theirs may be queued: a run
+        # within one of them is a slice of its arrays rather than its queued rows stacked again.
+        self._batches: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque()
         self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque()  # fused, newer than the filter state
         self._pending: list[tuple[int, int, int, str, Apply]] = []  # (t_ns, kind's rank, arrival, kind, apply)
         self._seq = 0
@@ -342,6 +352,8 @@ class FusionCore:
         counts.used += n
         finite = rows_finite(gyro, accel) if finite is None else finite  # the caller's, if it screened the rows
         self._queue.extend(zip(times, gyro, accel, finite.tolist()))
+        if _sliceable(t_ns, gyro, accel):
+            self._batches.append((t_ns, gyro, accel))
         self._newest_t = times[-1]
         self.advance()
 
@@ -468,9 +480,13 @@ class FusionCore:
         run = []
         while queue and queue[0][0] <= until:
             run.append(queue.popleft())
-        times = [item[0] for item in run]
-        gyro = np.array([item[1] for item in run])
-        accel = np.array([item[2] for item in run])
+        rows = self._batch_rows(run[0][0], run[-1][0], len(run))
+        if rows is not None:
+            t_arr, gyro, accel = rows
+            times = t_arr.tolist()
+        else:
+            times = [item[0] for item in run]
+            t_arr, gyro, accel = np.array(times, np.int64), np.array([item[1] for item in run]), np.array([item[2] for item in run])
 
         def after_step(k: int) -> None:
             t_state = est.state.t_ns
@@ -494,7 +510,7 @@ class FusionCore:
                 for pose in run.poses():
                     self.on_fused(pose)
 
-        if est.process_imu_run(np.array(times, np.int64), gyro, accel, after_step, after_steps):  # it checks finiteness itself
+        if est.process_imu_run(t_arr, gyro, accel, after_step, after_steps):  # it checks finiteness itself
             self._fused_until = times[-1]
             self._recent.clear()
             self._recent.append((times[-1], run[-1][1], run[-1][2]))
@@ -503,6 +519,21 @@ class FusionCore:
         while run:
             run.pop()
             self._fuse_one_imu()
+
+    def _batch_rows(self, first: int, last: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The times, gyro and accel of the ``n`` queued samples from ``first`` to ``last`` as slices of the batch
+        they were added in; None if they were not added together (the batches that ended before are forgotten)."""
+        batches = self._batches
+        while batches and batches[0][0][-1] < first:
+            batches.popleft()
+        if not batches:
+            return None
+        t, gyro, accel = batches[0]
+        start = bisect_left(t, first)
+        stop = start + n
+        if stop > len(t) or t[start] != first or t[stop - 1] != last:
+            return None
+        return t[start:stop], gyro[start:stop], accel[start:stop]
 
     # ------------------------------------------------------------------------ prediction
     def _signature(self) -> tuple:

@@ -255,6 +255,13 @@ def test_a_compiled_sequence_of_steps_is_bit_for_bit_the_steps_one_by_one(varian
     prop = ImuPropagator(ImuNoise.isotropic(3e-4, 2e-5, 2e-3, 3e-4), 9.81)
     states, covs, means = prop.propagate_steps(state, deltas, dts, horizontal, average_s,
                                                floor if unaligned else None, at_rest)
+    # With the state before the steps as a first row: that row, then the same rows.
+    with_start = prop.propagate_steps(state, deltas, dts, horizontal, average_s, floor if unaligned else None, at_rest,
+                                      start_row=True)
+    assert np.array_equal(with_start[0][0], np.concatenate([state.p, state.v, state.q]))
+    assert np.array_equal(with_start[1][0], state.cov) and np.array_equal(with_start[2][0], horizontal)
+    for before, rows in zip(with_start, (states, covs, means)):
+        assert np.array_equal(before[1:], rows)
     hx, hy = horizontal.tolist()
     extras = []
     for j, dt in enumerate(dts.tolist()):

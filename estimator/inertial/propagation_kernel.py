@@ -112,7 +112,7 @@ def noise_from_terms(terms: np.ndarray, extra2: float, dt: float) -> np.ndarray:
 def step_run(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: np.ndarray, deltas: np.ndarray,
              dts: np.ndarray, gravity: float, F: np.ndarray, cov: np.ndarray, terms: np.ndarray, biases: bool,
              horizontal: np.ndarray, average_s: float, unaligned: bool, floor: float,
-             at_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+             at_rest: np.ndarray, start_row: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`step` for each of a sequence of deltas (rows of [Δθ, Δv]), with the isotropic noise of each
     ``dt`` (:func:`noise_from_terms`) and the filter's running mean of the horizontal acceleration, from
     ``horizontal`` on: what the interpreted loop of steps does, in the same order.
@@ -120,15 +120,21 @@ def step_run(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: 
     ``unaligned``: the heading is unknown, and each step's noise has the extra horizontal accelerometer
     noise the filter adds then, ``max(floor, 2 |mean − at_rest|)`` from the mean before the step
     (``Estimator._propagate``). Returns, after each step, p, v, q (rows of 10), the robot
-    covariance, and that mean (rows of 2).
+    covariance, and that mean (rows of 2); with ``start_row``, the state before the first step as their
+    first row (a pose owed before the steps goes out with theirs).
     """
     m = dts.shape[0]
     n = cov.shape[0]
-    states = np.empty((m, 10))
-    covs = np.empty((m, n, n))
-    means = np.empty((m, 2))
+    o = 1 if start_row else 0
+    states = np.empty((m + o, 10))
+    covs = np.empty((m + o, n, n))
+    means = np.empty((m + o, 2))
     out = np.empty(OUT_LEN)
     hx, hy = horizontal[0], horizontal[1]
+    if start_row:
+        states[0, 0:3], states[0, 3:6], states[0, 6:10] = p, v, q
+        covs[0] = cov
+        means[0, 0], means[0, 1] = hx, hy
     for j in range(m):
         dt = dts[j]
         extra2 = 0.0
@@ -138,12 +144,12 @@ def step_run(p: np.ndarray, v: np.ndarray, q: np.ndarray, b_g: np.ndarray, b_a: 
             extra2 = extra * extra
         Q = noise_from_terms(terms, extra2, dt)
         cov = step(p, v, q, b_g, b_a, deltas[j, 0:3], deltas[j, 3:6], dt, gravity, F, cov, Q, biases, out)
-        covs[j] = cov
-        states[j] = out[0:10]
-        p, v, q = states[j, 0:3], states[j, 3:6], states[j, 6:10]
+        covs[j + o] = cov
+        states[j + o] = out[0:10]
+        p, v, q = states[j + o, 0:3], states[j + o, 3:6], states[j + o, 6:10]
         keep = average_s / (average_s + dt)
         hx, hy = keep * hx + (1.0 - keep) * out[10], keep * hy + (1.0 - keep) * out[11]
-        means[j, 0], means[j, 1] = hx, hy
+        means[j + o, 0], means[j + o, 1] = hx, hy
     return states, covs, means
 
 
@@ -200,4 +206,4 @@ def warm_up(runs: bool = True) -> None:
             step_all_run(rows, rows, np.array([[1.0, 0.0, 0.0, 0.0]] * 2), rows, rows, np.zeros((2, 6)),
                          np.full(2, 0.01), 9.8, np.eye(n), np.zeros((2, n, n)), np.zeros((6, n, n)), n == 15)
             step_run(v3, v3, np.array([1.0, 0.0, 0.0, 0.0]), v3, v3, np.zeros((2, 6)), np.full(2, 0.01), 9.8, np.eye(n),
-                     np.eye(n), np.zeros((6, n, n)), n == 15, np.zeros(2), 0.5, False, 0.2, np.zeros(2))
+                     np.eye(n), np.zeros((6, n, n)), n == 15, np.zeros(2), 0.5, False, 0.2, np.zeros(2), False)

@@ -138,13 +138,15 @@ class ImuPropagator:
 
     def propagate_steps(self, state: FilterState, deltas: np.ndarray, dts: np.ndarray, horizontal: np.ndarray,
                         average_s: float, unaligned_floor: float | None = None,
-                        at_rest: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                        at_rest: np.ndarray | None = None,
+                        start_row: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """:meth:`propagate` over a sequence of deltas ([Δθ, Δv] rows) in one compiled call, ``state`` itself
         left as it was: p, v, q (rows of 10) and the covariance after each step, and the running mean of the
         horizontal acceleration from ``horizontal`` on (``average_s``, as the filter keeps it). No extra
         noise, or with ``unaligned_floor`` the filter's while the heading is unknown (from that floor, that
-        mean and ``at_rest``, see ``propagation_kernel.step_run``). None where only :meth:`propagate` applies: noise
-        that is not isotropic, or a map in the state."""
+        mean and ``at_rest``, see ``propagation_kernel.step_run``). ``start_row``: ``state`` as it is (and that mean)
+        as the first row of each. None where only :meth:`propagate` applies: noise that is not isotropic, or a map
+        in the state."""
         lay = state.layout
         cov = state.cov
         if not self._isotropic or cov.shape[0] != lay.robot_dim or not cov.flags.c_contiguous:
@@ -153,7 +155,7 @@ class ImuPropagator:
                                            self._transition(lay), cov, self._noise_terms(lay), lay.estimates_biases,
                                            horizontal, average_s, unaligned_floor is not None,
                                            0.0 if unaligned_floor is None else float(unaligned_floor),
-                                           _NO_ACCEL if at_rest is None else at_rest)
+                                           _NO_ACCEL if at_rest is None else at_rest, start_row)
 
     def propagate_all(self, states: list[FilterState], delta: ImuDelta) -> bool:
         """:meth:`propagate` (no extra noise) of each of ``states`` over the same delta, in one compiled call.
