@@ -151,14 +151,16 @@ class Snapshot:
 def state_problem(state: FilterState) -> str | None:
     """Why ``state`` cannot be trusted, or None. Positive definiteness is tested on the correlation
     matrix (scale-free: a landmark metres away and a bias of 1e-4 weigh alike) with a tiny jitter."""
-    for name in ("p", "v", "q", "b_g", "b_a", "landmarks"):
-        if not np.all(np.isfinite(getattr(state, name))):
-            return f"nominal {name} not finite"
+    parts = ("p", "v", "q", "b_g", "b_a", "landmarks")
     cov = state.cov
-    if not np.all(np.isfinite(cov)):
+    # One pass over everything first (a check per part costs several times more); which part, only if one fails.
+    if not np.isfinite(np.concatenate([getattr(state, name).ravel() for name in parts] + [cov.ravel()])).all():
+        for name in parts:
+            if not np.all(np.isfinite(getattr(state, name))):
+                return f"nominal {name} not finite"
         return "covariance not finite"
     d = np.diagonal(cov)
-    if np.any(d <= 0.0):
+    if not d.min() > 0.0:
         return f"covariance has a non-positive variance (index {int(np.argmin(d))})"
     s = 1.0 / np.sqrt(d)
     corr = (cov + cov.T) * 0.5 * s[:, None] * s[None, :]

@@ -8,6 +8,7 @@ import pytest
 
 from vtolpose.config import load_config
 from vtolpose.drivers.files.dataset import Dataset
+from vtolpose.estimator.fusion import FusedRun
 from vtolpose.service.replay.session import Recorder, replay
 
 
@@ -32,3 +33,28 @@ def test_an_empty_recording_gives_empty_arrays_of_the_right_shapes():
     trajectory = Recorder(int(1e8)).trajectory()
     assert trajectory.t_ns.shape == (0,) and trajectory.p.shape == (0, 3) and trajectory.q.shape == (0, 4)
     assert trajectory.unscored.dtype == bool
+
+
+def _run(t_ns: list[int], positioned: bool) -> FusedRun:
+    """A run of steps whose poses are worth scoring only with a position (``positioned``)."""
+    m = len(t_ns)
+    rng = np.random.default_rng(m)
+    covs = np.stack([np.eye(15) * (1.0 + k) for k in range(m)])
+    return FusedRun(np.array(t_ns, np.int64), rng.normal(size=(m, 3)), rng.normal(size=(m, 3)), rng.normal(size=(m, 4)),
+                    np.zeros((m, 3)), list(range(m)), np.zeros(3), covs, np.full(3, 1e-6), True, True, positioned, 0,
+                    [100] * m, False, None)
+
+
+def test_runs_before_the_position_are_unscored_and_never_sampled_for_covariance():
+    """Runs kept as blocks keep their poses' scoring flag, beside single poses in their places; the covariance is
+    sampled every period from the first scored pose, across runs, as pose by pose."""
+    recorder = Recorder(int(25e6))
+    runs = [_run([0, 10_000_000], False), _run([20_000_000, 30_000_000, 40_000_000, 70_000_000], True),
+            _run([80_000_000], True)]
+    recorder.record_run(runs[0])
+    recorder.record_run(runs[1])
+    recorder.record_run(runs[2])
+    trajectory = recorder.trajectory()
+    assert trajectory.unscored.tolist() == [True, True, False, False, False, False, False]
+    assert recorder.covariance_samples().t_ns.tolist() == [20_000_000, 70_000_000]  # 45 ms and on: 70 ms, then 95 ms
+    assert np.array_equal(recorder.covariance_samples().cov[1], runs[1].pose_cov(3))

@@ -97,14 +97,17 @@ class Recorder:
     def record_run(self, run: FusedRun) -> None:
         """:meth:`record` for each pose of ``run``, without making them."""
         unscored = self.absolute_position and not run.position_initialized
-        self._runs.append((run.t_ns, run.p, run.v, run.q, np.full(len(run.t_ns), unscored)))
+        self._runs.append((run.t_ns, run.p, run.v, run.q, unscored))
         self._count += len(run.t_ns)
-        if unscored or run.t_ns[-1] < self._next_cov_t:
+        if unscored:
             return
-        for x, t in enumerate(run.t_ns.tolist()):
-            if t >= self._next_cov_t:
-                self._cov.append((t, run.p[x], run.q[x], run.pose_cov(x)))
-                self._next_cov_t = t + self.cov_period_ns
+        t_ns = run.t_ns
+        x = int(np.searchsorted(t_ns, self._next_cov_t))  # the first pose due for a covariance sample
+        while x < len(t_ns):
+            t = int(t_ns[x])
+            self._cov.append((t, run.p[x], run.q[x], run.pose_cov(x)))
+            self._next_cov_t = t + self.cov_period_ns
+            x += max(1, int(np.searchsorted(t_ns[x:], self._next_cov_t)))
 
     def trajectory(self) -> Trajectory:
         """Every pose in the order recorded: the runs' blocks joined, the single rows put in their places."""
@@ -117,8 +120,10 @@ class Recorder:
         if self._runs:
             in_runs = np.ones(n, bool)
             in_runs[self._row_places] = False
-            for column, blocks in zip(columns, zip(*self._runs)):
+            *arrays, unscored = zip(*self._runs)
+            for column, blocks in zip(columns, arrays):
                 column[in_runs] = np.concatenate(blocks)
+            columns[-1][in_runs] = np.repeat(unscored, [len(t) for t in arrays[0]])
         return Trajectory(*columns)
 
     def covariance_samples(self) -> CovarianceSamples:
