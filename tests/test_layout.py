@@ -128,9 +128,9 @@ def test_a_live_service_loads_no_kernel_of_runs_and_a_replay_loads_them_all() ->
             "cfg = load_config(None, {'outputs': {'mavlink': {'enabled': live, 'url': 'udpout:127.0.0.1:9'}}}); "
             "runtime = build_runtime(cfg, cal); "
             "print(runtime.fuses_runs, [bool(k.signatures) for k in (p.step_run, p.step_all_run, s.downsample_run, "
-            "s.stillness_run, s.level_run, s.plain_run, p.step, p.step_all, s.screen_rows)])")
-    assert printed_by_a_fresh_process(code % True) == "False " + str([False] * 6 + [True] * 3)
-    assert printed_by_a_fresh_process(code % False) == "True " + str([True] * 9)
+            "s.stillness_run, s.level_run, s.plain_run, s.to_time, p.step, p.step_all, s.screen_rows)])")
+    assert printed_by_a_fresh_process(code % True) == "False " + str([False] * 7 + [True] * 3)
+    assert printed_by_a_fresh_process(code % False) == "True " + str([True] * 10)
 
 
 def test_the_estimator_imports_no_scipy_sub_package() -> None:

@@ -346,7 +346,8 @@ def test_the_compiled_kernels_are_not_compiled_again_during_a_replay(tmp_path):
                                              kernel.step_all_run,
                                              update_kernel.small_update, update_kernel.small_inverse, update_kernel.gauge_transfer, gps_kernel.gps_update, gps_kernel.filter_fix,
                                              sample_kernel.downsample_run, sample_kernel.stillness_run,
-                                             sample_kernel.screen_rows, sample_kernel.plain_run, sample_kernel.level_run)]
+                                             sample_kernel.screen_rows, sample_kernel.plain_run, sample_kernel.level_run,
+                                             sample_kernel.to_time)]
     from vtolpose.estimator.gnss import gps_kernel
 
     for module in (kernel, update_kernel, gps_kernel, sample_kernel):
