@@ -153,7 +153,8 @@ class ReplaySource:
         for kind, i, count in _segments(kinds, indices, ReplayClock.YIELD_EVERY if batches else 1):
             if batches and kind == 0:
                 i_end = i + count
-                i += int(np.searchsorted(imu_t[i:i_end], t_start, side="left"))
+                if imu_t[i] < t_start:  # a replay told to start later: skip what comes before
+                    i += int(np.searchsorted(imu_t[i:i_end], t_start, side="left"))
                 stop = i_end if t_end is None else i + int(np.searchsorted(imu_t[i:i_end], t_end, side="right"))
                 if stop > i:
                     t_last = int(imu_t[stop - 1])
