@@ -201,3 +201,15 @@ def test_importing_the_rotations_loads_no_numba():
     from test_layout import printed_by_a_fresh_process
 
     assert printed_by_a_fresh_process("import sys, vtolpose.estimator.core.rotation; print('numba' in sys.modules)") == "False"
+
+
+def test_yaw_of_is_the_yaw_of_the_euler_angles_to_the_bit():
+    """``yaw_of`` takes only the two entries of R it needs: the same numbers and shapes as the Euler angles' yaw,
+    for one quaternion, a stack, and a stack of stacks (the heading hypotheses, the filter's state)."""
+    rng = np.random.default_rng(11)
+    q = rng.normal(size=(4000, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    for qs in (q, q.reshape(40, 100, 4), q[7], q[:1]):
+        yaw, reference = yaw_of(qs), euler_from_quat(qs)[..., 2]
+        assert yaw.shape == reference.shape and np.array_equal(yaw, reference)
+    assert yaw_of([1.0, 0.0, 0.0, 0.0]) == 0.0 and isinstance(yaw_of(q[0]), np.ndarray)

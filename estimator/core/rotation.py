@@ -222,8 +222,11 @@ def euler_from_quat(q: np.ndarray) -> np.ndarray:
 
 
 def yaw_of(q: np.ndarray) -> np.ndarray:
-    """Heading (rotation about world down) of body→NED quaternions, radians in (-π, π]."""
-    return euler_from_quat(q)[..., 2]
+    """Heading (rotation about world down) of body→NED quaternions, radians in (-π, π]: :func:`euler_from_quat`'s
+    yaw from the two entries of ``R(q)`` it takes, written as :func:`rot_of` writes them (the same numbers)."""
+    q = np.asarray(q, dtype=float)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.asarray(np.arctan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z)))
 
 
 def quat_slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray | float) -> np.ndarray:
