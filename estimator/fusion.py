@@ -352,8 +352,11 @@ class FusionCore:
         counts.used += n
         finite = rows_finite(gyro, accel) if finite is None else finite  # the caller's, if it screened the rows
         self._queue.extend(zip(times, gyro, accel, finite.tolist()))
+        batches = self._batches
+        while batches and batches[0][0][-1] < self._queue[0][0]:  # none of its samples queued any more
+            batches.popleft()
         if _sliceable(t_ns, gyro, accel):
-            self._batches.append((t_ns, gyro, accel))
+            batches.append((t_ns, gyro, accel))
         self._newest_t = times[-1]
         self.advance()
 

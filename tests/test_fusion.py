@@ -462,3 +462,19 @@ def test_nominal_step_is_integrate_nominal_on_a_one_sample_delta():
                            tuple(a1), dt, 9.81)
         for a, b in zip(got, ref[:3]):
             assert np.allclose(a, b, atol=1e-13)
+
+
+def test_the_batches_kept_for_slicing_are_those_with_samples_queued(flight):
+    """A run within one batch is a slice of its arrays; a batch is kept only while samples of it wait to be fused,
+    also while none are fused in runs (a filter not started yet): the list stays as short as the queue."""
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY, predict=False))
+    imu = flight.imu
+    longest, oldest = 0, None
+    for start in range(0, 4000, 10):
+        core.add_imu_batch(imu.t_ns[start:start + 10], imu.gyro[start:start + 10], imu.accel[start:start + 10])
+        longest = max(longest, len(core._batches))
+        # What was fused before this batch came leaves with it.
+        assert oldest is None or all(t[-1] >= oldest for t, _, _ in core._batches)
+        oldest = core._queue[0][0] if core._queue else None
+    assert core.est.state is not None
+    assert longest <= int(DELAY * 200 / 10) + 3  # the horizon's lag in batches, and one being fused
