@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import sys
 from pathlib import Path
 
 from vtolpose.service.bench.catalog import LONG_BENCHMARKS, SUMMARIES
@@ -22,6 +23,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--only", action="append", choices=sorted(SUMMARIES), help="run only these (repeatable)")
     p.add_argument("--all", action="store_true", help="also run the long benchmarks")
+    p.add_argument("--against", metavar="REV",
+                   help="each figure beside the same figure of git commit REV (e.g. HEAD~1), measured in the same "
+                        "run, alternately, each side in a process of its own (needs a git checkout; with --only)")
+    p.add_argument("--rounds", type=int, default=3, metavar="N",
+                   help="with --against: runs of each side, alternating; each figure is their median (default 3)")
     p.set_defaults(run=run)
 
 
@@ -50,5 +56,17 @@ def run(args: argparse.Namespace) -> int:
     from vtolpose.service.bench.runner import run_benchmarks
 
     print(machine_line())
+    if args.against is not None:
+        from vtolpose.service.bench.against import AgainstError, run_against
+
+        if not args.only:
+            print("vtolpose bench: --against needs --only (each benchmark runs 2 x --rounds times)", file=sys.stderr)
+            return 2
+        try:
+            run_against(args.only, args.against, args.rounds)
+        except AgainstError as exc:
+            print(f"vtolpose bench: {exc}", file=sys.stderr)
+            return 2
+        return 0
     run_benchmarks(args.only, include_long=args.all)
     return 0
