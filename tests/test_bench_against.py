@@ -57,8 +57,7 @@ def test_what_cannot_be_measured_says_why(checkout, tmp_path):
     with pytest.raises(AgainstError, match="no commit 'no-such-commit'"):
         run_against(["odometry-encoding"], "no-such-commit", 1, echo=lambda line: None)
     with pytest.raises(AgainstError, match="needs vtolpose run from a git checkout"):
-        with other_commit("HEAD", repo=tmp_path):
-            pass
+        other_commit("HEAD", repo=tmp_path).__enter__()
     with pytest.raises(AgainstError, match="--rounds must be at least 1"):
         run_against(["odometry-encoding"], "HEAD", 0, echo=lambda line: None)
     done = subprocess.run([sys.executable, "-m", "vtolpose.service.cli", "bench", "--against", "HEAD"],
@@ -78,6 +77,9 @@ def test_a_benchmark_runs_in_a_process_of_the_commit_on_the_path(tmp_path):
         "class Row(NamedTuple):\n    name: str\n    value: float\n    unit: str\n    note: str = ''\n"
         "    target: str | None = None\n")
     (bench / "runner.py").write_text("BENCHMARKS = {'stand-in': lambda: [('a figure', 42.0, 'x', 'its note')]}\n")
+    (tmp_path / "vtolpose" / "service" / "runtime").mkdir()
+    (tmp_path / "vtolpose" / "service" / "runtime" / "__init__.py").write_text("")
+    (tmp_path / "vtolpose" / "service" / "runtime" / "kernels.py").write_text("")  # a commit without the option
     assert rows_of("stand-in", tmp_path) == [Row("a figure", 42.0, "x", "its note")]
     with pytest.raises(AgainstError, match="'odometry-encoding' of the other commit failed"):
         rows_of("odometry-encoding", tmp_path)
