@@ -215,12 +215,12 @@ class _Prediction:
 
 
 def _step_prediction(pred: _Prediction, t: int, gyro: np.ndarray, accel: np.ndarray, b_g: tuple, b_a: tuple,
-                     gravity_down: float, gap_reset_s: float) -> None:
+                     gravity_down: float, gap_needs_reset: Callable[[float], bool]) -> None:
     """The output predictor's step to the sample at ``t`` (biases as floats); over a gap the filter would reset
-    for, the prediction holds (as the filter does: it does not fly through a hole)."""
+    for (``HealthMonitor.gap_needs_reset``), the prediction holds (as the filter does: it does not fly through a hole)."""
     if t <= pred.t_ns:
         return
-    if (t - pred.t_ns) * 1e-9 > gap_reset_s:
+    if gap_needs_reset((t - pred.t_ns) * 1e-9):
         pred.t_ns, pred.gyro, pred.accel, pred.floats = t, gyro, accel, ()
         return
     g0, a0 = pred.floats or (tuple(pred.gyro.tolist()), tuple(pred.accel.tolist()))
@@ -241,12 +241,12 @@ class DetachedPrediction:
     b_g: np.ndarray
     bias_floats: tuple  # (b_g, b_a) as tuples of floats
     gravity_down: float
-    gap_reset_s: float
+    gap_needs_reset: Callable[[float], bool]  # the health monitor's (it reads only its options)
     covariance: tuple  # (cov9, pose_cov, omega_var)
     flags: tuple  # OutputPose's fields from heading_aligned on
 
     def step(self, t: int, gyro: np.ndarray, accel: np.ndarray) -> None:
-        _step_prediction(self.pred, t, gyro, accel, *self.bias_floats, self.gravity_down, self.gap_reset_s)
+        _step_prediction(self.pred, t, gyro, accel, *self.bias_floats, self.gravity_down, self.gap_needs_reset)
 
     def output(self) -> OutputPose:
         pred = self.pred
@@ -352,11 +352,9 @@ class FusionCore:
         counts.used += n
         finite = rows_finite(gyro, accel) if finite is None else finite  # the caller's, if it screened the rows
         self._queue.extend(zip(times, gyro, accel, finite.tolist()))
-        batches = self._batches
-        while batches and batches[0][0][-1] < self._queue[0][0]:  # none of its samples queued any more
-            batches.popleft()
+        self._forget_batches_before(self._queue[0][0])  # none of their samples queued any more
         if _sliceable(t_ns, gyro, accel):
-            batches.append((t_ns, gyro, accel))
+            self._batches.append((t_ns, gyro, accel))
         self._newest_t = times[-1]
         self.advance()
 
@@ -526,17 +524,21 @@ class FusionCore:
     def _batch_rows(self, first: int, last: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The times, gyro and accel of the ``n`` queued samples from ``first`` to ``last`` as slices of the batch
         they were added in; None if they were not added together (the batches that ended before are forgotten)."""
-        batches = self._batches
-        while batches and batches[0][0][-1] < first:
-            batches.popleft()
-        if not batches:
+        self._forget_batches_before(first)
+        if not self._batches:
             return None
-        t, gyro, accel = batches[0]
+        t, gyro, accel = self._batches[0]
         start = bisect_left(t, first)
         stop = start + n
         if stop > len(t) or t[start] != first or t[stop - 1] != last:
             return None
         return t[start:stop], gyro[start:stop], accel[start:stop]
+
+    def _forget_batches_before(self, t_ns: int) -> None:
+        """Forget the batches whose samples all came before ``t_ns``."""
+        batches = self._batches
+        while batches and batches[0][0][-1] < t_ns:
+            batches.popleft()
 
     # ------------------------------------------------------------------------ prediction
     def _signature(self) -> tuple:
@@ -552,7 +554,7 @@ class FusionCore:
 
     def _step(self, pred: _Prediction, t: int, gyro: np.ndarray, accel: np.ndarray) -> None:
         _step_prediction(pred, t, gyro, accel, *self._biases(), float(self.est.propagator.gravity[2]),
-                         self.est.health.options.imu_gap_reset_s)
+                         self.est.health.gap_needs_reset)
 
     def _biases(self) -> tuple:
         """The state's (b_g, b_a) as tuples of floats, made again only when the state replaced them."""
@@ -623,7 +625,7 @@ class FusionCore:
         covariance = self._out_cov or self._predicted_covariance()
         s = self.est.state
         return DetachedPrediction(replace(pred), s.b_g, self._biases(),
-                                  float(self.est.propagator.gravity[2]), self.est.health.options.imu_gap_reset_s,
+                                  float(self.est.propagator.gravity[2]), self.est.health.gap_needs_reset,
                                   covariance, self._pose_flags())
 
     def heavy_due(self) -> bool:
@@ -632,7 +634,8 @@ class FusionCore:
         if self._newest_t is None:
             return False
         horizon = self._newest_t - self.delay_ns
-        if any(kind == "camera" and t <= horizon for t, _, _, kind, _ in self._pending):
+        pending = self._pending  # a heap: its first is the earliest, so mostly nothing to scan (every sample asks)
+        if pending and pending[0][0] <= horizon and any(kind == "camera" and t <= horizon for t, _, _, kind, _ in pending):
             return True
         state = self.est.state
         return (state is not None and state.n_landmarks > 0 and bool(self._queue) and self._queue[0][0] <= horizon

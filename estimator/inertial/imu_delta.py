@@ -148,9 +148,7 @@ class ImuDownsampler:
         rows of (t0, t1), dt and [Δθ, Δv]; the same numbers and the same state after as the two calls."""
         acc, acc_t = self._pack()
         reading = _NO_READING if after is None else np.concatenate((after[1], after[2]))
-        times, dts, deltas, _ = sample_kernel.to_time(acc, acc_t, t_ns, 0 if after is None else after[0], reading,
-                                                      after is not None)
-        return times, dts, deltas
+        return sample_kernel.to_time(acc, acc_t, t_ns, 0 if after is None else after[0], reading, after is not None)
 
     def flush(self) -> ImuDelta | None:
         """The partial delta accumulated so far (e.g. up to a measurement's time), if any."""

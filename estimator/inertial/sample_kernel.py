@@ -86,12 +86,11 @@ def downsample_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, acc: np.n
 
 @numba.njit(cache=True, nogil=True)
 def to_time(acc: np.ndarray, acc_t: np.ndarray, t_ns: int, after_t: int, after: np.ndarray,
-            has_after: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+            has_after: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:meth:`ImuDownsampler.flush` then :meth:`ImuDownsampler.hold` to ``t_ns`` (``after``: the next sample's
     gyro and accel, at ``after_t``, if ``has_after``), the accumulator carried in and out as in
-    :func:`downsample_run`. Returns (t0, t1), dt and [Δθ, Δv] of the deltas made (none, one or two) and what
-    the hold did: 0 nothing, 1 held the last reading, 2 interpolated it (the reading at ``t_ns`` is then the
-    accumulator's last sample)."""
+    :func:`downsample_run` (an interpolated reading at ``t_ns`` becomes its last sample's). Returns (t0, t1), dt
+    and [Δθ, Δv] of the deltas made: none, one or two."""
     times = np.empty((2, 2), np.int64)
     dts = np.empty(2)
     deltas = np.empty((2, 6))
@@ -110,7 +109,7 @@ def to_time(acc: np.ndarray, acc_t: np.ndarray, t_ns: int, after_t: int, after: 
         acc_t[2] &= ~2
     t_last = acc_t[0]
     if not acc_t[2] & 1 or t_ns <= t_last or acc_t[2] & 2:
-        return times[:m], dts[:m], deltas[:m], 0
+        return times[:m], dts[:m], deltas[:m]
     dt = (t_ns - t_last) * 1e-9
     gx, gy, gz, ax, ay, az = acc[0], acc[1], acc[2], acc[3], acc[4], acc[5]
     times[m, 0], times[m, 1] = t_last, t_ns
@@ -128,12 +127,12 @@ def to_time(acc: np.ndarray, acc_t: np.ndarray, t_ns: int, after_t: int, after: 
         deltas[m, 0], deltas[m, 1], deltas[m, 2] = wx, wy, wz
         deltas[m, 3], deltas[m, 4], deltas[m, 5] = rotate(hw, hx, hy, hz, fx, fy, fz)
         acc[0], acc[1], acc[2], acc[3], acc[4], acc[5] = bx, by, bz, cx, cy, cz
-        return times[:m + 1], dts[:m + 1], deltas[:m + 1], 2
+        return times[:m + 1], dts[:m + 1], deltas[:m + 1]
     h = 0.5 * dt
     hw, hx, hy, hz = rotvec_quat(h * gx, h * gy, h * gz)
     deltas[m, 0], deltas[m, 1], deltas[m, 2] = gx * dt, gy * dt, gz * dt
     deltas[m, 3], deltas[m, 4], deltas[m, 5] = rotate(hw, hx, hy, hz, dt * ax, dt * ay, dt * az)
-    return times[:m + 1], dts[:m + 1], deltas[:m + 1], 1
+    return times[:m + 1], dts[:m + 1], deltas[:m + 1]
 
 
 @numba.njit(cache=True, nogil=True)

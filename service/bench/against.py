@@ -97,7 +97,7 @@ def rows_of(name: str, pythonpath: Path | None) -> list[Row]:
     return [Row(*row) for row in json.loads(marked[-1])]
 
 
-def side_by_side(name: str, theirs: list[list[Row]], ours: list[list[Row]], short: str) -> list[Row]:
+def side_by_side(theirs: list[list[Row]], ours: list[list[Row]], short: str) -> list[Row]:
     """Per figure: this tree's median over the rounds (with its target) and, where the other commit has the same
     figure, the other's median and this tree's ÷ the other's."""
     rows = []
@@ -128,7 +128,7 @@ def run_against(names: list[str], rev: str, rounds: int, echo: Callable[[str], N
                 theirs.append(rows_of(name, path))
                 ours.append(rows_of(name, None))
                 echo(f"  ({name}: round {k + 1} of {rounds} done)")
-            for row in side_by_side(name, theirs, ours, short):
+            for row in side_by_side(theirs, ours, short):
                 echo(row.line())
                 out.append(row)
     return out
