@@ -8,7 +8,9 @@ every sample and every pose is published on Zenoh to a subscriber in another pro
 latency is from the moment a sample is handed over by its reader thread to the moment both
 outputs have returned. Targets: p99 ≤ 1 ms, and the loop's own handling of a sample ≤ 0.2 ms (p50).
 Beside them: each output's share of the handling, and what a bare UDP datagram and a bare Zenoh put
-of the same sizes cost on this machine with nothing around them (the floor of the two sends). Those runs'
+of the same sizes cost on this machine with nothing around them (the floor of the two sends), and what the code
+that runs after an idle gap as long as an IMU period pays for the gap (the idle floor: the same encoding warm in a
+loop, after a sleep, after a spin). Those runs'
 frames are one textured image, not of the flight, so their update only counts. Two last runs render the flight
 and fuse its own frames with the service's frame processor: the EKF-SLAM update on the fusion thread
 (``fusion.update_thread``, the default; ``service/runtime/fusion_thread.py``), then on the loop (the baseline),
@@ -30,7 +32,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -131,7 +133,7 @@ def _test_image(seed: int = 0) -> np.ndarray:
 def bench_runtime_latency(duration_s: float = 15.0) -> list[Row]:
     """IMU sample in → ODOMETRY and Zenoh pose out, p50/p99, with SIFT at 7.5 Hz in camera threads, then processes (targets: p99 ≤ 1 ms, handling p50 ≤ 0.2 ms)."""
     in_process = {"fusion": {"camera_process": True}}
-    rows = latency_run(duration_s, None, "normal")
+    rows = idle_floor_rows() + latency_run(duration_s, None, "normal")
     processes = latency_run(duration_s, None, "camera process", in_process)
     rows += processes + process_ratios(rows, processes)
     # The flight's own frames fused: the update on the fusion thread (the default), then on the loop (the baseline).
@@ -350,6 +352,52 @@ def bare_sends_us(datagram: int, document: int, count: int = 2000) -> tuple[floa
             peer.wait()
         session.close()
     return float(np.median(udp)) * 1e-3, float(np.median(put)) * 1e-3, received[0], received[1]
+
+
+def after_idle_us(work: Callable[[], Any], gap_s: float, count: int = 500) -> tuple[float, float, float]:
+    """p50 [us] of ``work()`` run ``count`` times back to back (warm), after sleeping ``gap_s`` before each call
+    (as the loop sleeps between IMU samples) and after spinning ``gap_s`` before each (the core kept busy). The
+    gaps themselves are not timed, only the calls."""
+    def timed(wait: Callable[[], None] | None) -> float:
+        work()
+        spent = np.zeros(count)
+        for k in range(count):
+            if wait is not None:
+                wait()
+            t0 = time.perf_counter_ns()
+            work()
+            spent[k] = time.perf_counter_ns() - t0
+        return float(np.median(spent)) * 1e-3
+
+    def spin() -> None:
+        end = time.perf_counter() + gap_s
+        while time.perf_counter() < end:
+            pass
+
+    return timed(None), timed(lambda: time.sleep(gap_s)), timed(spin)
+
+
+def idle_floor_rows(gap_s: float = 0.008, count: int = 500) -> list[Row]:
+    """What an idle gap as long as an IMU period costs the code that runs after it, on this machine: the ODOMETRY
+    encoding of a pose (fields and payload, pure Python, no send) warm in a loop, after a sleep, after a spin."""
+    from vtolpose.service.bench.odometry_encoding import bench_poses
+    from vtolpose.service.outputs.mavlink_odometry import PROFILES, odometry_fields, odometry_payload
+
+    poses, profile, i = bench_poses(), PROFILES["px4"], [0]
+
+    def encode() -> None:
+        i[0] = (i[0] + 1) % len(poses)
+        odometry_payload(odometry_fields(poses[i[0]], profile))
+
+    warm, slept, spun = after_idle_us(encode, gap_s, count)
+    gap = f"{gap_s * 1e3:.0f} ms"
+    return [
+        ("idle floor: ODOMETRY encoding, warm in a loop, p50", warm, "us", "the same work as below, back to back"),
+        (f"idle floor: the same after sleeping {gap}, p50", slept, "us",
+         f"{slept / warm:.2f}x the warm figure: what the loop meets after waiting for a sample"),
+        (f"idle floor: the same after spinning {gap}, p50", spun, "us",
+         f"{spun / warm:.2f}x the warm figure: the core kept busy instead of idle"),
+    ]
 
 
 class _LogCounter(logging.Handler):
