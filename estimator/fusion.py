@@ -25,8 +25,8 @@ from bisect import bisect_left, bisect_right
 import math
 from collections import deque
 from dataclasses import dataclass, replace
-from operator import itemgetter
-from itertools import chain
+from operator import itemgetter, lt
+from itertools import chain, islice
 from typing import Any, Callable
 
 import numpy as np
@@ -343,7 +343,7 @@ class FusionCore:
         times = t_ns.tolist()
         newest = self._newest_t
         if (self.predict or self._refused is not None or len(self._queue) + n > self.options.max_imu_buffer
-                or (newest is not None and times[0] <= newest) or (n > 1 and not bool((t_ns[1:] > t_ns[:-1]).all()))):
+                or (newest is not None and times[0] <= newest) or not all(map(lt, times, islice(times, 1, None)))):
             for t, g, a in zip(times, gyro, accel):
                 self.add_imu(ImuSample(t, g, a))
             return

@@ -478,3 +478,31 @@ def test_the_batches_kept_for_slicing_are_those_with_samples_queued(flight):
         oldest = core._queue[0][0] if core._queue else None
     assert core.est.state is not None
     assert longest <= int(DELAY * 200 / 10) + 3  # the horizon's lag in batches, and one being fused
+
+
+def test_a_batch_out_of_order_within_is_taken_sample_by_sample(flight):
+    """A batch whose times repeat or step back inside it goes through the per-sample rules, as if its samples came
+    one by one: the same poses, the same refusals."""
+    samples = imu_samples(flight)[:3000]
+    batches = [samples[start:start + 12] for start in range(0, len(samples), 12)]
+    batches[100] = batches[100][:5] + [batches[100][4]] + batches[100][5:]  # a time repeated
+    b = batches[200]
+    batches[200] = b[:3] + [b[4], b[3]] + b[5:]  # two swapped
+    results = []
+    for batched in (False, True):
+        fused = []
+        core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY, predict=False),
+                          on_fused=lambda pose, out=fused: out.append((pose.t_ns, pose.p.copy(), pose.q.copy())))
+        for batch in batches:
+            if batched:
+                core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
+                                   np.array([s.accel for s in batch]))
+            else:
+                for sample in batch:
+                    core.add_imu(sample)
+        core.flush()
+        results.append((fused, core.counts_report(), core.est.counts_report()))
+    (fused_one, *counts_one), (fused_batched, *counts_batched) = results
+    assert counts_batched == counts_one
+    assert sum(counts_one[0]["imu"]["rejected"].values()) == 2  # the repeated time and the one stepping back
+    assert_same_trajectory(fused_batched, fused_one)

@@ -58,3 +58,24 @@ def test_runs_before_the_position_are_unscored_and_never_sampled_for_covariance(
     assert trajectory.unscored.tolist() == [True, True, False, False, False, False, False]
     assert recorder.covariance_samples().t_ns.tolist() == [20_000_000, 70_000_000]  # 45 ms and on: 70 ms, then 95 ms
     assert np.array_equal(recorder.covariance_samples().cov[1], runs[1].pose_cov(3))
+
+
+def test_the_columns_grow_past_their_first_room_keeping_every_pose_in_order():
+    """Runs and single poses, alternately, past the recorder's first room twice: every pose where it came."""
+    recorder = Recorder(int(1e9))
+    runs, t0 = [], 0
+    for k in range(300):  # 300 runs of 1..59 poses, every other one recorded pose by pose
+        m = 1 + (7 * k) % 59
+        run = _run([t0 + 1_000_000 * i for i in range(m)], k % 5 != 0)
+        t0 += 1_000_000 * m
+        runs.append(run)
+        if k % 2:
+            for pose in run.poses():
+                recorder.record(pose)
+        else:
+            recorder.record_run(run)
+    trajectory = recorder.trajectory()
+    assert len(trajectory.t_ns) == sum(len(run) for run in runs) > 2 * 4096
+    for name in ("t_ns", "p", "v", "q"):
+        assert np.array_equal(getattr(trajectory, name), np.concatenate([getattr(run, name) for run in runs])), name
+    assert trajectory.unscored.tolist() == [not run.position_initialized for run in runs for _ in range(len(run))]

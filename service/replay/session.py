@@ -67,16 +67,39 @@ class CovarianceSamples:
         return cls(np.array(t, dtype=np.int64), np.array(p), np.array(q), np.array(c))
 
 
+class _Columns:
+    """The trajectory's columns (t, p, v, q, unscored) in arrays that double when full: a run's poses are
+    copied in as blocks, a single pose as a row, in the order they come (no rows or blocks to join later)."""
+
+    def __init__(self, capacity: int = 4096) -> None:
+        self.n = 0
+        self._arrays = self._empty(capacity)
+
+    @staticmethod
+    def _empty(capacity: int) -> tuple[np.ndarray, ...]:
+        return (np.empty(capacity, np.int64), np.empty((capacity, 3)), np.empty((capacity, 3)), np.empty((capacity, 4)),
+                np.empty(capacity, bool))
+
+    def room_for(self, m: int) -> tuple[np.ndarray, ...]:
+        """The arrays, with room for ``m`` more poses after the first :attr:`n`."""
+        arrays = self._arrays
+        if self.n + m > len(arrays[0]):
+            grown = self._empty(max(2 * len(arrays[0]), self.n + m))
+            for new, old in zip(grown, arrays):
+                new[:self.n] = old[:self.n]
+            arrays = self._arrays = grown
+        return arrays
+
+    def taken(self) -> tuple[np.ndarray, ...]:
+        """Copies of the first :attr:`n` poses of each column."""
+        return tuple(column[:self.n].copy() for column in self._arrays)
+
+
 class Recorder:
     """Every fused pose, and its covariance at a lower rate (called on the runtime's loop)."""
 
     def __init__(self, cov_period_ns: int, absolute_position: bool = True) -> None:
-        # Single poses as (t, p, v, q, unscored) rows with their place among all poses; a run's poses as one
-        # (t_ns, p, v, q, unscored) block of arrays (record_run: kept as the run hands them over, not cut into rows).
-        self._rows: list[tuple] = []
-        self._row_places: list[int] = []
-        self._runs: list[tuple] = []
-        self._count = 0
+        self._columns = _Columns()
         self.cov_period_ns = cov_period_ns
         # Without an absolute position source the start is the origin and the covariance is
         # meaningful from the first step; with one, only once the position is initialised.
@@ -87,9 +110,11 @@ class Recorder:
     def record(self, pose: OutputPose) -> None:
         # A pose before the position it is to have is not scored.
         unscored = self.absolute_position and not pose.position_initialized
-        self._rows.append((pose.t_ns, pose.p, pose.v, pose.q, unscored))
-        self._row_places.append(self._count)
-        self._count += 1
+        columns = self._columns
+        t, p, v, q, flags = columns.room_for(1)
+        k = columns.n
+        t[k], p[k], v[k], q[k], flags[k] = pose.t_ns, pose.p, pose.v, pose.q, unscored
+        columns.n = k + 1
         if not unscored and pose.t_ns >= self._next_cov_t:
             self._cov.append((pose.t_ns, pose.p, pose.q, pose.pose_cov))
             self._next_cov_t = pose.t_ns + self.cov_period_ns
@@ -97,34 +122,24 @@ class Recorder:
     def record_run(self, run: FusedRun) -> None:
         """:meth:`record` for each pose of ``run``, without making them."""
         unscored = self.absolute_position and not run.position_initialized
-        self._runs.append((run.t_ns, run.p, run.v, run.q, unscored))
-        self._count += len(run.t_ns)
+        columns, t_ns = self._columns, run.t_ns
+        m = len(t_ns)
+        t, p, v, q, flags = columns.room_for(m)
+        k = columns.n
+        t[k:k + m], p[k:k + m], v[k:k + m], q[k:k + m], flags[k:k + m] = t_ns, run.p, run.v, run.q, unscored
+        columns.n = k + m
         if unscored:
             return
-        t_ns = run.t_ns
         x = int(np.searchsorted(t_ns, self._next_cov_t))  # the first pose due for a covariance sample
-        while x < len(t_ns):
-            t = int(t_ns[x])
-            self._cov.append((t, run.p[x], run.q[x], run.pose_cov(x)))
-            self._next_cov_t = t + self.cov_period_ns
+        while x < m:
+            t_x = int(t_ns[x])
+            self._cov.append((t_x, run.p[x], run.q[x], run.pose_cov(x)))
+            self._next_cov_t = t_x + self.cov_period_ns
             x += max(1, int(np.searchsorted(t_ns[x:], self._next_cov_t)))
 
     def trajectory(self) -> Trajectory:
-        """Every pose in the order recorded: the runs' blocks joined, the single rows put in their places."""
-        n = self._count
-        columns = (np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 4)), np.empty(n, bool))
-        if self._rows:
-            places = np.array(self._row_places)
-            for column, values in zip(columns, zip(*self._rows)):
-                column[places] = values
-        if self._runs:
-            in_runs = np.ones(n, bool)
-            in_runs[self._row_places] = False
-            *arrays, unscored = zip(*self._runs)
-            for column, blocks in zip(columns, arrays):
-                column[in_runs] = np.concatenate(blocks)
-            columns[-1][in_runs] = np.repeat(unscored, [len(t) for t in arrays[0]])
-        return Trajectory(*columns)
+        """Every pose in the order recorded."""
+        return Trajectory(*self._columns.taken())
 
     def covariance_samples(self) -> CovarianceSamples:
         return CovarianceSamples.from_rows(self._cov)
