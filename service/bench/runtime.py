@@ -372,7 +372,7 @@ def after_idle_us(work: Callable[[], Any], gap_s: float, count: int = 500) -> tu
     def spin() -> None:
         end = time.perf_counter() + gap_s
         while time.perf_counter() < end:
-            pass
+            pass  # busy on purpose: the core stays with this process instead of going idle
 
     return timed(None), timed(lambda: time.sleep(gap_s)), timed(spin)
 
