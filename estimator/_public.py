@@ -28,6 +28,7 @@ PUBLIC: dict[str, str] = {
     'Calibration': 'vtolpose.estimator.core.calibration',
     'ImuNoise': 'vtolpose.estimator.core.calibration',
     'STANDARD_GRAVITY': 'vtolpose.estimator.core.calibration',
+    'make_room': 'vtolpose.estimator.core.columns',
     'R_ENU_NED': 'vtolpose.estimator.core.frames',
     'body_covariance_frd_to_flu': 'vtolpose.estimator.core.frames',
     'frd_to_flu': 'vtolpose.estimator.core.frames',

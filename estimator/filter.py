@@ -44,7 +44,7 @@ from vtolpose.estimator.gnss.gps_update import GpsUpdater, place_at_fix
 from vtolpose.estimator.gnss.noise_check import GpsNoiseCheck, NoiseCheckOptions
 from vtolpose.estimator.inertial.gravity_update import GravityLeveller
 from vtolpose.estimator.health import FrameInnovations, GapWidener, HealthMonitor, HealthOptions
-from vtolpose.estimator.inertial.imu_delta import DeltaRun, ImuDelta, ImuDownsampler
+from vtolpose.estimator.inertial.imu_delta import DeltaRun, ImuDelta, ImuDownsampler, delta_row
 from vtolpose.estimator.inertial.initializer import InitialAttitude, InitOptions
 from vtolpose.estimator.core.kalman import UpdateOutcome, chi2_gate, ekf_update
 from vtolpose.estimator.core.measurements import GpsFix, RejectionCounts, readings_finite
@@ -366,14 +366,9 @@ class Estimator:
                 break  # the measures or the check change the state: the next steps start from what they leave
         j0, j1 = step_at[order[i]], step_at[order[end - 1]] + 1
         state = self.state
-        unaligned = not (self.heading_aligned or self.local_position)  # as _propagate
-        computed = self.propagator.propagate_steps(state, steps.deltas[j0:j1], steps.dts[j0:j1], self._horizontal_accel,
-                                                   self.options.init.average_s,
-                                                   self.options.unaligned_accel_noise if unaligned else None,
-                                                   self._accel_at_rest, head and after_steps is not None)
-        bank = self._bank if not self.heading_aligned else None
-        if computed is None or (bank is not None and not bank.propagate_run(steps.deltas[j0:j1], steps.dts[j0:j1],
-                                                                            int(steps.times[j1 - 1, 1]))):
+        computed = self._stretch(steps.deltas[j0:j1], steps.dts[j0:j1], int(steps.times[j1 - 1, 1]),
+                                 head and after_steps is not None)
+        if computed is None:
             if head:
                 after_step(0)
             return 0
@@ -562,7 +557,7 @@ class Estimator:
             times, dts, deltas = self._downsampler.to_time(t_ns, self._next_sample(t_ns))
             if len(dts) and not self._propagate_steps(times, dts, deltas):
                 for j in range(len(dts)):
-                    self._propagate(ImuDelta(int(times[j, 0]), int(times[j, 1]), float(dts[j]), deltas[j, 0:3], deltas[j, 3:6]))
+                    self._propagate(delta_row(times, dts, deltas, j))
             return
         for delta in (self._downsampler.flush(), self._downsampler.hold(t_ns, self._next_sample(t_ns))):
             if delta is not None:
@@ -574,21 +569,30 @@ class Estimator:
         (a recorder watching the steps, a map, noise that is not isotropic)."""
         if self.recorder is not None:
             return False
-        state = self.state
-        unaligned = not (self.heading_aligned or self.local_position)  # as _propagate
-        computed = self.propagator.propagate_steps(state, deltas, dts, self._horizontal_accel, self.options.init.average_s,
-                                                   self.options.unaligned_accel_noise if unaligned else None,
-                                                   self._accel_at_rest)
+        computed = self._stretch(deltas, dts, int(times[-1, 1]))
         if computed is None:
             return False
-        bank = self._bank if not self.heading_aligned else None
-        if bank is not None and not bank.propagate_run(deltas, dts, int(times[-1, 1])):
-            return False
         states, covs, means = computed
-        row = states[-1]
+        row, state = states[-1], self.state
         state.p, state.v, state.q, state.cov, state.t_ns = row[0:3], row[3:6], row[6:10], covs[-1], int(times[-1, 1])
         self._horizontal_accel = means[-1]
         return True
+
+    def _stretch(self, deltas: np.ndarray, dts: np.ndarray, t_end: int,
+                 start_row: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The state's steps over ``deltas`` as :meth:`_propagate` takes them (the extra noise while the heading is
+        unknown) in one compiled call, the state itself left as it was (``propagator.propagate_steps``: rows of
+        p, v, q, covariances, means; ``start_row``: the state before them first), and the heading hypotheses
+        taken over the same steps to ``t_end``. None, with nothing done, where either declines."""
+        unaligned = not (self.heading_aligned or self.local_position)  # as _propagate
+        computed = self.propagator.propagate_steps(self.state, deltas, dts, self._horizontal_accel,
+                                                   self.options.init.average_s,
+                                                   self.options.unaligned_accel_noise if unaligned else None,
+                                                   self._accel_at_rest, start_row)
+        bank = self._bank if not self.heading_aligned else None
+        if computed is None or (bank is not None and not bank.propagate_run(deltas, dts, t_end)):
+            return None
+        return computed
 
     # ---------------------------------------------------------------------------- start-up
     def _begin(self, state: FilterState, gravity: float, message: str) -> None:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vtolpose.estimator.core.columns import make_room
 from vtolpose.estimator.core.rotation import quat_slerp
 
 # One row per pose: p (3), q (4, w first), v (3), w (3, body rate), cov (36, [δp, δθ] row-major).
@@ -183,19 +184,8 @@ class PoseHistory:
 
     def _make_room(self, extra: int) -> None:
         """Room for ``extra`` more entries after the live ones, which start at index 0 afterwards."""
-        n = self._end - self._start
-        if n + extra <= self._t.size // 2 or (n + extra <= self._t.size and self._start):
-            # Slide down (amortised O(1) while at most half full); else grow.
-            self._t[:n] = self._t[self._start : self._end]
-            self._rows[:n] = self._rows[self._start : self._end]
-            self._kind[:n] = self._kind[self._start : self._end]
-        else:
-            size = max(2 * self._t.size, n + extra)
-            t, rows, kind = np.zeros(size, dtype=np.int64), np.zeros((size, ROW)), np.zeros(size, dtype=np.int8)
-            t[:n], rows[:n] = self._t[self._start : self._end], self._rows[self._start : self._end]
-            kind[:n] = self._kind[self._start : self._end]
-            self._t, self._rows, self._kind = t, rows, kind
-        self._start, self._end = 0, n
+        (self._t, self._rows, self._kind), self._start, self._end = make_room(
+            (self._t, self._rows, self._kind), self._start, self._end, extra)
 
     def _evict(self, newest: int) -> None:
         oldest_kept = newest - self.span_ns

@@ -9,11 +9,8 @@ import sys
 
 import pytest
 
-from vtolpose.service.bench.against import AgainstError, other_commit, rows_of, run_against, source_tree
+from vtolpose.service.bench.against import PARTS, AgainstError, other_commit, rows_of, run_against, source_tree
 from vtolpose.service.bench.rows import Row
-
-
-PARTS = ("config", "drivers", "estimator", "service")
 
 
 def _git(repo, *args: str) -> str:

@@ -146,9 +146,22 @@ def feed_in_batches(core: FusionCore, flight, size: int = 12) -> None:
         while k < len(fixes) and fixes[k].t_ns <= batch[0].t_ns:
             core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
             k += 1
-        core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
-                           np.array([s.accel for s in batch]))
+        add_batch(core, batch)
     core.flush()
+
+
+def add_batch(core: FusionCore, batch: list) -> None:
+    """IMU samples (a list of ImuSample) as one batch of arrays."""
+    core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
+                       np.array([s.accel for s in batch]))
+
+
+def recording_core(flight) -> tuple[FusionCore, list]:
+    """A core without a prediction, and the list it appends each fused pose's time, position and attitude to."""
+    fused: list = []
+    core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY, predict=False),
+                      on_fused=lambda pose: fused.append((pose.t_ns, pose.p.copy(), pose.q.copy())))
+    return core, fused
 
 
 def fused_pose_fields(flight, cfg, runs: bool) -> tuple[list[tuple], int]:
@@ -228,9 +241,7 @@ def test_held_runs_change_neither_the_result_nor_what_is_too_late(flight, late_s
     fixes, samples = gps_fixes(flight), imu_samples(flight)
     results, held = [], []
     for batched in (False, True):
-        fused = []
-        core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY, predict=False),
-                          on_fused=lambda pose, out=fused: out.append((pose.t_ns, pose.p.copy(), pose.q.copy())))
+        core, fused = recording_core(flight)
         k = 0
         for start in range(0, len(samples), 12):
             batch = samples[start:start + 12]
@@ -238,8 +249,7 @@ def test_held_runs_change_neither_the_result_nor_what_is_too_late(flight, late_s
                 core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
                 k += 1
             if batched:
-                core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
-                                   np.array([s.accel for s in batch]))
+                add_batch(core, batch)
                 held.append(core.fused_until_ns is not None and core.est.state is not None
                             and core.fused_until_ns > core.est.state.t_ns)  # passed by the horizon, not yet fused
             else:
@@ -490,13 +500,10 @@ def test_a_batch_out_of_order_within_is_taken_sample_by_sample(flight):
     batches[200] = b[:3] + [b[4], b[3]] + b[5:]  # two swapped
     results = []
     for batched in (False, True):
-        fused = []
-        core = FusionCore(new_estimator(flight), FusionOptions(delay_s=DELAY, predict=False),
-                          on_fused=lambda pose, out=fused: out.append((pose.t_ns, pose.p.copy(), pose.q.copy())))
+        core, fused = recording_core(flight)
         for batch in batches:
             if batched:
-                core.add_imu_batch(np.array([s.t_ns for s in batch]), np.array([s.gyro for s in batch]),
-                                   np.array([s.accel for s in batch]))
+                add_batch(core, batch)
             else:
                 for sample in batch:
                     core.add_imu(sample)

@@ -43,8 +43,12 @@ class DeltaRun:
     deltas: np.ndarray  # (m, 6): Δθ, Δv
 
     def delta(self, j: int) -> ImuDelta:
-        return ImuDelta(int(self.times[j, 0]), int(self.times[j, 1]), float(self.dts[j]), self.deltas[j, 0:3],
-                        self.deltas[j, 3:6])
+        return delta_row(self.times, self.dts, self.deltas, j)
+
+
+def delta_row(times: np.ndarray, dts: np.ndarray, deltas: np.ndarray, j: int) -> ImuDelta:
+    """Row ``j`` of steps given as arrays (rows of (t0, t1), dt, [Δθ, Δv]) as an :class:`ImuDelta`."""
+    return ImuDelta(int(times[j, 0]), int(times[j, 1]), float(dts[j]), deltas[j, 0:3], deltas[j, 3:6])
 
 
 _NO_READING = np.zeros(6)  # to_time without a next sample
@@ -110,7 +114,8 @@ class ImuDownsampler:
         (~5 MB, tests/test_layout.py), and a compiled call per sample costs more than this. Its rotations
         are ``rotation``'s primitives, the ones the kernel calls; tests/test_imu_delta.py holds the two to
         the same bits."""
-        self._unpack()
+        if self._packed is not None:  # (per sample: no call when the floats have the state, as live)
+            self._unpack()
         last = self._last
         # Scalar arithmetic on plain floats: this runs for every IMU sample.
         g, a = gyro.tolist(), accel.tolist()

@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from vtolpose.estimator.core.columns import make_room
 from vtolpose.estimator.core.rotation import quat_from_euler, quat_to_rot, so3_exp
 from vtolpose.estimator.inertial.motion_alignment import integrate
 
@@ -100,13 +101,7 @@ class SampleWindow:
 
     def append(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
         if self._end == len(self._t):
-            n = len(self)
-            if 2 * n > len(self._t):  # more than half full: twice the room, else the window moved to the front
-                t, rows = np.empty(2 * len(self._t), np.int64), np.empty((2 * len(self._t), 6))
-            else:
-                t, rows = self._t, self._rows
-            t[:n], rows[:n] = self._t[self._start:self._end], self._rows[self._start:self._end]
-            self._t, self._rows, self._start, self._end = t, rows, 0, n
+            (self._t, self._rows), self._start, self._end = make_room((self._t, self._rows), self._start, self._end, 1)
         self._t[self._end] = t_ns
         self._rows[self._end, :3] = gyro
         self._rows[self._end, 3:] = accel

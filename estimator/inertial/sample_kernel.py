@@ -68,20 +68,27 @@ def downsample_run(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, acc: np.n
         acc[13] += dt
         if acc[13] < min_dt or acc[13] <= 0.0:
             continue
-        # The step is complete (ImuDownsampler.flush): its rotation vector and Δv, then a fresh start.
-        w, x, y, z = acc[6], acc[7], acc[8], acc[9]
-        norm = math.sqrt(x * x + y * y + z * z)
-        scale = 2.0 * math.atan2(norm, w) / norm if norm > 1e-12 else 2.0
         ends[m] = k
-        times[m, 0], times[m, 1] = acc_t[1], tk
-        dts[m] = acc[13]
-        deltas[m, 0], deltas[m, 1], deltas[m, 2] = scale * x, scale * y, scale * z
-        deltas[m, 3], deltas[m, 4], deltas[m, 5] = acc[10], acc[11], acc[12]
+        _complete_step(acc, acc_t, tk, times, dts, deltas, m)
         m += 1
-        acc[6], acc[7], acc[8], acc[9] = 1.0, 0.0, 0.0, 0.0
-        acc[10], acc[11], acc[12], acc[13] = 0.0, 0.0, 0.0, 0.0
-        acc_t[2] &= ~2
     return ends[:m], times[:m], dts[:m], deltas[:m]
+
+
+@numba.njit(cache=True, nogil=True)
+def _complete_step(acc: np.ndarray, acc_t: np.ndarray, t1: int, times: np.ndarray, dts: np.ndarray,
+                   deltas: np.ndarray, m: int) -> None:
+    """The accumulated step as row ``m`` (:meth:`ImuDownsampler.flush`): from the accumulator's start to ``t1``,
+    its rotation vector and Δv; then a fresh start."""
+    w, x, y, z = acc[6], acc[7], acc[8], acc[9]
+    norm = math.sqrt(x * x + y * y + z * z)
+    scale = 2.0 * math.atan2(norm, w) / norm if norm > 1e-12 else 2.0
+    times[m, 0], times[m, 1] = acc_t[1], t1
+    dts[m] = acc[13]
+    deltas[m, 0], deltas[m, 1], deltas[m, 2] = scale * x, scale * y, scale * z
+    deltas[m, 3], deltas[m, 4], deltas[m, 5] = acc[10], acc[11], acc[12]
+    acc[6], acc[7], acc[8], acc[9] = 1.0, 0.0, 0.0, 0.0
+    acc[10], acc[11], acc[12], acc[13] = 0.0, 0.0, 0.0, 0.0
+    acc_t[2] &= ~2
 
 
 @numba.njit(cache=True, nogil=True)
@@ -95,18 +102,9 @@ def to_time(acc: np.ndarray, acc_t: np.ndarray, t_ns: int, after_t: int, after: 
     dts = np.empty(2)
     deltas = np.empty((2, 6))
     m = 0
-    if acc_t[2] & 2 and acc[13] > 0.0:  # flush: the partial step, then a fresh start
-        w, x, y, z = acc[6], acc[7], acc[8], acc[9]
-        norm = math.sqrt(x * x + y * y + z * z)
-        scale = 2.0 * math.atan2(norm, w) / norm if norm > 1e-12 else 2.0
-        times[0, 0], times[0, 1] = acc_t[1], acc_t[0]
-        dts[0] = acc[13]
-        deltas[0, 0], deltas[0, 1], deltas[0, 2] = scale * x, scale * y, scale * z
-        deltas[0, 3], deltas[0, 4], deltas[0, 5] = acc[10], acc[11], acc[12]
+    if acc_t[2] & 2 and acc[13] > 0.0:  # flush: the partial step up to the last sample, then a fresh start
+        _complete_step(acc, acc_t, acc_t[0], times, dts, deltas, 0)
         m = 1
-        acc[6], acc[7], acc[8], acc[9] = 1.0, 0.0, 0.0, 0.0
-        acc[10], acc[11], acc[12], acc[13] = 0.0, 0.0, 0.0, 0.0
-        acc_t[2] &= ~2
     t_last = acc_t[0]
     if not acc_t[2] & 1 or t_ns <= t_last or acc_t[2] & 2:
         return times[:m], dts[:m], deltas[:m]

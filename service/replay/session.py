@@ -21,7 +21,7 @@ import numpy as np
 from vtolpose.drivers.files.dataset import Dataset
 from vtolpose.drivers.files.lidar import lidar_summary
 from vtolpose.estimator import (
-    CameraFrame, Estimator, FeatureOptions, FrameExtractor, FrameFeatures, FrameReport, FusedRun, OutputPose,
+    CameraFrame, Estimator, FeatureOptions, FrameExtractor, FrameFeatures, FrameReport, FusedRun, OutputPose, make_room,
 )
 from vtolpose.service.replay.faults import Fault, FaultInjector
 from vtolpose.service.runtime.kernels import KernelLoad, load_compiled_kernels
@@ -73,22 +73,14 @@ class _Columns:
 
     def __init__(self, capacity: int = 4096) -> None:
         self.n = 0
-        self._arrays = self._empty(capacity)
-
-    @staticmethod
-    def _empty(capacity: int) -> tuple[np.ndarray, ...]:
-        return (np.empty(capacity, np.int64), np.empty((capacity, 3)), np.empty((capacity, 3)), np.empty((capacity, 4)),
-                np.empty(capacity, bool))
+        self._arrays = (np.empty(capacity, np.int64), np.empty((capacity, 3)), np.empty((capacity, 3)),
+                        np.empty((capacity, 4)), np.empty(capacity, bool))
 
     def room_for(self, m: int) -> tuple[np.ndarray, ...]:
         """The arrays, with room for ``m`` more poses after the first :attr:`n`."""
-        arrays = self._arrays
-        if self.n + m > len(arrays[0]):
-            grown = self._empty(max(2 * len(arrays[0]), self.n + m))
-            for new, old in zip(grown, arrays):
-                new[:self.n] = old[:self.n]
-            arrays = self._arrays = grown
-        return arrays
+        if self.n + m > len(self._arrays[0]):
+            self._arrays, _, self.n = make_room(self._arrays, 0, self.n, m)
+        return self._arrays
 
     def taken(self) -> tuple[np.ndarray, ...]:
         """Copies of the first :attr:`n` poses of each column."""
