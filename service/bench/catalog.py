@@ -13,6 +13,7 @@ SUMMARIES: dict[str, str] = {
     'camera': "The camera's figures together: extraction on one core, then Test 3's work per frame, speed and accuracy,",
     'odometry-encoding': "µs per ODOMETRY publish to one endpoint, pymavlink's framing and the hand-built one, unsigned and signed.",
     'runtime-latency': 'IMU sample in → ODOMETRY and Zenoh pose out, p50/p99, with SIFT at 7.5 Hz in camera threads, then processes (targets: p99 ≤ 1 ms, handling p50 ≤ 0.2 ms).',
+    'latency-floor': "The pose's handling with its encodings, then its prediction too, stood in for (camera process, SIFT at 7.5 Hz): the floor under the 0.2-ms target.",
     'pose-encoding': 'json.dumps(pose_message) against PoseJson, and PoseJson with the covariance written ahead: warm, and paced at 125 Hz.',
     'runtime-hour': 'One hour of IMU+GPS (landfill) through the runtime at full speed: memory and buffers stay flat.',
     'soak-camera': 'One hour of IMU+camera+GPS (landfill, ORB) through the runtime: memory, landmarks, history stay bounded.',

@@ -27,6 +27,7 @@ from vtolpose.service.bench.cold_start import bench_cold_start
 from vtolpose.service.bench.rows import Row
 from vtolpose.service.bench.faults import bench_fault_table, bench_fault_targets
 from vtolpose.service.bench.sensor_lies import bench_sensor_lies
+from vtolpose.service.bench.latency_floor import bench_latency_floor
 from vtolpose.service.bench.runtime import bench_runtime_hour, bench_runtime_latency, bench_soak_camera
 from vtolpose.service.bench.batch import bench_batch
 from vtolpose.service.bench.camera_clock import bench_camera_clock
@@ -120,6 +121,7 @@ BENCHMARKS: dict[str, Callable[[], list[Row]]] = {
     "camera": bench_camera,
     "odometry-encoding": bench_odometry_encoding,
     "runtime-latency": bench_runtime_latency,
+    "latency-floor": bench_latency_floor,
     "pose-encoding": bench_pose_encoding,
     "runtime-hour": bench_runtime_hour,
     "soak-camera": bench_soak_camera,

@@ -180,10 +180,11 @@ class _CountingProcessor(FrameProcessor):
 
 
 def latency_run(duration_s: float, priority: int | None, label: str, overrides: dict | None = None,
-                frames_of_flight: bool = False) -> list[Row]:
+                frames_of_flight: bool = False, after_warm_up: Callable[[Any], None] | None = None) -> list[Row]:
     """One configuration's latency. ``frames_of_flight``: the flight is rendered and its own frames are fused
     by the service's frame processor (the EKF-SLAM update on the loop, as in service), instead of one textured
-    image whose update only counts."""
+    image whose update only counts. ``after_warm_up``: called with the runtime once the filter runs, before the
+    measured part (``latency_floor`` stands in for parts of the per-sample work there)."""
     zenoh_port, mav_port = free_port(), free_port(socket.SOCK_DGRAM)
     flight_frames: list[tuple[int, np.ndarray]] = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -221,6 +222,8 @@ def latency_run(duration_s: float, priority: int | None, label: str, overrides: 
                     key=lambda s: (s.t_ns, isinstance(s, GpsFix))):
         runtime.handle(s)
     runtime.latency, runtime.handling = LatencyProbe(), LatencyProbe()  # forget the warm-up
+    if after_warm_up is not None:
+        after_warm_up(runtime)
     # The peers run in their own processes, as the flight controller and the mapper would.
     subscriber = subprocess.Popen([sys.executable, "-c", _SUBSCRIBER % (zenoh_port, "vtolpose/bench")],
                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
