@@ -156,6 +156,21 @@ def add_batch(core: FusionCore, batch: list) -> None:
                        np.array([s.accel for s in batch]))
 
 
+def feed_batch(core: FusionCore, batch: list, batched: bool) -> None:
+    """IMU samples as one batch of arrays (``batched``) or one by one."""
+    if batched:
+        add_batch(core, batch)
+    else:
+        for sample in batch:
+            core.add_imu(sample)
+
+
+def flushed(core: FusionCore, fused: list) -> tuple:
+    """The core flushed: its fused poses, its counts and its estimator's."""
+    core.flush()
+    return fused, core.counts_report(), core.est.counts_report()
+
+
 def recording_core(flight) -> tuple[FusionCore, list]:
     """A core without a prediction, and the list it appends each fused pose's time, position and attitude to."""
     fused: list = []
@@ -248,15 +263,11 @@ def test_held_runs_change_neither_the_result_nor_what_is_too_late(flight, late_s
             while k < len(fixes) and fixes[k].t_ns + late_s * 1e9 <= batch[0].t_ns:
                 core.add_measurement(fixes[k].t_ns, lambda est, f=fixes[k]: est.process_gps(f), "gps")
                 k += 1
+            feed_batch(core, batch, batched)
             if batched:
-                add_batch(core, batch)
                 held.append(core.fused_until_ns is not None and core.est.state is not None
                             and core.fused_until_ns > core.est.state.t_ns)  # passed by the horizon, not yet fused
-            else:
-                for sample in batch:
-                    core.add_imu(sample)
-        core.flush()
-        results.append((fused, core.counts_report(), core.est.counts_report()))
+        results.append(flushed(core, fused))
     (fused_one, *counts_one), (fused_batched, *counts_batched) = results
     assert sum(held) > 100  # runs were held
     assert_same_trajectory(fused_batched, fused_one)
@@ -502,13 +513,8 @@ def test_a_batch_out_of_order_within_is_taken_sample_by_sample(flight):
     for batched in (False, True):
         core, fused = recording_core(flight)
         for batch in batches:
-            if batched:
-                add_batch(core, batch)
-            else:
-                for sample in batch:
-                    core.add_imu(sample)
-        core.flush()
-        results.append((fused, core.counts_report(), core.est.counts_report()))
+            feed_batch(core, batch, batched)
+        results.append(flushed(core, fused))
     (fused_one, *counts_one), (fused_batched, *counts_batched) = results
     assert counts_batched == counts_one
     assert sum(counts_one[0]["imu"]["rejected"].values()) == 2  # the repeated time and the one stepping back
